@@ -1,0 +1,47 @@
+"""The ``prime`` command. Each module in this package that defines ``register(subparsers)`` adds
+one or more subcommands; a subcommand sets ``func(args) -> int``. Errors meant for people
+(PrimeError, ValueError from parsing) print one line to stderr and exit non-zero."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from humanoid_prime import __version__
+from humanoid_prime.errors import PrimeError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="prime", description="Bring up, calibrate and operate Prime.")
+    parser.add_argument("--version", action="version", version=f"prime {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        register = getattr(module, "register", None)
+        if register is not None:
+            register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except PrimeError as exc:
+        print(f"prime {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"prime {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Loading and validating Prime's bundled, user-overridable configuration files."""

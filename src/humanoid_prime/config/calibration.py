@@ -1,0 +1,106 @@
+"""``prime_calibration.yaml``: per joint ``direction`` (wiring, +1/-1) and ``homing_offset`` (rad).
+
+``q_joint = direction * (q_raw - homing_offset)`` and ``q_raw = direction * q_joint + homing_offset``;
+velocity and effort use ``direction`` only (DESIGN §2).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from humanoid_prime.config.hardware import HardwareConfig
+from humanoid_prime.errors import ConfigError
+from humanoid_prime.files import atomic_write_yaml, bundled, load_yaml
+
+CALIBRATION_FILE = "prime_calibration.yaml"
+HEADER = (
+    "# Per-robot calibration: joint = direction * (raw - homing_offset).\n"
+    "# direction is a wiring fact (+1/-1); homing_offset (rad) is measured per physical robot\n"
+    "# with `prime calibrate`. bus/address are for people; the hardware file is authoritative.\n"
+)
+
+
+@dataclass(frozen=True)
+class JointCalibration:
+    direction: int = 1
+    homing_offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Calibration of every joint, keyed by name, in canonical order."""
+
+    joints: dict[str, JointCalibration]
+    path: Path | None = field(default=None, compare=False)
+
+    def direction_array(self, names: tuple[str, ...]) -> np.ndarray:
+        return np.array([self.joints[n].direction for n in names], dtype=np.float64)
+
+    def offset_array(self, names: tuple[str, ...]) -> np.ndarray:
+        return np.array([self.joints[n].homing_offset for n in names], dtype=np.float64)
+
+    def with_joint(self, name: str, value: JointCalibration) -> Calibration:
+        joints = dict(self.joints)
+        joints[name] = value
+        return replace(self, joints=joints)
+
+
+def identity_calibration(hardware: HardwareConfig, directions: dict[str, int] | None = None) -> Calibration:
+    """Offset 0 on every joint; directions from ``directions`` (a prior file's) or +1."""
+    directions = directions or {}
+    return Calibration({n: JointCalibration(directions.get(n, 1), 0.0) for n in hardware.all_joints})
+
+
+def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -> Calibration:
+    """Load a calibration file for every joint of ``hardware`` and check it names exactly those joints."""
+    path = Path(path) if path is not None else bundled(CALIBRATION_FILE)
+    data = load_yaml(path)
+    joints = data.get("joints") if isinstance(data, dict) else None
+    if not isinstance(joints, dict):
+        raise ConfigError(path, "joints", "missing or not a mapping",
+                          "one entry per joint with direction and homing_offset")
+    for name in joints:
+        if name not in hardware.all_joints:
+            raise ConfigError(path, f"joints.{name}", f"{name!r} matches no joint of {hardware.path.name}",
+                              "fix the name or remove the entry")
+    result: dict[str, JointCalibration] = {}
+    for name in hardware.all_joints:
+        key = f"joints.{name}"
+        entry = joints.get(name)
+        if not isinstance(entry, dict):
+            raise ConfigError(path, key, "missing", "add it with direction: 1 and homing_offset: 0.0")
+        direction = entry.get("direction")
+        if isinstance(direction, bool) or direction not in (1, -1):
+            raise ConfigError(path, f"{key}.direction", f"must be 1 or -1, got {direction!r}")
+        offset = entry.get("homing_offset")
+        if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not math.isfinite(offset):
+            raise ConfigError(path, f"{key}.homing_offset", f"must be a finite number of radians, got {offset!r}")
+        result[name] = JointCalibration(int(direction), float(offset))
+    return Calibration(result, path=path)
+
+
+def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> dict:
+    """The YAML document for ``calibration``, with the human-readable bus and address of each joint."""
+    joints: dict[str, dict] = {}
+    for name in hardware.all_joints:
+        cal = calibration.joints[name]
+        if name in hardware.erob_slaves:
+            bus, address = "ethercat", f"ring {hardware.erob_slaves[name]}"
+        else:
+            bus, address = "can", f"id {hardware.mit_joints[name]}"
+        joints[name] = {
+            "direction": int(cal.direction),
+            "homing_offset": round(float(cal.homing_offset), 6),
+            "bus": bus,
+            "address": address,
+        }
+    return {"joints": joints}
+
+
+def save_calibration(path: str | Path, calibration: Calibration, hardware: HardwareConfig) -> None:
+    """Write the calibration atomically: the old file stays intact until the new one is complete."""
+    atomic_write_yaml(path, calibration_document(calibration, hardware), header=HEADER)

@@ -1,0 +1,197 @@
+"""``prime_controllers.yaml``: controller manager rates, mode controllers, per-mode gains, standby poses."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from humanoid_prime.errors import ConfigError
+from humanoid_prime.files import bundled, load_yaml
+from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
+
+CONTROLLERS_FILE = "prime_controllers.yaml"
+
+
+@dataclass(frozen=True)
+class StandbyParams:
+    kp: float
+    kd: float
+    duration: float
+    default_pose: str
+    poses: dict[str, dict[str, float]]
+
+
+@dataclass(frozen=True)
+class LocomotionParams:
+    policy: str
+    action_scale: float
+    default_pose: str
+    erob_kp: float
+    erob_kd: float
+    sito_kp: float
+    sito_kd: float
+
+
+@dataclass(frozen=True)
+class RemoteParams:
+    topic: str
+    timeout: float
+    stale_policy: str
+    stale_kd: float
+    erob_kp: float
+    erob_kd: float
+
+
+@dataclass(frozen=True)
+class ImpedanceParams:
+    parallel_sdo: bool
+    sdo_retries: int
+
+
+@dataclass(frozen=True)
+class ControllersConfig:
+    path: Path
+    update_rate: float
+    bringup_rate: float
+    sim_update_rate: float
+    physics_rate: float
+    joint_states_topic: str
+    damping_kd: float
+    standby: StandbyParams
+    locomotion: LocomotionParams
+    remote: RemoteParams
+    impedance: ImpedanceParams
+
+    def mode_gains(self) -> dict[Mode, tuple[float, float]]:
+        """Per-mode eRob (kp, kd), derived from the mode controllers' own parameters."""
+        return {
+            Mode.ZERO_TORQUE: (0.0, 0.0),
+            Mode.DAMPING: (0.0, self.damping_kd),
+            Mode.STANDBY: (self.standby.kp, self.standby.kd),
+            Mode.LOCOMOTION: (self.locomotion.erob_kp, self.locomotion.erob_kd),
+            Mode.REMOTE: (self.remote.erob_kp, self.remote.erob_kd),
+        }
+
+
+class _Reader:
+    def __init__(self, path: Path, data: Any) -> None:
+        self.path = path
+        self.data = data if isinstance(data, dict) else None
+        if self.data is None:
+            raise ConfigError(path, "", "expected a mapping of node names to ros__parameters")
+
+    def params(self, node: str) -> dict[str, Any]:
+        block = self.data.get(node)
+        params = block.get("ros__parameters") if isinstance(block, dict) else None
+        if not isinstance(params, dict):
+            raise ConfigError(self.path, f"{node}.ros__parameters", "missing or not a mapping",
+                              f"add a '{node}: ros__parameters:' block")
+        return params
+
+    def number(self, node: str, key: str, *, minimum: float = 0.0, allow_equal: bool = True,
+               default: float | None = None) -> float:
+        value = self.params(node).get(key, default)
+        where = f"{node}.ros__parameters.{key}"
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(self.path, where, f"expected a finite number, got {value!r}")
+        if value < minimum or (value == minimum and not allow_equal):
+            bound = ">=" if allow_equal else ">"
+            raise ConfigError(self.path, where, f"must be {bound} {minimum}, got {value}")
+        return float(value)
+
+    def text(self, node: str, key: str, default: str | None = None) -> str:
+        value = self.params(node).get(key, default)
+        if not isinstance(value, str) or not value:
+            raise ConfigError(self.path, f"{node}.ros__parameters.{key}", f"expected a string, got {value!r}")
+        return value
+
+
+def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) -> ControllersConfig:
+    """Load the controllers file; pose joint names are checked against ``joints``."""
+    path = Path(path) if path is not None else bundled(CONTROLLERS_FILE)
+    r = _Reader(path, load_yaml(path))
+
+    cm = r.params("controller_manager")
+    for name in (JOINT_STATE_BROADCASTER, *MODE_CONTROLLERS.values()):
+        if not isinstance(cm.get(name), dict):
+            raise ConfigError(path, f"controller_manager.ros__parameters.{name}", "controller not declared",
+                              f"add '{name}: {{type: ...}}'")
+
+    raw_poses = r.params("standby_controller").get("poses")
+    if not isinstance(raw_poses, dict) or not raw_poses:
+        raise ConfigError(path, "standby_controller.ros__parameters.poses", "missing or empty",
+                          "give at least one named pose")
+    poses: dict[str, dict[str, float]] = {}
+    for pose, values in raw_poses.items():
+        key = f"standby_controller.ros__parameters.poses.{pose}"
+        values = values or {}
+        if not isinstance(values, dict):
+            raise ConfigError(path, key, "expected a mapping joint -> rad")
+        for joint, value in values.items():
+            if joint not in joints:
+                raise ConfigError(path, f"{key}.{joint}", f"{joint!r} matches no joint", "fix the joint name")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ConfigError(path, f"{key}.{joint}", f"expected a finite angle in rad, got {value!r}")
+        poses[str(pose)] = {j: float(v) for j, v in values.items()}
+
+    standby = StandbyParams(
+        kp=r.number("standby_controller", "kp"),
+        kd=r.number("standby_controller", "kd"),
+        duration=r.number("standby_controller", "duration", allow_equal=False),
+        default_pose=r.text("standby_controller", "default_pose"),
+        poses=poses,
+    )
+    locomotion = LocomotionParams(
+        policy=r.text("locomotion_controller", "policy"),
+        action_scale=r.number("locomotion_controller", "action_scale"),
+        default_pose=r.text("locomotion_controller", "default_pose"),
+        erob_kp=r.number("locomotion_controller", "erob_kp"),
+        erob_kd=r.number("locomotion_controller", "erob_kd"),
+        sito_kp=r.number("locomotion_controller", "sito_kp"),
+        sito_kd=r.number("locomotion_controller", "sito_kd"),
+    )
+    defaults = (("standby_controller", standby.default_pose), ("locomotion_controller", locomotion.default_pose))
+    for node, pose in defaults:
+        if pose not in poses:
+            raise ConfigError(path, f"{node}.ros__parameters.default_pose", f"pose {pose!r} is not defined",
+                              f"use one of {', '.join(poses)}")
+    stale = r.text("remote_policy_controller", "stale_policy", "damp")
+    if stale not in ("damp", "hold"):
+        raise ConfigError(path, "remote_policy_controller.ros__parameters.stale_policy",
+                          f"expected 'damp' or 'hold', got {stale!r}")
+    remote = RemoteParams(
+        topic=r.text("remote_policy_controller", "topic", "/remote_policy_controller/command"),
+        timeout=r.number("remote_policy_controller", "timeout", allow_equal=False),
+        stale_policy=stale,
+        stale_kd=r.number("remote_policy_controller", "stale_kd"),
+        erob_kp=r.number("remote_policy_controller", "erob_kp"),
+        erob_kd=r.number("remote_policy_controller", "erob_kd"),
+    )
+    imp = r.params("erob_impedance_manager")
+    if "torque_efficiency" in imp:
+        raise ConfigError(path, "erob_impedance_manager.ros__parameters.torque_efficiency",
+                          "is set here and in the hardware file", "set it only in prime_hardware.yaml")
+    parallel = imp.get("parallel_sdo", True)
+    if not isinstance(parallel, bool):
+        raise ConfigError(path, "erob_impedance_manager.ros__parameters.parallel_sdo",
+                          f"expected true or false, got {parallel!r}")
+    retries = imp.get("sdo_retries", 3)
+    if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 20:
+        raise ConfigError(path, "erob_impedance_manager.ros__parameters.sdo_retries",
+                          f"expected an integer 0..20, got {retries!r}")
+
+    return ControllersConfig(
+        path=path,
+        update_rate=r.number("controller_manager", "update_rate", allow_equal=False),
+        bringup_rate=r.number("controller_manager", "bringup_rate", allow_equal=False, default=1000.0),
+        sim_update_rate=r.number("mujoco_simulation", "update_rate", allow_equal=False),
+        physics_rate=r.number("mujoco_simulation", "physics_rate", allow_equal=False),
+        joint_states_topic=r.text("joint_state_broadcaster", "topic", "/prime/joint_states"),
+        damping_kd=r.number("damping_controller", "kd"),
+        standby=standby,
+        locomotion=locomotion,
+        remote=remote,
+        impedance=ImpedanceParams(parallel_sdo=parallel, sdo_retries=retries),
+    )

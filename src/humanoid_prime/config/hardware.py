@@ -1,0 +1,185 @@
+"""``prime_hardware.yaml``: buses and the joint -> bus map (the single source of truth for both)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from humanoid_prime.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
+from humanoid_prime.errors import ConfigError
+from humanoid_prime.files import bundled, load_yaml
+
+HARDWARE_FILE = "prime_hardware.yaml"
+CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
+
+
+@dataclass(frozen=True)
+class EthercatBus:
+    interface: str
+    master: int
+
+
+@dataclass(frozen=True)
+class CanBus:
+    interface: str
+    channel: str
+    bitrate: int
+
+
+@dataclass(frozen=True)
+class HardwareConfig:
+    path: Path
+    ethercat: EthercatBus
+    can: CanBus
+    all_joints: tuple[str, ...]
+    erob_slaves: dict[str, int]
+    mit_joints: dict[str, int]
+    erob_kt: dict[str, float]
+    erob_gear: dict[str, float]
+    torque_efficiency: float
+
+    @property
+    def erob_joints(self) -> tuple[str, ...]:
+        """eRob joints in canonical (kinematic) order."""
+        return tuple(j for j in self.all_joints if j in self.erob_slaves)
+
+    @property
+    def sito_joints(self) -> tuple[str, ...]:
+        """Sito joints in canonical (kinematic) order."""
+        return tuple(j for j in self.all_joints if j in self.mit_joints)
+
+    def family(self, joint: str) -> str:
+        return "erob" if joint in self.erob_slaves else "sito"
+
+
+def _section(data: Any, path: Path, key: str) -> dict[str, Any]:
+    value = data.get(key.rsplit(".", 1)[-1]) if isinstance(data, dict) else None
+    if not isinstance(value, dict):
+        raise ConfigError(path, key, "missing or not a mapping", f"add a '{key}' mapping")
+    return value
+
+
+def _int(value: Any, path: Path, key: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(path, key, f"expected an integer, got {value!r}")
+    return value
+
+
+def _positive_float(value: Any, path: Path, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ConfigError(path, key, f"expected a positive finite number, got {value!r}")
+    return float(value)
+
+
+def _str(value: Any, path: Path, key: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(path, key, f"expected a non-empty string, got {value!r}")
+    return value
+
+
+def load_hardware(path: str | Path | None = None) -> HardwareConfig:
+    """Load and validate a hardware file (default: the bundled one)."""
+    path = Path(path) if path is not None else bundled(HARDWARE_FILE)
+    data = load_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError(path, "", "expected a mapping with 'buses' and 'joints'")
+    buses = _section(data, path, "buses")
+    ec = _section(buses, path, "buses.ethercat")
+    can = _section(buses, path, "buses.can")
+    ethercat = EthercatBus(
+        interface=_str(ec.get("interface"), path, "buses.ethercat.interface"),
+        master=_int(ec.get("master", 0), path, "buses.ethercat.master"),
+    )
+    can_bus = CanBus(
+        interface=_str(can.get("interface", "socketcan"), path, "buses.can.interface"),
+        channel=_str(can.get("channel"), path, "buses.can.channel"),
+        bitrate=_int(can.get("bitrate"), path, "buses.can.bitrate"),
+    )
+    if can_bus.bitrate <= 0:
+        raise ConfigError(path, "buses.can.bitrate", f"must be positive, got {can_bus.bitrate}")
+
+    joints = _section(data, path, "joints")
+    names = joints.get("all_joints")
+    if not isinstance(names, list) or not names:
+        raise ConfigError(path, "joints.all_joints", "missing or empty", "list the joints in kinematic order")
+    seen: set[str] = set()
+    for i, name in enumerate(names):
+        _str(name, path, f"joints.all_joints[{i}]")
+        if name in seen:
+            raise ConfigError(path, f"joints.all_joints[{i}]", f"joint {name!r} is listed twice")
+        seen.add(name)
+
+    erob_raw = joints.get("erob_slaves") or {}
+    mit_raw = joints.get("mit_joints") or {}
+    if not isinstance(erob_raw, dict):
+        raise ConfigError(path, "joints.erob_slaves", "expected a mapping joint -> ring position")
+    if not isinstance(mit_raw, dict):
+        raise ConfigError(path, "joints.mit_joints", "expected a mapping joint -> CAN id")
+
+    erob_slaves: dict[str, int] = {}
+    owner_of_ring: dict[int, str] = {}
+    for joint, pos in erob_raw.items():
+        key = f"joints.erob_slaves.{joint}"
+        if joint not in seen:
+            raise ConfigError(path, key, f"joint {joint!r} is not in joints.all_joints", "fix the name or add it")
+        pos = _int(pos, path, key)
+        if pos < 0:
+            raise ConfigError(path, key, f"ring position must be >= 0, got {pos}")
+        if pos in owner_of_ring:
+            raise ConfigError(
+                path, key, f"ring position {pos} is already used by {owner_of_ring[pos]}",
+                "each eRob has its own ring position",
+            )
+        owner_of_ring[pos] = joint
+        erob_slaves[joint] = pos
+
+    mit_joints: dict[str, int] = {}
+    owner_of_id: dict[int, str] = {}
+    for joint, can_id in mit_raw.items():
+        key = f"joints.mit_joints.{joint}"
+        if joint not in seen:
+            raise ConfigError(path, key, f"joint {joint!r} is not in joints.all_joints", "fix the name or add it")
+        if joint in erob_slaves:
+            raise ConfigError(path, key, f"joint {joint!r} is also an eRob", "a joint lives on one bus only")
+        can_id = _int(can_id, path, key)
+        if can_id not in CAN_ID_RANGE:
+            raise ConfigError(path, key, f"CAN id {can_id} is out of range", "use 1..255")
+        if can_id in owner_of_id:
+            raise ConfigError(path, key, f"CAN id {can_id} is already used by {owner_of_id[can_id]}")
+        owner_of_id[can_id] = joint
+        mit_joints[joint] = can_id
+
+    for name in names:
+        if name not in erob_slaves and name not in mit_joints:
+            raise ConfigError(
+                path, f"joints.all_joints.{name}", "joint has no bus",
+                "give it a ring position in joints.erob_slaves or a CAN id in joints.mit_joints",
+            )
+
+    def per_erob(key: str, default: float) -> dict[str, float]:
+        raw = joints.get(key) or {}
+        if not isinstance(raw, dict):
+            raise ConfigError(path, f"joints.{key}", "expected a mapping joint -> value")
+        for joint in raw:
+            if joint not in erob_slaves:
+                raise ConfigError(path, f"joints.{key}.{joint}", f"{joint!r} is not an eRob joint",
+                                  "only joints in joints.erob_slaves take this value")
+        return {j: _positive_float(raw.get(j, default), path, f"joints.{key}.{j}") for j in erob_slaves}
+
+    efficiency = _positive_float(data.get("torque_efficiency", 1.0), path, "torque_efficiency")
+    if efficiency > 1.0:
+        raise ConfigError(path, "torque_efficiency", f"{efficiency} is above 1", "use realised/nominal, 0 < e <= 1")
+
+    return HardwareConfig(
+        path=path,
+        ethercat=ethercat,
+        can=can_bus,
+        all_joints=tuple(names),
+        erob_slaves=erob_slaves,
+        mit_joints=mit_joints,
+        erob_kt=per_erob("erob_kt", DEFAULT_KT_NM_PER_MA),
+        erob_gear=per_erob("erob_gear", DEFAULT_GEAR),
+        torque_efficiency=efficiency,
+    )

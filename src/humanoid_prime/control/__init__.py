@@ -1,0 +1,1 @@
+"""Controller manager, controllers and the hardware-component interface they meet at."""

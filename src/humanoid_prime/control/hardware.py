@@ -1,0 +1,104 @@
+"""The hardware-component interface: one per bus (or one simulation), with a lifecycle.
+
+A component owns a subset of the joints (``joints``, names in canonical order) and the bus behind
+them, and applies the calibration itself, so everything above it is in the joint frame. It never
+knows which mode is active. The resource manager hands each component the global arrays plus the
+canonical indices of its joints; ``read`` fills ``state[:, indices]``, ``write`` sends
+``command[:, indices]``. Both must be non-blocking and allocation-free.
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+
+
+class Lifecycle(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FINALIZED = "finalized"
+
+
+class HardwareComponent(ABC):
+    """Base class of ``MujocoSystem``, ``SitoSystem`` and ``EthercatSystem``."""
+
+    def __init__(self, name: str, joints: tuple[str, ...]) -> None:
+        self.name = name
+        self.joints = joints
+        self.indices = np.arange(len(joints), dtype=np.intp)  # set by the resource manager
+        self.lifecycle = Lifecycle.UNCONFIGURED
+        # Safety flags observed now (e.g. "can2: rx timeout id 22"); bump flags_version on change.
+        self.flags: dict[str, str] = {}
+        self.flags_version = 0
+
+    def set_flag(self, key: str, text: str) -> None:
+        if self.flags.get(key) != text:
+            self.flags[key] = text
+            self.flags_version += 1
+
+    def clear_flag(self, key: str) -> None:
+        if key in self.flags:
+            del self.flags[key]
+            self.flags_version += 1
+
+    # Lifecycle. Subclasses override the on_* hooks; these wrappers keep the state machine honest.
+    def configure(self) -> None:
+        if self.lifecycle is not Lifecycle.UNCONFIGURED:
+            raise RuntimeError(f"{self.name}: configure from {self.lifecycle.value}")
+        self.on_configure()
+        self.lifecycle = Lifecycle.INACTIVE
+
+    def activate(self) -> None:
+        if self.lifecycle is not Lifecycle.INACTIVE:
+            raise RuntimeError(f"{self.name}: activate from {self.lifecycle.value}")
+        self.on_activate()
+        self.lifecycle = Lifecycle.ACTIVE
+
+    def deactivate(self) -> None:
+        if self.lifecycle is Lifecycle.ACTIVE:
+            try:
+                self.on_deactivate()
+            finally:
+                self.lifecycle = Lifecycle.INACTIVE
+
+    def shutdown(self) -> None:
+        if self.lifecycle is Lifecycle.FINALIZED:
+            return
+        try:
+            self.deactivate()
+        finally:
+            try:
+                self.on_shutdown()
+            finally:
+                self.lifecycle = Lifecycle.FINALIZED
+
+    def on_configure(self) -> None:
+        """Open the bus, discover the devices, check they match the configuration."""
+
+    def on_activate(self) -> None:
+        """Start exchanging data with the devices (enable drives, send gains, ...)."""
+
+    def on_deactivate(self) -> None:
+        """Leave every device safe (limp or holding) and stop commanding it."""
+
+    def on_shutdown(self) -> None:
+        """Release the bus."""
+
+    @abstractmethod
+    def read(self, now: float, state: StateArrays) -> None:
+        """Fill ``state`` at ``self.indices`` with the latest measurements (joint frame)."""
+
+    @abstractmethod
+    def write(self, now: float, command: CommandArrays) -> None:
+        """Send ``command`` at ``self.indices`` to the devices (joint frame in, device frame out)."""
+
+    def __enter__(self) -> HardwareComponent:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()

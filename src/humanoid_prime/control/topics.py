@@ -1,0 +1,87 @@
+"""In-process topics with the ROS 2 names and message shapes, so a ROS 2 bridge is a mapping.
+
+Publishing calls subscribers synchronously in the publisher's thread and keeps the latest message.
+Subscribers must be quick and must copy a message they keep: hot-path publishers reuse one message.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+JOINT_STATES = "/prime/joint_states"
+CONTROL_MODE = "/control_mode"
+SAFETY_STATUS = "/safety_status"
+REMOTE_COMMAND = "/remote_policy_controller/command"
+
+
+@dataclass
+class JointState:
+    """sensor_msgs/JointState."""
+
+    stamp: float
+    name: tuple[str, ...]
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+
+
+@dataclass
+class MitCommand:
+    """The MIT command message: one value per joint, in ``joint_names`` order."""
+
+    joint_names: tuple[str, ...]
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    stiffness: np.ndarray
+    damping: np.ndarray
+    stamp: float = 0.0
+
+
+@dataclass(frozen=True)
+class ControlMode:
+    mode: str
+    controller: str
+    stamp: float = 0.0
+
+
+@dataclass(frozen=True)
+class SafetyStatus:
+    """Latched: published on change. ``flags`` maps a source key to a human-readable problem."""
+
+    ok: bool
+    flags: dict[str, str] = field(default_factory=dict)
+    stamp: float = 0.0
+
+
+class TopicBus:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._subscribers: dict[str, list[Callable[[Any], None]]] = {}
+        self._latest: dict[str, Any] = {}
+
+    def publish(self, topic: str, message: Any) -> None:
+        self._latest[topic] = message
+        for callback in self._subscribers.get(topic, ()):
+            callback(message)
+
+    def subscribe(self, topic: str, callback: Callable[[Any], None], *, latched: bool = False) -> None:
+        """Call ``callback`` for every message; with ``latched``, also once now with the latest one."""
+        with self._lock:
+            self._subscribers.setdefault(topic, []).append(callback)
+        if latched and topic in self._latest:
+            callback(self._latest[topic])
+
+    def unsubscribe(self, topic: str, callback: Callable[[Any], None]) -> None:
+        with self._lock:
+            subs = self._subscribers.get(topic, [])
+            if callback in subs:
+                subs.remove(callback)
+
+    def latest(self, topic: str) -> Any:
+        return self._latest.get(topic)

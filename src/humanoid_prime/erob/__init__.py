@@ -1,0 +1,1 @@
+"""ZeroErr eRob servos: CiA402 over EtherCAT."""

@@ -1,0 +1,16 @@
+"""eRob hardware constants (DESIGN §2). One place, so a re-measurement is a one-line change."""
+
+import math
+
+VENDOR_ID = 0x5A65726F
+PRODUCT_CODE = 0x00029252
+
+COUNTS_PER_REV = 524288  # 2**19 absolute multi-turn output encoder
+COUNTS_PER_RAD = COUNTS_PER_REV / (2.0 * math.pi)
+
+DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
+EROB80_KT_NM_PER_MA = 0.134e-3  # eRob80 V5_MC2
+DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
+
+MIN_CYCLE_S = 500e-6
+MODE_CSP = 8

@@ -1,0 +1,1 @@
+"""EtherCAT: masters (SOEM through pysoem, IgH CLI for SDO), the eRob component, the ring emulator."""

@@ -1,0 +1,1 @@
+"""Simulated Prime: MuJoCo plant and the demonstration run."""

@@ -1,0 +1,1 @@
+"""Sito TA40-50 wrist motors: native MIT over CAN."""

@@ -1,0 +1,81 @@
+"""eRob CoE object indices and the process-data layout Prime maps (DESIGN §2).
+
+The same layout is used by the master (to map and decode), the slave-config fold (channels and
+their factor/offset) and the ring emulator (to answer), so it lives here once.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+# CiA402 objects
+CONTROLWORD = 0x6040
+STATUSWORD = 0x6041
+MODE_OF_OPERATION = 0x6060
+MODE_DISPLAY = 0x6061
+POSITION_ACTUAL = 0x6064
+VELOCITY_ACTUAL = 0x606C
+TORQUE_ACTUAL = 0x6077
+RATED_TORQUE = 0x6076
+TARGET_POSITION = 0x607A
+VELOCITY_OFFSET = 0x60B1
+TORQUE_OFFSET = 0x60B2
+ERROR_CODE = 0x603F
+ERROR_HISTORY = 0x1003
+FOLLOWING_ERROR_WINDOW = 0x6065
+
+# Communication objects
+DEVICE_TYPE = 0x1000
+IDENTITY = 0x1018
+SM_COMM_TYPE = 0x1C00
+RXPDO_ASSIGN = 0x1C12
+TXPDO_ASSIGN = 0x1C13
+RXPDO_MAP = 0x1600
+TXPDO_MAP = 0x1A00
+SYNC_OUTPUT = 0x1C32  # SM2 synchronisation parameters (cycle time in :02)
+SYNC_INPUT = 0x1C33
+
+# ZeroErr manufacturer objects: loop gains, SDO only (not PDO-mappable)
+POS_LOOP_GAIN = (0x2382, 0x01)  # pos_reg
+VEL_LOOP_GAIN = (0x2381, 0x01)  # vel_reg
+VEL_LOOP_INTEGRAL = (0x2381, 0x02)  # held at 0 for a clean impedance
+BUS_GAIN_GATE = (0x2383, 0x00)  # 1 = bus-written gains, 0 = factory gains (default)
+GAIN_REGISTER_FORMAT = "<I"  # registers are written as u32; EDS says u16, one ESI says u32 (DESIGN §2)
+
+
+@dataclass(frozen=True)
+class PdoEntry:
+    index: int
+    sub_index: int
+    fmt: str  # struct format of one value, little-endian on the wire
+    name: str
+
+    @property
+    def bits(self) -> int:
+        return struct.calcsize("<" + self.fmt) * 8
+
+    @property
+    def mapping(self) -> int:
+        """The 32-bit value of this entry in a 0x16xx/0x1Axx mapping object: index:sub:bit-length."""
+        return (self.index << 16) | (self.sub_index << 8) | self.bits
+
+
+RXPDO: tuple[PdoEntry, ...] = (
+    PdoEntry(CONTROLWORD, 0, "H", "controlword"),
+    PdoEntry(TARGET_POSITION, 0, "i", "target_position"),
+    PdoEntry(VELOCITY_OFFSET, 0, "i", "velocity_offset"),
+    PdoEntry(TORQUE_OFFSET, 0, "h", "torque_offset"),
+    PdoEntry(MODE_OF_OPERATION, 0, "b", "mode_of_operation"),
+)
+TXPDO: tuple[PdoEntry, ...] = (
+    PdoEntry(STATUSWORD, 0, "H", "statusword"),
+    PdoEntry(POSITION_ACTUAL, 0, "i", "position_actual"),
+    PdoEntry(VELOCITY_ACTUAL, 0, "i", "velocity_actual"),
+    PdoEntry(TORQUE_ACTUAL, 0, "h", "torque_actual"),
+    PdoEntry(ERROR_CODE, 0, "H", "error_code"),
+    PdoEntry(MODE_DISPLAY, 0, "b", "mode_display"),
+)
+
+RXPDO_STRUCT = struct.Struct("<" + "".join(e.fmt for e in RXPDO))  # 13 bytes, master -> drive
+TXPDO_STRUCT = struct.Struct("<" + "".join(e.fmt for e in TXPDO))  # 15 bytes, drive -> master

@@ -1,4 +1,4 @@
-"""Mode requests from a second terminal reach the running instance, and bad ones are refused."""
+"""The control socket: mode requests and SDO from a second terminal reach the running instance."""
 
 import subprocess
 import sys
@@ -6,56 +6,91 @@ import sys
 import pytest
 
 from humanoid_prime.cli import main
-from humanoid_prime.control.operator import ModeRequestServer, send_mode_request
+from humanoid_prime.control.operator import ControlServer, SocketSdoClient, send_mode_request
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+
+
+class RecordingSdo:
+    def __init__(self):
+        self.objects = {(3, 0x2382, 1): b"\x1e\x00\x00\x00"}
+
+    def sdo_read(self, position, index, sub_index):
+        try:
+            return self.objects[(position, index, sub_index)]
+        except KeyError:
+            raise PrimeError(f"ring {position}: SDO abort 0x06020000 on 0x{index:04X}:{sub_index:02X}") from None
+
+    def sdo_write(self, position, index, sub_index, data):
+        self.objects[(position, index, sub_index)] = data
 
 
 @pytest.fixture
 def server(tmp_path):
     requested: list[Mode] = []
-    with ModeRequestServer(requested.append, tmp_path / "mode.sock") as srv:
-        yield srv, requested
+    sdo = RecordingSdo()
+    with ControlServer(requested.append, tmp_path / "control.sock", sdo=sdo) as srv:
+        yield srv, requested, sdo
 
 
-def test_request_is_handed_to_the_manager(server):
-    srv, requested = server
-    assert send_mode_request(Mode.STANDBY, srv.path) == "ok STANDBY"
+def test_mode_request_is_handed_to_the_manager(server):
+    srv, requested, _ = server
+    assert send_mode_request(Mode.STANDBY, srv.path) == "STANDBY"
     assert requested == [Mode.STANDBY]
 
 
 def test_controller_names_are_accepted(server):
-    srv, requested = server
-    main(["switch", "damping_controller", "--socket", str(srv.path)])
+    srv, requested, _ = server
+    assert main(["switch", "damping_controller", "--socket", str(srv.path)]) == 0
     assert requested == [Mode.DAMPING]
 
 
 def test_switch_without_a_running_instance_is_one_line_error(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "humanoid_prime.cli", "switch", "STANDBY",
+    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "switch", "STANDBY",
                            "--socket", str(tmp_path / "none.sock")], capture_output=True, text=True)
     assert proc.returncode == 1
-    assert proc.stderr.strip().count("\n") == 0
-    assert "no running prime sim or bringup" in proc.stderr
+    assert proc.stderr.count("\n") == 1
+    assert "no running prime instance" in proc.stderr
 
 
 def test_unknown_mode_is_refused_before_sending(server, capsys):
-    srv, requested = server
+    srv, requested, _ = server
     assert main(["switch", "WALK", "--socket", str(srv.path)]) == 1
     assert "unknown mode 'WALK'" in capsys.readouterr().err
     assert requested == []
 
 
+def test_sdo_read_and_write_through_the_socket(server):
+    srv, _, sdo = server
+    client = SocketSdoClient(srv.path)
+    assert client.sdo_read(3, 0x2382, 1) == b"\x1e\x00\x00\x00"
+    client.sdo_write(3, 0x2383, 0, b"\x01")
+    assert sdo.objects[(3, 0x2383, 0)] == b"\x01"
+
+
+def test_sdo_abort_comes_back_as_one_error(server):
+    srv, _, _ = server
+    with pytest.raises(PrimeError, match="SDO abort 0x06020000"):
+        SocketSdoClient(srv.path).sdo_read(3, 0x9999, 0)
+
+
+def test_sdo_without_a_master_is_refused(tmp_path):
+    with ControlServer(lambda m: None, tmp_path / "c.sock") as srv, \
+            pytest.raises(PrimeError, match="no EtherCAT master"):
+        SocketSdoClient(srv.path).sdo_read(0, 0x2382, 1)
+
+
 def test_second_server_on_a_live_socket_is_refused(server):
-    srv, _ = server
+    srv, _, _ = server
     with pytest.raises(PrimeError, match="already listens"):
-        ModeRequestServer(lambda m: None, srv.path).start()
+        ControlServer(None, srv.path).start()
 
 
 def test_stale_socket_file_is_replaced(tmp_path):
-    path = tmp_path / "mode.sock"
+    path = tmp_path / "control.sock"
     path.write_text("")
     requested: list[Mode] = []
-    with ModeRequestServer(requested.append, path):
+    with ControlServer(requested.append, path):
         send_mode_request(Mode.REMOTE, path)
     assert requested == [Mode.REMOTE]
     assert not path.exists()

@@ -15,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description="Switch the control mode of a running prime sim or prime bringup "
                                           "from another terminal. The switch lands between two ticks.")
     p.add_argument("mode", help="ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION or REMOTE")
-    p.add_argument("--socket", metavar="PATH", help=f"mode-request socket (default: {default_socket_path()})")
+    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
     add_json_option(p)
     p.set_defaults(func=run)
 
@@ -25,9 +25,9 @@ def run(args: argparse.Namespace) -> int:
         mode = Mode.parse(args.mode)
     except ValueError as exc:
         raise PrimeError(str(exc)) from None
-    reply = send_mode_request(mode, args.socket)
+    accepted = send_mode_request(mode, args.socket)
     if args.json:
-        print_json({"mode": mode.value, "reply": reply})
+        print_json({"mode": accepted})
     else:
-        print(f"requested {mode.value}")
+        print(f"requested {accepted}")
     return 0

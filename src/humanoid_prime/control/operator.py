@@ -1,40 +1,56 @@
-"""Mode requests from a second terminal: a small UNIX-socket server inside a running ``prime sim`` or
-``prime bringup``, and the client behind ``prime switch MODE``.
+"""The control socket of a running ``prime sim``, ``prime bringup`` or ``prime calibrate``.
 
-One request per connection, one line each way: the client sends a mode name, the server answers
-``ok MODE`` once the request is queued (it lands between two ticks) or ``error ...``.
+A second terminal uses it to switch modes (``prime switch MODE``) and, when the process owns an
+EtherCAT master, to reach the drives' mailboxes (``prime limp``, ``prime ec sdo``): with SOEM the
+master lives inside that process, so SDO from another process goes through here.
+
+One JSON request per connection, one JSON answer: ``{"op": "mode", "mode": "STANDBY"}``,
+``{"op": "sdo_read", "position": 3, "index": 9090, "sub_index": 1}``,
+``{"op": "sdo_write", ..., "data": "1e000000"}``; answers carry ``"ok": true`` or ``"error"``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any, Protocol
 
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
 
+class SdoClient(Protocol):
+    """Blocking SDO access by ring position (a master, the IgH adapter, or this socket's client)."""
+
+    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes: ...
+
+    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None: ...
+
+
 def default_socket_path() -> Path:
     base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
-    return Path(base) / f"prime-{os.getuid()}" / "mode.sock"
+    return Path(base) / f"prime-{os.getuid()}" / "control.sock"
 
 
-class ModeRequestServer:
-    """Accepts mode names on a UNIX socket and hands them to ``request`` (e.g. manager.request_mode)."""
+class ControlServer:
+    """Serves mode requests (handed to ``request_mode``) and, if given an ``sdo`` client, SDO requests."""
 
-    def __init__(self, request: Callable[[Mode], None], path: str | Path | None = None) -> None:
-        self.request = request
+    def __init__(self, request_mode: Callable[[Mode], None] | None, path: str | Path | None = None, *,
+                 sdo: SdoClient | None = None) -> None:
+        self.request_mode = request_mode
+        self.sdo = sdo
         self.path = Path(path) if path is not None else default_socket_path()
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
-    def start(self) -> ModeRequestServer:
+    def start(self) -> ControlServer:
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         if self.path.exists():
             if _answers(self.path):
@@ -42,10 +58,10 @@ class ModeRequestServer:
             self.path.unlink()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         sock.bind(str(self.path))
-        sock.listen(4)
+        sock.listen(8)
         sock.settimeout(0.2)
         self._sock = sock
-        self._thread = threading.Thread(target=self._serve, name="mode-requests", daemon=True)
+        self._thread = threading.Thread(target=self._serve, name="control-socket", daemon=True)
         self._thread.start()
         return self
 
@@ -58,22 +74,45 @@ class ModeRequestServer:
                 continue
             except OSError:
                 return
-            with conn:
-                conn.settimeout(1.0)
-                try:
-                    text = conn.recv(256).decode("utf-8", "replace").strip()
-                    if text == "ping":
-                        reply = "ok ping"
-                    else:
-                        mode = Mode.parse(text)
-                        self.request(mode)
-                        reply = f"ok {mode.value}"
-                except (ValueError, PrimeError) as exc:
-                    reply = f"error {exc}"
-                except OSError:
-                    continue
-                with contextlib.suppress(OSError):
-                    conn.sendall(reply.encode() + b"\n")
+            threading.Thread(target=self._handle, args=(conn,), daemon=True).start()
+
+    def _handle(self, conn: socket.socket) -> None:
+        with conn:
+            conn.settimeout(10.0)
+            try:
+                request = json.loads(_recv_line(conn))
+                reply = self._answer(request)
+            except (ValueError, KeyError, TypeError) as exc:
+                reply = {"ok": False, "error": f"bad request: {exc}"}
+            except OSError:
+                return
+            with contextlib.suppress(OSError):
+                conn.sendall(json.dumps(reply).encode() + b"\n")
+
+    def _answer(self, request: dict[str, Any]) -> dict[str, Any]:
+        op = request["op"]
+        try:
+            if op == "ping":
+                return {"ok": True}
+            if op == "mode":
+                if self.request_mode is None:
+                    return {"ok": False, "error": "this prime instance runs no mode controllers"}
+                mode = Mode.parse(str(request["mode"]))
+                self.request_mode(mode)
+                return {"ok": True, "mode": mode.value}
+            if op in ("sdo_read", "sdo_write"):
+                if self.sdo is None:
+                    return {"ok": False, "error": "this prime instance has no EtherCAT master"}
+                position, index, sub = int(request["position"]), int(request["index"]), int(request["sub_index"])
+                if op == "sdo_read":
+                    return {"ok": True, "data": self.sdo.sdo_read(position, index, sub).hex()}
+                self.sdo.sdo_write(position, index, sub, bytes.fromhex(request["data"]))
+                return {"ok": True}
+        except PrimeError as exc:
+            return {"ok": False, "error": str(exc)}
+        except ValueError as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": False, "error": f"unknown op {op!r}"}
 
     def close(self) -> None:
         self._stop.set()
@@ -86,37 +125,72 @@ class ModeRequestServer:
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
 
-    def __enter__(self) -> ModeRequestServer:
+    def __enter__(self) -> ControlServer:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def _exchange(path: Path, text: str, timeout: float) -> str:
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(timeout)
-        sock.connect(str(path))
-        sock.sendall(text.encode() + b"\n")
-        return sock.recv(512).decode("utf-8", "replace").strip()
+def _recv_line(conn: socket.socket) -> str:
+    chunks = []
+    while True:
+        chunk = conn.recv(4096)
+        if not chunk:
+            break
+        chunks.append(chunk)
+        if chunk.endswith(b"\n"):
+            break
+    return b"".join(chunks).decode("utf-8", "replace")
+
+
+def request(path: str | Path | None, payload: dict[str, Any], timeout: float = 5.0) -> dict[str, Any]:
+    """Send one request to the running instance; a missing instance or an error answer raises PrimeError."""
+    path = Path(path) if path is not None else default_socket_path()
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(timeout)
+            sock.connect(str(path))
+            sock.sendall(json.dumps(payload).encode() + b"\n")
+            text = _recv_line(sock)
+    except (FileNotFoundError, ConnectionRefusedError):
+        raise PrimeError(f"no running prime instance listens on {path}") from None
+    except OSError as exc:
+        raise PrimeError(f"could not reach {path}: {exc.strerror or exc}") from None
+    try:
+        reply = json.loads(text)
+    except ValueError:
+        raise PrimeError(f"garbled answer from {path}") from None
+    if not reply.get("ok"):
+        raise PrimeError(str(reply.get("error") or f"no answer from {path}"))
+    return reply
 
 
 def _answers(path: Path) -> bool:
     try:
-        return _exchange(path, "ping", 0.5) == "ok ping"
-    except OSError:
+        request(path, {"op": "ping"}, timeout=0.5)
+        return True
+    except PrimeError:
         return False
 
 
-def send_mode_request(mode: Mode, path: str | Path | None = None, timeout: float = 2.0) -> str:
-    """Ask the running instance at ``path`` to switch to ``mode``; returns the server's answer."""
-    path = Path(path) if path is not None else default_socket_path()
-    try:
-        reply = _exchange(path, mode.value, timeout)
-    except (FileNotFoundError, ConnectionRefusedError):
-        raise PrimeError(f"no running prime sim or bringup listens on {path}") from None
-    except OSError as exc:
-        raise PrimeError(f"could not reach {path}: {exc.strerror or exc}") from None
-    if not reply.startswith("ok "):
-        raise PrimeError(reply.removeprefix("error ").strip() or f"no answer from {path}")
-    return reply
+def send_mode_request(mode: Mode, path: str | Path | None = None) -> str:
+    """Ask the running instance to switch to ``mode``; returns the mode it accepted."""
+    return str(request(path, {"op": "mode", "mode": mode.value})["mode"])
+
+
+class SocketSdoClient:
+    """SDO through the control socket of the running process that owns the EtherCAT master."""
+
+    def __init__(self, path: str | Path | None = None, timeout: float = 5.0) -> None:
+        self.path = Path(path) if path is not None else default_socket_path()
+        self.timeout = timeout
+
+    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
+        reply = request(self.path, {"op": "sdo_read", "position": position, "index": index,
+                                    "sub_index": sub_index}, self.timeout)
+        return bytes.fromhex(reply["data"])
+
+    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
+        request(self.path, {"op": "sdo_write", "position": position, "index": index, "sub_index": sub_index,
+                            "data": data.hex()}, self.timeout)

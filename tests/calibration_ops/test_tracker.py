@@ -1,0 +1,53 @@
+"""The sweep tracker keeps per-joint min/max and coverage of the described range."""
+
+import numpy as np
+import pytest
+
+from humanoid_prime.calibration.tracker import SweepTracker
+from humanoid_prime.control.topics import JOINT_STATES, JointState, TopicBus
+
+
+def test_min_max_follow_the_samples(robot):
+    tracker = SweepTracker(robot, ["left_elbow_pitch", "left_wrist_roll"])
+    for value in (-0.2, -1.5, -0.7, 0.1):
+        q = np.zeros(robot.n)
+        q[robot.index("left_elbow_pitch")] = value
+        tracker.update(q)
+    row = tracker.rows()[0]
+    assert (row.minimum, row.maximum, row.position) == (-1.5, 0.1, 0.1)
+    assert row.sweep == pytest.approx(1.6)
+
+
+def test_coverage_is_fraction_of_described_range(robot):
+    tracker = SweepTracker(robot, ["left_elbow_pitch"])
+    q = np.zeros(robot.n)
+    tracker.update(q)
+    q[robot.index("left_elbow_pitch")] = -2.356
+    tracker.update(q)
+    assert tracker.rows()[0].coverage == pytest.approx(1.0)
+
+
+def test_non_finite_samples_are_ignored(robot):
+    tracker = SweepTracker(robot, ["left_shoulder_pitch"])
+    q = np.zeros(robot.n)
+    tracker.update(q)
+    q[0] = np.nan
+    tracker.update(q)
+    row = tracker.rows()[0]
+    assert (row.minimum, row.maximum, row.position) == (0.0, 0.0, 0.0)
+
+
+def test_unseen_joint_has_no_sweep(robot):
+    tracker = SweepTracker(robot, ["right_wrist_yaw"])
+    assert tracker.sweeps() == {}
+    assert tracker.rows()[0].sweep == 0.0
+
+
+def test_tracker_listens_to_joint_states(robot):
+    topics = TopicBus()
+    tracker = SweepTracker(robot, ["right_wrist_pitch"])
+    tracker.attach(topics)
+    q = np.zeros(robot.n)
+    q[robot.index("right_wrist_pitch")] = 0.5
+    topics.publish(JOINT_STATES, JointState(0.0, robot.names, q, np.zeros(robot.n), np.zeros(robot.n)))
+    assert tracker.sweeps() == {"right_wrist_pitch": (0.5, 0.5)}

@@ -1,0 +1,113 @@
+"""``prime calibration fold|flip|check``: work with a calibration file without touching the robot."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from humanoid_prime.calibration.fold import write_folded_configs
+from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
+from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.config.calibration import load_calibration, save_calibration
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.robot import load_robot
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("calibration", help="fold, flip or check a calibration file",
+                              description="Work with a calibration file (direction and homing_offset per joint).")
+    actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    fold = actions.add_parser("fold", help="write the per-slave eRob configs with the calibration folded in",
+                              description="Write <joint>.yaml for every eRob joint into DIR: the generic CiA402 "
+                                          "slave config with direction and homing_offset folded into the PDO "
+                                          "factors and offsets (no drive NVM is written).")
+    add_config_options(fold, calibration=True)
+    fold.add_argument("--out", required=True, metavar="DIR", help="folder for the per-slave configs")
+    add_json_option(fold)
+    fold.set_defaults(func=_fold)
+
+    flip = actions.add_parser("flip", help="flip one joint's direction without a re-sweep (rewrites the file)",
+                              description="Negate JOINT's direction and recompute its offset from the described "
+                                          "limits (offset + direction*(lower + upper)), then rewrite the "
+                                          "calibration file atomically.")
+    flip.add_argument("joint", metavar="JOINT")
+    add_config_options(flip, calibration=True)
+    add_json_option(flip)
+    flip.set_defaults(func=_flip)
+
+    check = actions.add_parser("check", help="validate a calibration file, flag probable flips, mirror report",
+                               description="Load and validate a calibration file, flag offsets beyond half a turn "
+                                           "(probable direction flips) and compare the arms' offsets. Exits 1 "
+                                           "when a joint is flagged.")
+    check.add_argument("file", nargs="?", metavar="FILE", help="calibration file (default: the bundled one)")
+    check.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    add_json_option(check)
+    check.set_defaults(func=_check)
+
+
+def _fold(args: argparse.Namespace) -> int:
+    robot = load_robot(args.hardware)
+    calibration = load_calibration(robot.hardware, args.calibration)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise PrimeError(f"--out {out} exists and is not a folder")
+    try:
+        paths = write_folded_configs(robot, calibration, out)
+    except OSError as exc:
+        raise PrimeError(f"cannot write into {out}: {exc.strerror}") from None
+    rows = [{"joint": j.name, "ring_position": j.ring_position, "path": str(path)}
+            for j, path in zip((j for j in robot.joints if j.family == "erob"), paths, strict=True)]
+    if args.json:
+        print_json(rows)
+    else:
+        print(f"folded {calibration.path} into {len(rows)} eRob slave configs in {out}")
+        for r in rows:
+            print(f"  ring {r['ring_position']}  {r['path']}")
+    return 0
+
+
+def _flip(args: argparse.Namespace) -> int:
+    robot = load_robot(args.hardware)
+    calibration = load_calibration(robot.hardware, args.calibration)
+    try:
+        spec = robot.joints[robot.index(args.joint)]
+    except KeyError as exc:
+        raise PrimeError(exc.args[0]) from None
+    old = calibration.joints[spec.name]
+    new = flip_direction(old, spec.lower, spec.upper)
+    save_calibration(calibration.path, calibration.with_joint(spec.name, new), robot.hardware)
+    result = {"joint": spec.name, "file": str(calibration.path),
+              "old": {"direction": old.direction, "homing_offset": old.homing_offset},
+              "new": {"direction": new.direction, "homing_offset": new.homing_offset}}
+    if args.json:
+        print_json(result)
+    else:
+        print(f"{spec.name}: direction {old.direction:+d} -> {new.direction:+d}, homing_offset "
+              f"{old.homing_offset:+.6f} -> {new.homing_offset:+.6f} rad (limits [{spec.lower}, {spec.upper}]); "
+              f"wrote {calibration.path}")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    robot = load_robot(args.hardware)
+    calibration = load_calibration(robot.hardware, args.file)
+    flags = [{"joint": name, "homing_offset": calibration.joints[name].homing_offset,
+              "problem": f"|homing_offset| is over pi ({FLIP_OFFSET_RAD:.4f} rad): probably a direction flip",
+              "fix": f"prime calibration flip {name}, or re-sweep with the other direction"}
+             for name in probable_flips(calibration)]
+    mirror = [{"left": r.left, "right": r.right, "left_offset": r.left_offset, "right_offset": r.right_offset,
+               "relation": r.relation, "residual": r.residual, "ok": r.ok}
+              for r in mirror_check(calibration, robot)]
+    if args.json:
+        print_json({"file": str(calibration.path), "valid": True, "flags": flags, "mirror": mirror})
+    else:
+        print(f"{calibration.path}: valid, {len(calibration.joints)} joints")
+        for f in flags:
+            print(f"  FLAG {f['joint']}: homing_offset {f['homing_offset']:+.4f}; {f['problem']} ({f['fix']})")
+        print("  mirror check (left vs right offsets):")
+        for m in mirror:
+            mark = "ok" if m["ok"] else "check"
+            print(f"    {m['left']:<20} {m['left_offset']:+.4f}  {m['right']:<21} {m['right_offset']:+.4f}  "
+                  f"expected {m['relation']:<8} residual {m['residual']:+.4f}  {mark}")
+    return 1 if flags else 0

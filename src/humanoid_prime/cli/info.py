@@ -1,0 +1,51 @@
+"""``prime info``: the joint topology (family, bus, address, limits, calibration) in canonical order."""
+
+from __future__ import annotations
+
+import argparse
+
+from rich.console import Console
+from rich.table import Table
+
+from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.config.calibration import load_calibration
+from humanoid_prime.robot import load_robot
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("info", help="joint topology: family, bus, address, limits, direction",
+                              description="Show Prime's 14 joints in canonical order with the bus and address "
+                                          "each lives on, the described limits and the calibration.")
+    add_config_options(p, calibration=True)
+    add_json_option(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    robot = load_robot(args.hardware)
+    calibration = load_calibration(robot.hardware, args.calibration)
+    rows = []
+    for j in robot.joints:
+        cal = calibration.joints[j.name]
+        rows.append({
+            "index": j.index, "joint": j.name, "family": j.family, "bus": j.bus, "address": j.address,
+            "ring_position": j.ring_position, "can_id": j.can_id, "lower": j.lower, "upper": j.upper,
+            "effort_limit": j.effort_limit, "velocity_limit": j.velocity_limit,
+            "direction": cal.direction, "homing_offset": cal.homing_offset,
+        })
+    if args.json:
+        print_json(rows)
+        return 0
+    table = Table(title=f"Prime joints ({robot.hardware.path.name}, {calibration.path.name})")
+    for name in ("#", "joint", "family", "bus", "address", "lower", "upper", "effort", "direction", "offset"):
+        table.add_column(name, no_wrap=True,
+                         justify="right" if name in ("#", "lower", "upper", "effort", "offset") else "left")
+    for r in rows:
+        table.add_row(str(r["index"]), r["joint"], r["family"], r["bus"], r["address"], f"{r['lower']:+.3f}",
+                      f"{r['upper']:+.3f}", f"{r['effort_limit']:g}", f"{r['direction']:+d}",
+                      f"{r['homing_offset']:+.4f}")
+    console = Console()
+    if not console.is_terminal:  # piped: no terminal width to fit, print the table whole
+        console = Console(width=160)
+    console.print(table)
+    return 0

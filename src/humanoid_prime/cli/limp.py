@@ -1,0 +1,98 @@
+"""``prime limp RING_POS [DAMPING]``: damped limp of one eRob while the others hold, for a hand sweep."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from types import FrameType
+
+from humanoid_prime.calibration.limp import DampedLimp
+from humanoid_prime.cli._common import add_json_option, print_json
+from humanoid_prime.config.hardware import load_hardware
+from humanoid_prime.control.operator import SdoClient, SocketSdoClient, default_socket_path
+from humanoid_prime.erob.gains import registers_to_gains, vel_reg_exact
+from humanoid_prime.errors import PrimeError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "limp", help="damped limp of one eRob (position gain 0, damping kept) until Enter",
+        description="Make one eRob damped-limp for a hand sweep: snapshot its gains, arm the gate, position "
+                    "gain 0, integral 0, keep (or set) the damping, read back Kp = 0, wait, and restore the "
+                    "snapshot on every exit path. The other joints keep holding. Needs a running "
+                    "`prime calibrate` or `prime bringup` (or --backend igh where an IgH master runs).")
+    p.add_argument("ring_position", type=int, metavar="RING_POS", help="EtherCAT ring position of the eRob")
+    p.add_argument("damping", type=float, nargs="?", metavar="DAMPING",
+                   help="damping during the limp in Nm*s/rad (default: keep the drive's velocity gain)")
+    p.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    p.add_argument("--backend", choices=("socket", "igh"), default="socket",
+                   help="socket: through the running prime process (default); igh: the `ethercat` tool")
+    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    p.add_argument("--seconds", type=float, metavar="S",
+                   help="stay limp for S seconds instead of waiting for Enter (scripted sweeps)")
+    add_json_option(p)
+    p.set_defaults(func=run)
+
+
+def _sdo(args: argparse.Namespace) -> SdoClient:
+    if args.backend == "igh":
+        from humanoid_prime.ethercat.igh import IghSdo
+
+        return IghSdo()
+    return SocketSdoClient(args.socket)
+
+
+def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt
+
+
+def run(args: argparse.Namespace) -> int:
+    hardware = load_hardware(args.hardware)
+    joints = {pos: joint for joint, pos in hardware.erob_slaves.items()}
+    joint = joints.get(args.ring_position)
+    if joint is None:
+        known = ", ".join(str(p) for p in sorted(joints))
+        raise PrimeError(f"ring position {args.ring_position} is not an eRob in {hardware.path.name} (known: {known})")
+    kt, gear = hardware.erob_kt[joint], hardware.erob_gear[joint]
+    vel_reg = None
+    if args.damping is not None:
+        if not args.damping > 0:
+            raise PrimeError(f"DAMPING must be > 0 Nm*s/rad (it slows the fall), got {args.damping}")
+        vel_reg = round(vel_reg_exact(args.damping, kt=kt, gear=gear, efficiency=hardware.torque_efficiency))
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    limp = DampedLimp(_sdo(args), args.ring_position, vel_reg)
+    interrupted = False
+    try:
+        with limp:
+            back = limp.readback
+            assert back is not None
+            _, kd = registers_to_gains(back.registers, kt=kt, gear=gear)
+            if not args.json:
+                print(f"{joint} (ring {args.ring_position}) is damped-limp: read back gate={back.gate} "
+                      f"Kp(pos_reg)={back.registers.pos_reg} vel_reg={back.registers.vel_reg} "
+                      f"(kd ~ {kd:.2f} Nm*s/rad nominal)")
+            try:
+                if args.seconds is not None:
+                    time.sleep(max(0.0, args.seconds))
+                else:
+                    print("Sweep it firmly to both mechanical stops, return near neutral, then press Enter "
+                          "to re-hold (Ctrl-C also restores).", flush=True)
+                    sys.stdin.readline()
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    snap = limp.snapshot
+    assert snap is not None
+    restored = {"gate": snap.gate, "pos_reg": snap.registers.pos_reg, "vel_reg": snap.registers.vel_reg,
+                "integral": snap.registers.integral}
+    if args.json:
+        assert limp.readback is not None
+        print_json({"joint": joint, "ring_position": args.ring_position,
+                    "limp": {"gate": limp.readback.gate, **limp.readback.registers.__dict__},
+                    "restored": restored, "interrupted": interrupted})
+    else:
+        print(f"{joint} (ring {args.ring_position}) restored: " + " ".join(f"{k}={v}" for k, v in restored.items()))
+    return 130 if interrupted else 0

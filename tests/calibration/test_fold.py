@@ -1,0 +1,209 @@
+"""The eRob calibration fold: per-slave configs whose factors/offsets carry the calibration (DESIGN §2, §5)."""
+
+import math
+
+import pytest
+import yaml
+from hypothesis import given
+from hypothesis import strategies as st
+
+from humanoid_prime.calibration.fold import fold_slave_config, render_slave_config, write_folded_configs
+from humanoid_prime.calibration.math import calibrate_from_sweeps
+from humanoid_prime.config.calibration import JointCalibration, identity_calibration
+from humanoid_prime.config.description import ETHERCAT_BLOCK
+from humanoid_prime.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
+from humanoid_prime.erob.objects import RXPDO, TXPDO
+from humanoid_prime.errors import ConfigError
+from humanoid_prime.ethercat.slave_config import Channel, load_slave_config
+
+C = 524288 / (2 * math.pi)
+
+
+@pytest.fixture(scope="module")
+def elbow(robot):
+    return robot.joints[robot.index("left_elbow_pitch")]
+
+
+@pytest.fixture
+def folded(tmp_path, elbow):
+    path = tmp_path / "left_elbow_pitch.yaml"
+    path.write_text(render_slave_config(fold_slave_config(elbow, JointCalibration(-1, 0.25))))
+    return load_slave_config(path)
+
+
+def test_counts_per_rad():
+    assert COUNTS_PER_RAD == C
+
+
+def test_identity_and_dc_sync0(elbow):
+    doc = fold_slave_config(elbow, JointCalibration(1, 0.0))
+    assert (doc["vendor_id"], doc["product_id"], doc["assign_activate"]) == (VENDOR_ID, PRODUCT_CODE, 0x0300)
+    assert (doc["vendor_id"], doc["product_id"]) == (0x5A65726F, 0x00029252)
+
+
+def test_channels_follow_the_pdo_layout(elbow):
+    doc = fold_slave_config(elbow, JointCalibration(1, 0.0))
+    assert doc["rpdo"][0]["index"] == 0x1600 and doc["tpdo"][0]["index"] == 0x1A00
+    assert [c["index"] for c in doc["rpdo"][0]["channels"]] == [e.index for e in RXPDO]
+    assert [c["index"] for c in doc["tpdo"][0]["channels"]] == [e.index for e in TXPDO]
+    assert [c["type"] for c in doc["rpdo"][0]["channels"]] == ["uint16", "int32", "int32", "int16", "int8"]
+    assert [c["type"] for c in doc["tpdo"][0]["channels"]] == ["uint16", "int32", "int32", "int16", "uint16", "int8"]
+
+
+def test_mode_of_operation_defaults_to_csp(folded):
+    assert folded.command("mode_of_operation").default == 8
+
+
+def test_state_position_factor_and_offset(folded):
+    channel = folded.state("position")
+    assert (channel.index, channel.factor, channel.offset) == (0x6064, -1 / C, pytest.approx(0.25))
+
+
+def test_command_position_factor_and_offset(folded):
+    channel = folded.command("position")
+    assert (channel.index, channel.factor, channel.offset) == (0x607A, -C, pytest.approx(0.25 * C))
+    assert math.isnan(channel.default)
+
+
+def test_velocity_factors_have_no_offset(folded):
+    assert (folded.state("velocity").factor, folded.state("velocity").offset) == (-1 / C, 0.0)
+    assert (folded.command("velocity").index, folded.command("velocity").factor) == (0x60B1, -C)
+    assert folded.command("velocity").offset == 0.0
+
+
+def test_effort_is_per_mille_of_rated_torque(folded):
+    assert folded.state("effort").factor == pytest.approx(-RATED_TORQUE_NM / 1000)
+    assert folded.command("effort").factor == pytest.approx(-1000 / RATED_TORQUE_NM)
+    assert folded.command("effort").index == 0x60B2
+
+
+def test_sync_managers_feed_the_output_watchdog(folded):
+    assert [(s.index, s.type, s.pdo, s.watchdog) for s in folded.sm] == [
+        (0, "output", None, "disable"), (1, "input", None, "disable"),
+        (2, "output", "rpdo", "enable"), (3, "input", "tpdo", "disable")]
+
+
+def test_rendered_text_reads_back_as_the_document(elbow):
+    doc = fold_slave_config(elbow, JointCalibration(-1, 0.123456789))
+    loaded = yaml.safe_load(render_slave_config(doc))
+    doc["rpdo"][0]["channels"][1]["default"] = loaded["rpdo"][0]["channels"][1]["default"] = "nan"
+    assert loaded == doc
+
+
+def test_sito_joint_has_no_slave_config(robot):
+    with pytest.raises(ValueError, match="Sito"):
+        fold_slave_config(robot.joints[robot.index("left_wrist_roll")], JointCalibration())
+
+
+def test_write_folded_configs_names_the_files_the_description_references(robot, tmp_path):
+    paths = write_folded_configs(robot, identity_calibration(robot.hardware), tmp_path)
+    block = robot.description.block(ETHERCAT_BLOCK)
+    referenced = {block.joint_params[j]["slave_config"].rsplit("/", 1)[-1] for j in block.joints}
+    assert {p.name for p in paths} == referenced
+    assert len(paths) == 10
+
+
+def test_folded_config_reads_the_limit_at_each_stop(robot, tmp_path):
+    """Sweep each eRob joint of a simulated robot, calibrate, fold: the stops read the URDF limits."""
+    true = {j.name: JointCalibration(-1 if j.index % 2 else 1, 0.37 - 0.11 * j.index) for j in robot.joints}
+    sweeps = {}
+    for j in robot.joints:
+        d, off = true[j.name].direction, true[j.name].homing_offset
+        raw_at_stops = [d * q + off for q in (j.lower, j.upper)]
+        sweeps[j.name] = (min(d * r for r in raw_at_stops), max(d * r for r in raw_at_stops))
+    prior = identity_calibration(robot.hardware, {n: c.direction for n, c in true.items()})
+    calibration, _ = calibrate_from_sweeps(sweeps, prior, robot)
+    write_folded_configs(robot, calibration, tmp_path)
+    for j in robot.joints:
+        if j.family != "erob":
+            continue
+        position = load_slave_config(tmp_path / f"{j.name}.yaml").state("position")
+        d, off = true[j.name].direction, true[j.name].homing_offset
+        for limit in (j.lower, j.upper):
+            counts = round((d * limit + off) * C)  # what the output encoder reports at that stop
+            assert position.state_value(counts) == pytest.approx(limit, abs=1 / C)
+
+
+def test_default_target_is_the_actual_position(folded):
+    """The C++ driver holds CSP at command_factor * state + command_offset: that must be the raw position."""
+    raw = 123456
+    command = folded.command("position")
+    held = command.factor * folded.state("position").state_value(raw) + command.offset
+    assert held == pytest.approx(raw, abs=1e-6)
+
+
+calibrations = st.builds(JointCalibration, st.sampled_from([1, -1]), st.floats(-math.pi, math.pi))
+
+
+@given(cal=calibrations, q=st.floats(-3.2, 3.2))
+def test_position_command_then_state_returns_the_joint_value(elbow, cal, q):
+    doc = fold_slave_config(elbow, cal)
+    command = _channel(doc, "rpdo", "position")
+    state = _channel(doc, "tpdo", "position")
+    assert state.state_value(command.command_raw(q)) == pytest.approx(q, abs=0.5 / C + 1e-12)
+    assert state.state_value(state.unfold_state(q)) == pytest.approx(q, abs=1e-12)
+    assert command.unfold_command(command.factor * q + command.offset) == pytest.approx(q, abs=1e-9)
+
+
+@given(cal=calibrations, qd=st.floats(-20.0, 20.0), tau=st.floats(-30.0, 30.0))
+def test_velocity_and_effort_command_then_state_return_the_value(elbow, cal, qd, tau):
+    doc = fold_slave_config(elbow, cal)
+    velocity = _channel(doc, "tpdo", "velocity").state_value(_channel(doc, "rpdo", "velocity").command_raw(qd))
+    effort = _channel(doc, "tpdo", "effort").state_value(_channel(doc, "rpdo", "effort").command_raw(tau))
+    assert velocity == pytest.approx(qd, abs=0.5 / C + 1e-12)
+    assert effort == pytest.approx(tau, abs=0.5 * RATED_TORQUE_NM / 1000 + 1e-12)
+
+
+def _channel(doc, section, interface):
+    key = "command_interface" if section == "rpdo" else "state_interface"
+    raw = next(c for c in doc[section][0]["channels"] if c.get(key) == interface)
+    return Channel(raw["index"], raw["sub_index"], raw["type"], interface, raw["factor"], raw["offset"])
+
+
+# slave config loader ----------------------------------------------------------------------------------------
+
+def test_command_raw_clamps_to_the_type(folded):
+    assert folded.command("effort").command_raw(1e6) == -32768  # direction -1
+    assert folded.command("effort").command_raw(-1e6) == 32767
+
+
+def test_command_raw_refuses_non_finite(folded):
+    with pytest.raises(ValueError, match="not finite"):
+        folded.command("position").command_raw(math.nan)
+
+
+def _write(tmp_path, elbow, edit):
+    doc = fold_slave_config(elbow, JointCalibration(1, 0.0))
+    edit(doc)
+    path = tmp_path / "slave.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+@pytest.mark.parametrize("edit, key, problem", [
+    (lambda d: d.pop("vendor_id"), "vendor_id", "expected an integer"),
+    (lambda d: d.update(auto_fault_reset="yes please"), "auto_fault_reset", "true or false"),
+    (lambda d: d["rpdo"][0]["channels"][1].update(type="float32"), "rpdo[0].channels[1].type", "unknown type"),
+    (lambda d: d["tpdo"][0]["channels"][1].update(factor=0.0), "tpdo[0].channels[1].factor", "must not be 0"),
+    (lambda d: d["tpdo"][0]["channels"][1].update(offset=math.inf), "tpdo[0].channels[1].offset", "finite"),
+    (lambda d: d["rpdo"][0]["channels"][2].update(command_interface="position"),
+     "rpdo[0].channels[2].command_interface", "already mapped"),
+    (lambda d: d["rpdo"][0]["channels"][1].update(state_interface="position"),
+     "rpdo[0].channels[1].state_interface", "not allowed here"),
+    (lambda d: d["tpdo"][0].update(channels=[]), "tpdo[0].channels", "missing or empty"),
+    (lambda d: d["sm"][2].update(type="sideways"), "sm[2].type", "expected one of"),
+    (lambda d: d["rpdo"][0]["channels"][0].update(index=0x10000), "rpdo[0].channels[0].index", "0x0..0xFFFF"),
+])
+def test_malformed_slave_config_names_file_and_key(tmp_path, elbow, edit, key, problem):
+    path = _write(tmp_path, elbow, edit)
+    with pytest.raises(ConfigError) as info:
+        load_slave_config(path)
+    assert (info.value.file, info.value.key) == (str(path), key)
+    assert problem in str(info.value) and str(path) in str(info.value)
+
+
+def test_missing_interface_names_the_file(tmp_path, elbow):
+    path = _write(tmp_path, elbow, lambda d: d["tpdo"][0]["channels"][3].update(state_interface=None))
+    with pytest.raises(ConfigError, match="no channel with state_interface: effort") as info:
+        load_slave_config(path).state("effort")
+    assert info.value.file == str(path)

@@ -1,0 +1,56 @@
+"""A test double of ten eRob mailboxes: gain registers that ignore writes while the gate is 0."""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+
+from humanoid_prime.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.errors import PrimeError
+
+NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral", BUS_GAIN_GATE: "gate"}
+
+
+class DriveMailboxes:
+    def __init__(self, positions=range(10), *, latency_s: float = 0.0, initial=(300, 94, 5)) -> None:
+        self.latency_s = latency_s
+        self.values = {p: {"gate": 0, "pos_reg": initial[0], "vel_reg": initial[1], "integral": initial[2]}
+                       for p in positions}
+        self.log: list[tuple[float, int, str, int]] = []  # accepted writes
+        self.fail_next: dict[int, int] = {}  # position -> number of writes to refuse
+        self.dead: set[int] = set()
+        self._lock = threading.Lock()
+
+    def _check(self, position: int, index: int, sub: int) -> str:
+        if position in self.dead:
+            raise PrimeError(f"ring {position}: no answer (working counter 0)")
+        if position not in self.values:
+            raise PrimeError(f"ring {position}: no such slave")
+        try:
+            return NAMES[(index, sub)]
+        except KeyError:
+            raise PrimeError(f"ring {position}: SDO abort 0x06020000 on 0x{index:04X}:{sub:02X}") from None
+
+    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
+        name = self._check(position, index, sub_index)
+        time.sleep(self.latency_s)
+        return struct.pack("<I", self.values[position][name])
+
+    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
+        name = self._check(position, index, sub_index)
+        time.sleep(self.latency_s)
+        with self._lock:
+            if self.fail_next.get(position, 0) > 0:
+                self.fail_next[position] -= 1
+                raise PrimeError(f"ring {position}: SDO timeout")
+            value = int.from_bytes(data, "little")
+            regs = self.values[position]
+            if name != "gate" and regs["gate"] != 1:
+                return  # the drive silently ignores gain writes unless the gate is armed
+            regs[name] = value
+            self.log.append((time.monotonic(), position, name, value))
+
+    def registers(self, position: int) -> tuple[int, int, int]:
+        r = self.values[position]
+        return r["pos_reg"], r["vel_reg"], r["integral"]

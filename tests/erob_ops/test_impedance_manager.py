@@ -1,0 +1,217 @@
+"""The eRob impedance manager writes each mode's loop gains as DESIGN §2/§3 require."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, JointState, TopicBus
+from humanoid_prime.erob.gains import gains_to_registers
+from humanoid_prime.erob.impedance import ImpedanceManager
+from humanoid_prime.modes import Mode
+
+from .drives import DriveMailboxes
+
+
+@pytest.fixture
+def gains(robot):
+    return load_controllers(robot.names).mode_gains()
+
+
+def make(robot, gains, drives, **kw):
+    return ImpedanceManager(robot, drives, gains, **kw)
+
+
+def publish_joint_states(topics, robot):
+    z = np.zeros(robot.n)
+    topics.publish(JOINT_STATES, JointState(0.0, robot.names, z, z, z))
+
+
+def expected(mode_gains, mode):
+    kp, kd = mode_gains[mode]
+    return gains_to_registers(kp, kd, kt=0.132e-3, gear=50.0, efficiency=1.0)
+
+
+def test_nothing_touches_the_bus_before_op_and_joint_states(robot, gains):
+    drives = DriveMailboxes()
+    topics = TopicBus()
+    ready = threading.Event()
+    mgr = make(robot, gains, drives)
+    starter = threading.Thread(target=mgr.start, args=(topics, ready.is_set), kwargs={"timeout": 5.0})
+    starter.start()
+    publish_joint_states(topics, robot)  # joint states alone are not enough
+    starter.join(timeout=0.2)
+    assert drives.log == [] and not mgr.armed
+    ready.set()
+    starter.join(timeout=5.0)
+    assert mgr.armed
+    mgr.close()
+
+
+def test_gate_is_armed_first_on_every_slave(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    mgr.apply(Mode.STANDBY)
+    for position in range(10):
+        first = next(entry for entry in drives.log if entry[1] == position)
+        assert first[2:] == ("gate", 1)
+    mgr.close()
+
+
+def test_standby_and_damping_registers_match_design(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    mgr.apply(Mode.STANDBY)
+    standby = expected(gains, Mode.STANDBY)
+    assert (standby.vel_reg, standby.pos_reg, standby.integral) == (19, 515, 0)
+    assert all(drives.registers(p) == (515, 19, 0) for p in range(10))
+    mgr.apply(Mode.DAMPING)
+    assert all(drives.registers(p) == (0, 56, 0) for p in range(10))
+    mgr.close()
+
+
+def _stiffness(pos_reg, vel_reg):
+    return pos_reg * vel_reg, vel_reg  # kp ∝ pos·vel, kd ∝ vel
+
+
+@pytest.mark.parametrize("sequence", [
+    [Mode.DAMPING, Mode.STANDBY, Mode.DAMPING],
+    [Mode.STANDBY, Mode.ZERO_TORQUE, Mode.STANDBY],
+    [Mode.ZERO_TORQUE, Mode.DAMPING, Mode.REMOTE, Mode.DAMPING],
+])
+def test_no_intermediate_pair_is_stiffer_than_both_modes(robot, gains, sequence):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    for mode in sequence:
+        before = {p: drives.registers(p) for p in range(10)}
+        start = len(drives.log)
+        mgr.apply(mode)
+        for p in range(10):
+            old = before[p]
+            new = drives.registers(p)
+            pos, vel = old[0], old[1]
+            for _, position, name, value in drives.log[start:]:
+                if position != p:
+                    continue
+                pos = value if name == "pos_reg" else pos
+                vel = value if name == "vel_reg" else vel
+                kp, kd = _stiffness(pos, vel)
+                assert kp <= max(_stiffness(old[0], old[1])[0], _stiffness(new[0], new[1])[0])
+                assert kd <= max(old[1], new[1])
+    mgr.close()
+
+
+def test_only_changed_registers_are_written(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    mgr.apply(Mode.STANDBY)
+    start = len(drives.log)
+    report = mgr.apply(Mode.LOCOMOTION)  # same eRob gains as STANDBY
+    assert drives.log[start:] == []
+    assert all(s.writes == () for s in report.slaves)
+    mgr.close()
+
+
+def test_switch_report_has_wall_time_and_skew(robot, gains):
+    mgr = make(robot, gains, DriveMailboxes(latency_s=0.002))
+    mgr.arm()
+    report = mgr.apply(Mode.STANDBY)
+    assert report.ok and report.wall_seconds > 0
+    assert 0 <= report.skew_seconds <= report.wall_seconds
+    assert set(report.as_dict()) >= {"mode", "wall_seconds", "skew_seconds", "retries"}
+    mgr.close()
+
+
+def test_sequential_writes_are_measurably_slower_than_parallel(robot, gains):
+    times = {}
+    for parallel in (True, False):
+        mgr = make(robot, gains, DriveMailboxes(latency_s=0.01), parallel=parallel)
+        mgr.arm()
+        times[parallel] = mgr.apply(Mode.STANDBY).wall_seconds
+        mgr.close()
+    assert times[False] > 2 * times[True]
+
+
+def test_failed_write_is_retried_within_bound(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives, retries=3)
+    mgr.arm()
+    drives.fail_next[4] = 2
+    report = mgr.apply(Mode.STANDBY)
+    assert report.ok and report.retries == 2
+    assert drives.registers(4) == (515, 19, 0)
+    assert mgr.flags == {}
+    mgr.close()
+
+
+def test_exhausted_retries_raise_a_flag_naming_the_slave(robot, gains):
+    drives = DriveMailboxes()
+    seen = []
+    mgr = make(robot, gains, drives, retries=1, on_flags=seen.append)
+    mgr.arm()
+    drives.fail_next[7] = 100
+    report = mgr.apply(Mode.STANDBY)
+    assert not report.ok
+    (text,) = mgr.flags.values()
+    assert "right_shoulder_yaw (ring 7)" in text and "STANDBY" in text
+    assert seen and all(drives.registers(p) == (515, 19, 0) for p in range(10) if p != 7)
+    drives.fail_next[7] = 0
+    assert mgr.apply(Mode.STANDBY).ok
+    assert mgr.flags == {}
+    mgr.close()
+
+
+def test_close_resets_the_gate_on_every_slave(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    mgr.apply(Mode.DAMPING)
+    assert mgr.close() == []
+    assert all(drives.values[p]["gate"] == 0 for p in range(10))
+
+
+def test_close_reports_unreachable_slaves(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    drives.dead.add(2)
+    failures = mgr.close()
+    assert len(failures) == 1 and "ring 2" in failures[0]
+    assert all(drives.values[p]["gate"] == 0 for p in range(10) if p != 2)
+
+
+def test_mode_changes_on_the_topic_are_applied(robot, gains):
+    drives = DriveMailboxes()
+    topics = TopicBus()
+    mgr = make(robot, gains, drives)
+    publish_joint_states(topics, robot)
+    topics.publish(CONTROL_MODE, ControlMode("ZERO_TORQUE", "zero_torque_controller"))
+    mgr.start(topics, lambda: True)
+    topics.publish(CONTROL_MODE, ControlMode("STANDBY", "standby_controller"))
+    assert mgr.wait_idle(5.0)
+    assert [r.mode for r in mgr.reports] == ["ZERO_TORQUE", "STANDBY"]
+    assert all(drives.registers(p) == (515, 19, 0) for p in range(10))
+    mgr.close()
+
+
+def test_per_joint_kt_scales_only_vel_reg(robot, gains, tmp_path):
+    import yaml
+
+    from humanoid_prime.config.hardware import load_hardware
+    from humanoid_prime.robot import build_robot
+
+    data = yaml.safe_load(robot.hardware.path.read_text())
+    data["joints"]["erob_kt"] = {"left_elbow_pitch": 0.134e-3}
+    path = tmp_path / "hw.yaml"
+    path.write_text(yaml.safe_dump(data))
+    robot80 = build_robot(load_hardware(path), robot.description)
+    mgr = make(robot80, gains, DriveMailboxes())
+    regs = mgr.targets[Mode.DAMPING]
+    assert regs[3].vel_reg == round(6 / 0.1063 * 0.132 / 0.134)
+    assert regs[3].pos_reg == regs[0].pos_reg
+    mgr.close()

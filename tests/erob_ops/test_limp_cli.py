@@ -1,0 +1,79 @@
+"""`prime limp` through the control socket: limp while waiting, restored on Enter, SIGTERM and Ctrl-C."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from humanoid_prime.cli import main
+from humanoid_prime.control.operator import ControlServer
+
+from .drives import DriveMailboxes
+
+
+@pytest.fixture
+def served(tmp_path):
+    drives = DriveMailboxes()
+    with ControlServer(None, tmp_path / "control.sock", sdo=drives) as srv:
+        yield srv, drives
+
+
+def test_limp_for_a_scripted_time_then_restores(served, capsys):
+    srv, drives = served
+    before = dict(drives.values[3])
+    assert main(["limp", "3", "--seconds", "0", "--socket", str(srv.path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["joint"] == "left_elbow_pitch"
+    assert out["limp"]["pos_reg"] == 0 and out["limp"]["gate"] == 1
+    assert out["restored"] == before
+    assert drives.values[3] == before
+
+
+def test_damping_argument_sets_the_velocity_gain(served, capsys):
+    srv, drives = served
+    seen = []
+    original = drives.sdo_write
+
+    def spy(position, index, sub_index, data):
+        original(position, index, sub_index, data)
+        seen.append(dict(drives.values[position]))
+
+    drives.sdo_write = spy
+    assert main(["limp", "3", "2.0", "--seconds", "0", "--socket", str(srv.path)]) == 0
+    assert any(s["pos_reg"] == 0 and s["vel_reg"] == 19 and s["gate"] == 1 for s in seen)  # 2.0 / 0.1063
+
+
+def test_unknown_ring_position_is_one_line_error(served, capsys):
+    srv, _ = served
+    assert main(["limp", "12", "--socket", str(srv.path)]) == 1
+    assert "ring position 12 is not an eRob" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_while_waiting_restores_the_snapshot(served, sig):
+    srv, drives = served
+    before = dict(drives.values[6])
+    proc = subprocess.Popen([sys.executable, "-m", "humanoid_prime", "limp", "6", "--socket", str(srv.path)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 20
+    while drives.values[6]["pos_reg"] != 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert drives.values[6]["pos_reg"] == 0, "the joint never went limp"
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130, err
+    assert drives.values[6] == before
+    assert "restored" in out
+
+
+def test_enter_restores_the_snapshot(served):
+    srv, drives = served
+    before = dict(drives.values[0])
+    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "limp", "0", "--socket", str(srv.path)],
+                          input="\n", capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0, proc.stderr
+    assert "damped-limp: read back gate=1 Kp(pos_reg)=0" in proc.stdout
+    assert drives.values[0] == before

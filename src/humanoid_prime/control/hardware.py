@@ -14,6 +14,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
+from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 
 
@@ -24,27 +25,14 @@ class Lifecycle(enum.Enum):
     FINALIZED = "finalized"
 
 
-class HardwareComponent(ABC):
+class HardwareComponent(SafetyFlags, ABC):
     """Base class of ``MujocoSystem``, ``SitoSystem`` and ``EthercatSystem``."""
 
     def __init__(self, name: str, joints: tuple[str, ...]) -> None:
-        self.name = name
+        super().__init__(name)
         self.joints = joints
         self.indices = np.arange(len(joints), dtype=np.intp)  # set by the resource manager
         self.lifecycle = Lifecycle.UNCONFIGURED
-        # Safety flags observed now (e.g. "can2: rx timeout id 22"); bump flags_version on change.
-        self.flags: dict[str, str] = {}
-        self.flags_version = 0
-
-    def set_flag(self, key: str, text: str) -> None:
-        if self.flags.get(key) != text:
-            self.flags[key] = text
-            self.flags_version += 1
-
-    def clear_flag(self, key: str) -> None:
-        if key in self.flags:
-            del self.flags[key]
-            self.flags_version += 1
 
     # Lifecycle. Subclasses override the on_* hooks; these wrappers keep the state machine honest.
     def configure(self) -> None:

@@ -27,6 +27,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
+from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.operator import SdoClient
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, TopicBus
 from humanoid_prime.erob.gains import ErobRegisters, gains_to_registers, write_order
@@ -92,10 +93,10 @@ class _Slave:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
-class ImpedanceManager:
+class ImpedanceManager(SafetyFlags):
     def __init__(self, robot: Robot, sdo: SdoClient, mode_gains: Mapping[Mode, tuple[float, float]], *,
-                 parallel: bool = True, retries: int = 3, clock: Callable[[], float] = time.monotonic,
-                 on_flags: Callable[[dict[str, str]], None] | None = None) -> None:
+                 parallel: bool = True, retries: int = 3, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__("erob_impedance_manager")
         hw = robot.hardware
         self.sdo = sdo
         self.parallel = parallel
@@ -110,11 +111,8 @@ class ImpedanceManager:
             for mode, (kp, kd) in self.mode_gains.items()
         }
         self.reports: list[SwitchReport] = []
-        self.flags: dict[str, str] = {}
-        self.flags_version = 0
         self.armed = False
         self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
-        self._on_flags = on_flags
         self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
             if parallel and self.slaves else None
         self._queue: queue.Queue[Mode | None] = queue.Queue()
@@ -281,19 +279,11 @@ class ImpedanceManager:
             self._pool = None
         return failures
 
-    # ----------------------------------------------------------------------------------- flags
     def _set_flag(self, key: str, text: str | None) -> None:
-        changed = False
-        if text is None and key in self.flags:
-            del self.flags[key]
-            changed = True
-        elif text is not None and self.flags.get(key) != text:
-            self.flags[key] = text
-            changed = True
-        if changed:
-            self.flags_version += 1
-            if self._on_flags is not None:
-                self._on_flags(dict(self.flags))
+        if text is None:
+            self.clear_flag(key)
+        else:
+            self.set_flag(key, text)
 
 
 def _updated(regs: ErobRegisters | None, address: tuple[int, int], value: int) -> ErobRegisters | None:

@@ -1,0 +1,70 @@
+"""The controller interface: what the controller manager calls, and nothing about buses.
+
+A controller sees the joint-frame arrays (``StateArrays`` in, ``CommandArrays`` out), the ``Robot``
+model (names, family per joint, limits) and the topic bus. ``update`` runs once per tick on
+preallocated arrays and must write every element of all five command rows; it raises
+``ControllerError`` (or lets any exception escape) when it cannot produce a safe command, and the
+manager then swaps it for its fallback within the same tick.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+
+import numpy as np
+
+from humanoid_prime.control.flags import SafetyFlags
+from humanoid_prime.control.hardware import Lifecycle
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.topics import TopicBus
+from humanoid_prime.modes import Mode
+from humanoid_prime.robot import Robot
+
+
+class ControllerError(Exception):
+    """Raised by ``update()`` (or ``on_activate()``) for stale or invalid input; triggers the fallback."""
+
+
+class Controller(SafetyFlags, ABC):
+    """Base of the joint-state broadcaster and the five mode controllers.
+
+    ``mode`` is the mode a controller implements (None for the broadcaster); ``claims_commands`` says
+    whether it claims every command interface while active. The manager drives ``lifecycle``.
+    """
+
+    claims_commands: bool = True
+
+    def __init__(self, name: str, mode: Mode | None) -> None:
+        super().__init__(name)
+        self.mode = mode
+        self.lifecycle = Lifecycle.UNCONFIGURED
+
+    def on_configure(self, robot: Robot, topics: TopicBus) -> None:
+        """Allocate buffers, load models, subscribe to topics. Runs once, before the first activation."""
+
+    def on_activate(self, state: StateArrays, now: float) -> None:
+        """Capture what the controller needs from the measured state at the switch."""
+
+    def on_deactivate(self) -> None:
+        """Stop; the command interfaces are released right after."""
+
+    @abstractmethod
+    def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
+        """Write the command for this tick into ``command`` (all five rows, every joint)."""
+
+
+def gain_rows(robot: Robot, erob: tuple[float, float], sito: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-joint (stiffness, damping) rows from one (kp, kd) pair per actuator family."""
+    is_erob = np.array([j.family == "erob" for j in robot.joints])
+    stiffness = np.where(is_erob, erob[0], sito[0]).astype(np.float64)
+    damping = np.where(is_erob, erob[1], sito[1]).astype(np.float64)
+    return stiffness, damping
+
+
+def pose_array(robot: Robot, pose: Mapping[str, float]) -> np.ndarray:
+    """A named pose (joint -> rad, joints left out are 0) as an array in canonical order."""
+    values = np.zeros(robot.n)
+    for joint, angle in pose.items():
+        values[robot.index(joint)] = angle
+    return values

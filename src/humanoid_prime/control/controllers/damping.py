@@ -1,0 +1,41 @@
+"""DAMPING: the compliant fail-safe. Zero stiffness, per-joint damping (default 6 Nm*s/rad),
+position target held at the pose captured on entry."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from humanoid_prime.control.controller import Controller, ControllerError
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.topics import TopicBus
+from humanoid_prime.modes import Mode
+from humanoid_prime.robot import Robot
+
+
+class DampingController(Controller):
+    def __init__(self, kd: float | Sequence[float] = 6.0) -> None:
+        super().__init__(Mode.DAMPING.controller, Mode.DAMPING)
+        self.kd = kd
+
+    def on_configure(self, robot: Robot, topics: TopicBus) -> None:
+        kd = np.broadcast_to(np.asarray(self.kd, dtype=np.float64), (robot.n,)).copy()
+        if not np.all(np.isfinite(kd)) or np.any(kd < 0):
+            raise ValueError(f"{self.name}: kd must be finite and >= 0 per joint, got {kd.tolist()}")
+        self._kd = kd
+        self.names = robot.names
+        self.captured = np.zeros(robot.n)
+
+    def on_activate(self, state: StateArrays, now: float) -> None:
+        bad = np.flatnonzero(~np.isfinite(state.position))
+        if bad.size:
+            raise ControllerError(f"cannot capture the pose: measured position of {self.names[bad[0]]} is not finite")
+        np.copyto(self.captured, state.position)
+
+    def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
+        np.copyto(command.position, self.captured)
+        command.velocity[:] = 0.0
+        command.effort[:] = 0.0
+        command.stiffness[:] = 0.0
+        np.copyto(command.damping, self._kd)

@@ -1,0 +1,66 @@
+"""STANDBY: hold a named pose with kp 20, kd 2 (DESIGN §2), reached by a smooth trajectory that starts
+at the pose measured on entry, so entering from a moving or limp arm never steps the target."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from humanoid_prime.control.controller import Controller, ControllerError
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.topics import TopicBus
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import Mode
+from humanoid_prime.robot import Robot
+
+
+def min_jerk(s: float) -> tuple[float, float]:
+    """Quintic blend 0 -> 1 on s in [0, 1] and its derivative; zero velocity and acceleration at both ends."""
+    if s <= 0.0:
+        return 0.0, 0.0
+    if s >= 1.0:
+        return 1.0, 0.0
+    return s * s * s * (10.0 + s * (-15.0 + 6.0 * s)), 30.0 * s * s * (1.0 - s) * (1.0 - s)
+
+
+class StandbyController(Controller):
+    """Poses are arrays in canonical order; ``select_pose`` picks the target of the next activation."""
+
+    def __init__(self, poses: dict[str, np.ndarray], default_pose: str, kp: float, kd: float,
+                 duration: float) -> None:
+        super().__init__(Mode.STANDBY.controller, Mode.STANDBY)
+        self.poses = poses
+        self.kp = kp
+        self.kd = kd
+        self.duration = duration
+        self.pose = ""
+        self.select_pose(default_pose)
+
+    def select_pose(self, name: str) -> None:
+        """Choose the pose to move to; it takes effect when STANDBY is (re-)entered."""
+        if name not in self.poses:
+            raise PrimeError(f"unknown standby pose {name!r}; known poses: {', '.join(self.poses)}")
+        self.pose = name
+
+    def on_configure(self, robot: Robot, topics: TopicBus) -> None:
+        self.names = robot.names
+        self.start = np.zeros(robot.n)
+        self.delta = np.zeros(robot.n)
+        self.t0 = 0.0
+
+    def on_activate(self, state: StateArrays, now: float) -> None:
+        bad = np.flatnonzero(~np.isfinite(state.position))
+        if bad.size:
+            raise ControllerError(f"cannot start the trajectory: measured position of {self.names[bad[0]]} "
+                                  "is not finite")
+        np.copyto(self.start, state.position)
+        np.subtract(self.poses[self.pose], self.start, out=self.delta)
+        self.t0 = now
+
+    def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
+        blend, rate = min_jerk((now - self.t0) / self.duration)
+        np.multiply(self.delta, blend, out=command.position)
+        np.add(command.position, self.start, out=command.position)
+        np.multiply(self.delta, rate / self.duration, out=command.velocity)
+        command.effort[:] = 0.0
+        command.stiffness[:] = self.kp
+        command.damping[:] = self.kd

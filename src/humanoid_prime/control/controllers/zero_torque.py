@@ -1,0 +1,29 @@
+"""ZERO_TORQUE: no stiffness, no damping, no effort on any joint (true limp on both families).
+
+The position target follows the measured position so an eRob CSP target never drifts away from
+the joint while the arm is moved by hand; a joint whose measurement is not finite keeps its last
+valid target.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from humanoid_prime.control.controller import Controller
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.topics import TopicBus
+from humanoid_prime.modes import Mode
+from humanoid_prime.robot import Robot
+
+
+class ZeroTorqueController(Controller):
+    def __init__(self) -> None:
+        super().__init__(Mode.ZERO_TORQUE.controller, Mode.ZERO_TORQUE)
+
+    def on_configure(self, robot: Robot, topics: TopicBus) -> None:
+        self._finite = np.zeros(robot.n, dtype=bool)
+
+    def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
+        np.isfinite(state.position, out=self._finite)
+        np.copyto(command.position, state.position, where=self._finite)
+        command.data[1:] = 0.0

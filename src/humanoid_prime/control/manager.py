@@ -1,0 +1,417 @@
+"""The controller manager: one fixed-rate loop, read -> update -> write, and everything around it.
+
+- Staged start: hardware configure and activate, then the joint-state broadcaster, then ZERO_TORQUE
+  active, then the other mode controllers loaded inactive, strictly in that order.
+- Flat switching: ``request_mode`` (any thread) is applied at the start of the next tick, after the
+  read, so the new controller activates on the live measured state. The old controller releases its
+  command interfaces and the new one claims all of them, exclusively.
+- Fallback within one tick: a mode controller that raises, or whose command fails the output check,
+  is discarded for that tick and replaced (DAMPING, then ZERO_TORQUE, then a limp command) whose
+  update runs in the same tick, so every write is already safe.
+- Telemetry: ``/control_mode`` on start and every switch; ``/safety_status`` (latched) whenever any
+  component's, controller's or the manager's flags change.
+
+Output check (every tick): all five rows finite; stiffness and damping >= 0; |effort| <= the joint's
+effort limit; where stiffness > 0, the position target within the joint limits. A target up to
+``POSITION_MARGIN`` beyond a limit is clipped onto it; further out the command is rejected, because a
+target outside the limits is a fault of the controller, not something to correct silently. Where
+stiffness is 0 the target exerts no torque and is passed through unchecked.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.control.controller import Controller, ControllerError
+from humanoid_prime.control.controllers import build_controllers
+from humanoid_prime.control.flags import SafetyFlags
+from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
+from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays
+from humanoid_prime.control.resources import ResourceManager
+from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
+from humanoid_prime.robot import Robot
+
+POSITION_MARGIN = 0.005  # rad beyond a limit that is clipped rather than rejected
+SPIN_S = 0.0005  # the last part of each period is busy-waited: sleep() wakes up to ~0.1 ms late on Linux
+FALLBACK: dict[Mode, Mode | None] = {
+    Mode.LOCOMOTION: Mode.DAMPING,
+    Mode.REMOTE: Mode.DAMPING,
+    Mode.STANDBY: Mode.DAMPING,
+    Mode.DAMPING: Mode.ZERO_TORQUE,
+    Mode.ZERO_TORQUE: None,
+}
+
+
+class ClaimError(RuntimeError):
+    """A command interface was claimed while another controller held it."""
+
+
+@dataclass
+class LoopStats:
+    """Tick cost (read + update + write, without the wait) and tick-to-tick period, in ring buffers."""
+
+    period: float
+    capacity: int = 1 << 16
+    ticks: int = 0
+    overruns: int = 0
+    costs: np.ndarray = field(init=False, repr=False)
+    periods: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.costs = np.zeros(self.capacity)
+        self.periods = np.full(self.capacity, np.nan)
+
+    def record(self, cost: float, period: float) -> None:
+        """``period`` is NaN for the first tick."""
+        i = self.ticks % self.capacity
+        self.costs[i] = cost
+        self.periods[i] = period
+        self.ticks += 1
+
+    def summary(self) -> dict[str, Any]:
+        """Figures over the last ``capacity`` ticks; None where there is nothing to measure yet."""
+        k = min(self.ticks, self.capacity)
+        costs_us = self.costs[:k] * 1e6
+        periods = self.periods[:k]
+        periods = periods[np.isfinite(periods)]
+        jitter_us = np.abs(periods - self.period) * 1e6
+
+        def stat(values: np.ndarray, fn: Callable[[np.ndarray], Any]) -> float | None:
+            return round(float(fn(values)), 3) if values.size else None
+
+        return {
+            "ticks": self.ticks,
+            "overruns": self.overruns,
+            "tick_us": {"median": stat(costs_us, np.median), "p99": stat(costs_us, lambda v: np.percentile(v, 99)),
+                        "max": stat(costs_us, np.max)},
+            "period_ms": {"mean": stat(periods * 1e3, np.mean)},
+            "jitter_us": {"p99": stat(jitter_us, lambda v: np.percentile(v, 99))},
+        }
+
+
+class ControllerManager:
+    """Owns the hardware components (through the resource manager), the controllers and the loop.
+
+    Exceptions from hardware ``read``/``write`` propagate out of ``tick``/``run``; the caller then calls
+    ``shutdown`` (or uses the manager as a context manager), which leaves every device safe.
+    """
+
+    def __init__(self, robot: Robot, components: Sequence[HardwareComponent], config: ControllersConfig, *,
+                 update_rate: float | None = None, topics: TopicBus | None = None,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+        rate = config.update_rate if update_rate is None else update_rate
+        if not (math.isfinite(rate) and rate > 0):
+            raise PrimeError(f"update rate must be a positive number of Hz, got {rate!r}")
+        self.robot = robot
+        self.config = config
+        self.update_rate = float(rate)
+        self.period = 1.0 / self.update_rate
+        self.clock = clock
+        self.sleep = sleep
+        self.resources = ResourceManager(robot, components)
+        self.topics = topics if topics is not None else TopicBus()
+        self.controllers = build_controllers(robot, config)
+        self.stats = LoopStats(self.period)
+        self.active: Controller | None = None
+        self.active_mode: Mode | None = None
+        self.fallbacks: list[dict[str, Any]] = []
+        self.modes_visited: list[str] = []
+        self.stages: list[tuple[str, float]] = []
+        self.claims: dict[str, str | None] = {f"{j}/{i}": None for j in robot.names for i in COMMAND_NAMES}
+        self.flags = SafetyFlags("controller_manager")
+        self.tick_count = 0
+        self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
+        self._flag_sources: tuple[SafetyFlags, ...] = (*self.resources.components, *self.controllers.values(),
+                                                        self.flags)
+        self._flags_seen = -1
+        self._lock = threading.Lock()
+        self._request: Mode | None = None
+        self._started = False
+        self._closed = False
+        self._last_now: float | None = None
+        # Preallocated for the per-tick output check.
+        n = robot.n
+        self._names = robot.names
+        self._proposal = CommandArrays(n)
+        self._finite = np.zeros((5, n), dtype=bool)
+        self._mask = np.zeros(n, dtype=bool)
+        self._stiff = np.zeros(n, dtype=bool)
+        self._work = np.zeros(n)
+        self._lower = robot.lower
+        self._upper = robot.upper
+        self._lower_margin = self._lower - POSITION_MARGIN
+        self._upper_margin = self._upper + POSITION_MARGIN
+        self._effort_limit = robot.effort_limit
+
+    # ---- lifecycle -------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Hardware configure + activate, then the staged controller start; each stage's seconds in ``stages``."""
+        if self._started:
+            raise RuntimeError("the controller manager is already started")
+        t = self.clock()
+        self.resources.configure()
+        t = self._stage("hardware configure", t)
+        self.resources.activate()
+        t = self._stage("hardware activate", t)
+        now = t
+        self.resources.read(now)
+        for name in (JOINT_STATE_BROADCASTER, *MODE_CONTROLLERS.values()):
+            controller = self.controllers[name]
+            controller.on_configure(self.robot, self.topics)
+            controller.lifecycle = Lifecycle.INACTIVE
+            if name == JOINT_STATE_BROADCASTER:
+                controller.on_activate(self.resources.state, now)
+                controller.lifecycle = Lifecycle.ACTIVE
+            elif controller.mode is Mode.ZERO_TORQUE:
+                self._activate(Mode.ZERO_TORQUE, now)
+            t = self._stage(name, t)
+        self._started = True
+        self._publish_safety(now)
+
+    def _stage(self, name: str, since: float) -> float:
+        now = self.clock()
+        self.stages.append((name, now - since))
+        return now
+
+    def shutdown(self) -> None:
+        """Deactivate the active controller, then deactivate and shut down every hardware component."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._deactivate_active()
+        finally:
+            try:
+                self.resources.deactivate()
+            finally:
+                self.resources.shutdown()
+
+    def __enter__(self) -> ControllerManager:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    # ---- switching -------------------------------------------------------------------------------
+
+    def add_flag_source(self, source: SafetyFlags) -> None:
+        """Publish ``source``'s flags on /safety_status too (e.g. the eRob impedance manager)."""
+        self._flag_sources = (*self._flag_sources, source)
+        self._flags_seen = -1
+
+    def request_mode(self, mode: Mode | str) -> None:
+        """Ask for ``mode`` (thread-safe); it is applied at the start of the next tick. The latest request
+        wins. Requesting the active mode re-enters it (Standby restarts from the measured pose)."""
+        mode = mode if isinstance(mode, Mode) else Mode.parse(mode)
+        with self._lock:
+            self._request = mode
+
+    def _apply_request(self, now: float) -> None:
+        with self._lock:
+            mode, self._request = self._request, None
+        if mode is not None:
+            self.flags.clear_flag("fallback")
+            self._activate(mode, now)
+
+    def _activate(self, mode: Mode, now: float) -> None:
+        """Make ``mode`` active on the current measured state; a controller that refuses to activate is
+        replaced by its fallback, recorded like any other fallback."""
+        while True:
+            controller = self._by_mode[mode]
+            self._deactivate_active()
+            try:
+                controller.on_activate(self.resources.state, now)
+            except Exception as exc:
+                fallback = FALLBACK[mode]
+                if fallback is None:
+                    raise
+                self._record_fallback(mode, fallback, f"{controller.name} could not activate: {_describe(exc)}")
+                mode = fallback
+                continue
+            self.claim(controller)
+            controller.lifecycle = Lifecycle.ACTIVE
+            self.active = controller
+            self.active_mode = mode
+            self.modes_visited.append(mode.value)
+            self.topics.publish(CONTROL_MODE, ControlMode(mode.value, controller.name, now))
+            return
+
+    def _deactivate_active(self) -> None:
+        controller = self.active
+        if controller is None:
+            return
+        self.active = None
+        self.active_mode = None
+        try:
+            controller.on_deactivate()
+        except Exception as exc:
+            self.flags.set_flag("deactivate", f"{controller.name} failed to deactivate: {_describe(exc)}")
+        finally:
+            self.release(controller)
+            controller.lifecycle = Lifecycle.INACTIVE
+
+    def claim(self, controller: Controller) -> None:
+        """Claim every command interface for ``controller``; refused if another controller holds any."""
+        if not controller.claims_commands:
+            return
+        held = [(key, owner) for key, owner in self.claims.items() if owner not in (None, controller.name)]
+        if held:
+            key, owner = held[0]
+            raise ClaimError(f"{controller.name} cannot claim {key}: held by {owner} ({len(held)} interfaces held)")
+        for key in self.claims:
+            self.claims[key] = controller.name
+
+    def release(self, controller: Controller) -> None:
+        for key, owner in self.claims.items():
+            if owner == controller.name:
+                self.claims[key] = None
+
+    def _record_fallback(self, failed: Mode, to: Mode, reason: str) -> None:
+        self.fallbacks.append({"tick": self.tick_count, "from": failed.value, "to": to.value, "reason": reason})
+        self.flags.set_flag("fallback", f"{reason}; fell back from {failed.value} to {to.value}")
+
+    # ---- the loop --------------------------------------------------------------------------------
+
+    def tick(self, now: float | None = None) -> None:
+        """One read -> update -> write, without waiting. ``now`` defaults to the clock (simulation passes
+        its own time)."""
+        if not self._started or self._closed:
+            raise RuntimeError("tick() needs a started, not shut down, controller manager")
+        began = self.clock()
+        if now is None:
+            now = began
+        last = self._last_now
+        dt = self.period if last is None else now - last
+        self._last_now = now
+        resources = self.resources
+        resources.read(now)
+        if self._request is not None:
+            self._apply_request(now)
+        self._broadcast(now, dt)
+        self._update(now, dt)
+        resources.write(now)
+        self._publish_safety(now)
+        self.tick_count += 1
+        self.stats.record(self.clock() - began, math.nan if last is None else dt)
+
+    def _broadcast(self, now: float, dt: float) -> None:
+        broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
+        try:
+            broadcaster.update(now, dt, self.resources.state, self._proposal)
+        except Exception as exc:  # a faulty subscriber must not stop the control loop
+            self.flags.set_flag("broadcast", f"{broadcaster.name} failed: {_describe(exc)}")
+
+    def _update(self, now: float, dt: float) -> None:
+        proposal, command = self._proposal, self.resources.command
+        np.copyto(proposal.data, command.data)
+        reason = self._run_active(now, dt)
+        while reason is not None:
+            failed = self.active_mode
+            fallback = FALLBACK[failed]
+            if fallback is None:
+                # Last resort: limp on every joint, target left on the last valid command.
+                self._record_fallback(failed, failed, f"{reason}; writing a limp command")
+                np.copyto(proposal.data, command.data)
+                proposal.data[1:] = 0.0
+                break
+            self._record_fallback(failed, fallback, reason)
+            self._activate(fallback, now)
+            np.copyto(proposal.data, command.data)
+            reason = self._run_active(now, dt)
+        np.copyto(command.data, proposal.data)
+
+    def _run_active(self, now: float, dt: float) -> str | None:
+        controller = self.active
+        try:
+            controller.update(now, dt, self.resources.state, self._proposal)
+        except Exception as exc:
+            return f"{controller.name}: {_describe(exc)}"
+        problem = self._check(self._proposal)
+        return None if problem is None else f"{controller.name} {problem}"
+
+    def _check(self, command: CommandArrays) -> str | None:
+        """The output check (module docstring); clips targets within the margin in place."""
+        names = self._names
+        data = command.data
+        np.isfinite(data, out=self._finite)
+        if not self._finite.all():
+            row, col = np.argwhere(~self._finite)[0]
+            return f"produced a non-finite {COMMAND_NAMES[row]} ({data[row, col]}) for {names[col]}"
+        for row in (3, 4):
+            if data[row].min() < 0.0:
+                col = int(np.argmin(data[row]))
+                return f"produced a negative {COMMAND_NAMES[row]} ({data[row, col]:.6g}) for {names[col]}"
+        np.abs(command.effort, out=self._work)
+        np.greater(self._work, self._effort_limit, out=self._mask)
+        if self._mask.any():
+            col = int(np.argmax(self._mask))
+            return (f"produced an effort of {command.effort[col]:.6g} Nm for {names[col]}, beyond its limit of "
+                    f"{self._effort_limit[col]:g} Nm")
+        np.greater(command.stiffness, 0.0, out=self._stiff)
+        for beyond, bound in ((np.less, self._lower_margin), (np.greater, self._upper_margin)):
+            beyond(command.position, bound, out=self._mask)
+            np.logical_and(self._mask, self._stiff, out=self._mask)
+            if self._mask.any():
+                col = int(np.argmax(self._mask))
+                return (f"produced a position target of {command.position[col]:.6g} rad for {names[col]}, outside "
+                        f"its limits [{self._lower[col]:g}, {self._upper[col]:g}]")
+        np.clip(command.position, self._lower, self._upper, out=command.position, where=self._stiff)
+        return None
+
+    def _publish_safety(self, now: float) -> None:
+        version = 0
+        for source in self._flag_sources:
+            version += source.flags_version
+        if version == self._flags_seen:
+            return
+        self._flags_seen = version
+        flags = {f"{source.name}/{key}": text
+                 for source in self._flag_sources for key, text in dict(source.flags).items()}
+        self.topics.publish(SAFETY_STATUS, SafetyStatus(ok=not flags, flags=flags, stamp=now))
+
+    def run(self, duration: float | None = None, stop: threading.Event | None = None,
+            on_tick: Callable[[ControllerManager], None] | None = None) -> None:
+        """Tick at ``update_rate`` until ``duration`` seconds (that many periods) have run or ``stop`` is set.
+
+        Each period sleeps until ``SPIN_S`` before the deadline and spins the rest. A tick (with
+        ``on_tick``) that ends after the next deadline counts as an overrun, and the schedule restarts
+        from then instead of bursting to catch up.
+        """
+        if not self._started:
+            self.start()
+        total = None if duration is None else max(1, round(duration * self.update_rate))
+        origin = self.clock()
+        k = 0
+        while (total is None or k < total) and not (stop is not None and stop.is_set()):
+            self._wait_until(origin + k * self.period)
+            self.tick()
+            if on_tick is not None:
+                on_tick(self)
+            k += 1
+            now = self.clock()
+            if now > origin + k * self.period:
+                self.stats.overruns += 1
+                origin = now - k * self.period
+
+    def _wait_until(self, deadline: float) -> None:
+        remaining = deadline - self.clock()
+        if remaining > SPIN_S:
+            self.sleep(remaining - SPIN_S)
+        while self.clock() < deadline:  # pure spin: even sleep(0) costs a timer-slack wake-up (~50 us)
+            pass
+
+
+def _describe(exc: Exception) -> str:
+    """A ControllerError speaks for itself; anything else is a bug, named by its type."""
+    return str(exc) if isinstance(exc, ControllerError) else f"{type(exc).__name__}: {exc}"

@@ -1,0 +1,41 @@
+"""Building the controllers from prime_controllers.yaml."""
+
+from dataclasses import replace
+
+import pytest
+
+from humanoid_prime.control.controllers import build_controllers, resolve_policy
+from humanoid_prime.errors import ConfigError
+from humanoid_prime.files import bundled
+
+
+def test_controllers_come_in_staged_start_order(robot, config):
+    assert list(build_controllers(robot, config)) == [
+        "joint_state_broadcaster", "zero_torque_controller", "damping_controller", "standby_controller",
+        "locomotion_controller", "remote_policy_controller"]
+
+
+def test_a_bare_policy_name_is_the_bundled_file(config):
+    assert resolve_policy(config) == bundled("standby_policy.onnx")
+
+
+def test_another_policy_name_is_a_path_relative_to_the_controllers_file(config, tmp_path):
+    (tmp_path / "policies").mkdir()
+    (tmp_path / "policies" / "mine.onnx").write_bytes(b"")
+    local = replace(config, path=tmp_path / "prime_controllers.yaml",
+                    locomotion=replace(config.locomotion, policy="policies/mine.onnx"))
+    assert resolve_policy(local) == tmp_path / "policies" / "mine.onnx"
+
+
+def test_a_missing_policy_file_names_the_key_and_the_fix(config, tmp_path):
+    missing = replace(config, locomotion=replace(config.locomotion, policy=str(tmp_path / "gone.onnx")))
+    with pytest.raises(ConfigError, match="locomotion_controller.ros__parameters.policy: policy file .*gone.onnx"):
+        resolve_policy(missing)
+
+
+def test_a_standby_pose_outside_the_limits_is_refused(robot, config):
+    poses = {**config.standby.poses, "reach": {"left_elbow_pitch": 0.5}}
+    bad = replace(config, standby=replace(config.standby, poses=poses))
+    with pytest.raises(ConfigError, match=r"poses.reach.left_elbow_pitch: left_elbow_pitch at 0.5 rad is outside "
+                                          r"its limits \[-2.356, 0.0\]"):
+        build_controllers(robot, bad)

@@ -1,0 +1,398 @@
+"""The controller manager: staged start, switching between ticks, exclusive claims, one-tick fallback,
+safety status and the paced loop."""
+
+import itertools
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from humanoid_prime.control.flags import SafetyFlags
+from humanoid_prime.control.hardware import Lifecycle
+from humanoid_prime.control.manager import ClaimError, ControllerManager, LoopStats
+from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, SAFETY_STATUS, ControlMode, MitCommand
+from humanoid_prime.modes import Mode
+
+from .conftest import Clock, Plant, constant_policy, with_policy
+
+INTERFACES = 14 * 5
+
+
+def owners(manager):
+    return set(manager.claims.values())
+
+
+def remote_command(robot, **rows):
+    values = {name: np.zeros(robot.n) for name in ("position", "velocity", "effort", "stiffness", "damping")}
+    values.update({k: np.asarray(v, float) for k, v in rows.items()})
+    return MitCommand(joint_names=robot.names, **values)
+
+
+def enter_remote(manager, robot, t=0.0):
+    manager.request_mode(Mode.REMOTE)
+    manager.tick(t)
+    return t
+
+
+# ---- staged start --------------------------------------------------------------------------------
+
+def test_start_is_staged_hardware_then_broadcaster_then_zero_torque_then_the_others_in_order(manager):
+    assert [name for name, _ in manager.stages] == [
+        "hardware configure", "hardware activate", "joint_state_broadcaster", "zero_torque_controller",
+        "damping_controller", "standby_controller", "locomotion_controller", "remote_policy_controller"]
+
+
+def test_after_start_broadcaster_and_zero_torque_are_active_and_the_others_loaded_inactive(manager):
+    states = {name: c.lifecycle for name, c in manager.controllers.items()}
+    assert states == {
+        "joint_state_broadcaster": Lifecycle.ACTIVE, "zero_torque_controller": Lifecycle.ACTIVE,
+        "damping_controller": Lifecycle.INACTIVE, "standby_controller": Lifecycle.INACTIVE,
+        "locomotion_controller": Lifecycle.INACTIVE, "remote_policy_controller": Lifecycle.INACTIVE}
+    assert manager.active_mode is Mode.ZERO_TORQUE
+
+
+def test_hardware_is_active_before_any_controller_starts(robot, config, clock):
+    events: list[str] = []
+    plant = Plant("plant", robot.names, events)
+    manager = ControllerManager(robot, [plant], config, clock=clock)
+    manager.topics.subscribe(CONTROL_MODE, lambda msg: events.append(f"mode {msg.mode}"))
+    manager.start()
+    assert events == ["plant.configure", "plant.activate", "mode ZERO_TORQUE"]
+
+
+def test_start_publishes_zero_torque_on_control_mode(manager):
+    latest = manager.topics.latest(CONTROL_MODE)
+    assert (latest.mode, latest.controller) == ("ZERO_TORQUE", "zero_torque_controller")
+
+
+def test_tick_before_start_is_refused(robot, config, plant):
+    with pytest.raises(RuntimeError, match="started"):
+        ControllerManager(robot, [plant], config).tick(0.0)
+
+
+# ---- switching and claims ------------------------------------------------------------------------
+
+def test_a_request_changes_nothing_until_the_next_tick(manager):
+    manager.tick(0.0)
+    manager.request_mode(Mode.DAMPING)
+    assert manager.active_mode is Mode.ZERO_TORQUE
+    assert owners(manager) == {"zero_torque_controller"}
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.DAMPING
+    assert owners(manager) == {"damping_controller"}
+
+
+def test_every_switch_publishes_the_new_mode(manager):
+    seen: list[ControlMode] = []
+    manager.topics.subscribe(CONTROL_MODE, seen.append)
+    manager.request_mode(Mode.STANDBY)
+    manager.tick(0.0)
+    assert [(m.mode, m.controller) for m in seen] == [("STANDBY", "standby_controller")]
+
+
+def test_any_mode_switches_to_any_mode_leaving_every_interface_claimed_by_the_active_controller_only(manager):
+    t = 0.0
+    for source, target in itertools.permutations(Mode, 2):
+        for mode in (source, target):
+            manager.request_mode(mode)
+            manager.tick(t)
+            t += 0.01
+            assert manager.active_mode is mode
+            assert len(manager.claims) == INTERFACES
+            assert owners(manager) == {mode.controller}
+    assert manager.fallbacks == []
+
+
+def test_claiming_interfaces_held_by_another_controller_is_refused(manager):
+    with pytest.raises(ClaimError, match="held by zero_torque_controller"):
+        manager.claim(manager.controllers["damping_controller"])
+
+
+def test_the_new_controller_activates_on_the_state_measured_in_the_switching_tick(manager, plant):
+    manager.tick(0.0)
+    plant.position[:] = np.linspace(-0.5, 0.0, 14)
+    manager.request_mode(Mode.DAMPING)
+    manager.tick(0.01)
+    np.testing.assert_array_equal(plant.last[0], np.linspace(-0.5, 0.0, 14))
+
+
+def test_requests_from_other_threads_land_between_ticks(manager):
+    def press_keys(modes):
+        for mode in modes * 100:
+            manager.request_mode(mode)
+            time.sleep(0.0002)
+
+    threads = [threading.Thread(target=press_keys, args=(m,)) for m in ([Mode.DAMPING, Mode.STANDBY],
+                                                                      [Mode.REMOTE, Mode.ZERO_TORQUE])]
+    for thread in threads:
+        thread.start()
+    k = 0
+    while any(thread.is_alive() for thread in threads):
+        manager.tick(k * 0.01)
+        k += 1
+        assert owners(manager) == {manager.active_mode.controller}
+        time.sleep(0.0002)
+    assert manager.fallbacks == []
+    assert len(set(manager.modes_visited)) > 1
+
+
+def test_a_mode_may_be_requested_by_name(manager):
+    manager.request_mode("standby_controller")
+    manager.tick(0.0)
+    assert manager.active_mode is Mode.STANDBY
+
+
+def test_modes_visited_lists_every_activation_in_order(manager):
+    for k, mode in enumerate((Mode.STANDBY, Mode.DAMPING)):
+        manager.request_mode(mode)
+        manager.tick(k * 0.01)
+    assert manager.modes_visited == ["ZERO_TORQUE", "STANDBY", "DAMPING"]
+
+
+# ---- fallback within one tick --------------------------------------------------------------------
+
+def test_a_nan_from_a_controller_reaches_damping_within_one_tick(robot, config, clock, tmp_path):
+    plant = Plant("plant", robot.names)
+    plant.position[:] = 0.1 * np.sin(np.arange(14))
+    nan_policy = constant_policy(tmp_path / "nan.onnx", robot, np.nan)
+    with ControllerManager(robot, [plant], with_policy(config, nan_policy), clock=clock) as manager:
+        manager.start()
+        manager.request_mode(Mode.LOCOMOTION)
+        manager.tick(0.0)
+        assert manager.active_mode is Mode.DAMPING
+        assert [(f["tick"], f["from"], f["to"]) for f in manager.fallbacks] == [(0, "LOCOMOTION", "DAMPING")]
+        assert "non-finite action" in manager.fallbacks[0]["reason"]
+        position, velocity, effort, stiffness, damping = plant.last  # the write of that same tick
+        np.testing.assert_array_equal(position, plant.position)
+        assert stiffness.tolist() == [0.0] * 14 and damping.tolist() == [6.0] * 14
+        assert owners(manager) == {"damping_controller"}
+
+
+def test_zero_torque_takes_over_in_the_same_tick_when_damping_fails_too(robot, config, clock):
+    plant = Plant("plant", robot.names)
+    with ControllerManager(robot, [plant], config, update_rate=100.0, clock=clock) as manager:
+        manager.start()
+        manager.request_mode(Mode.LOCOMOTION)
+        manager.tick(0.0)
+        plant.position[3] = np.nan  # the elbow encoder reads garbage: the policy and Damping both fail
+        manager.tick(0.01)
+        assert manager.active_mode is Mode.ZERO_TORQUE
+        assert [(f["tick"], f["from"], f["to"]) for f in manager.fallbacks] == [
+            (1, "LOCOMOTION", "DAMPING"), (1, "DAMPING", "ZERO_TORQUE")]
+        assert "left_elbow_pitch" in manager.fallbacks[1]["reason"]
+        assert np.all(np.isfinite(plant.last))
+        assert plant.last[1:].tolist() == [[0.0] * 14] * 4
+
+
+def test_a_fallback_is_flagged_on_safety_status(robot, config, clock, tmp_path):
+    plant = Plant("plant", robot.names)
+    nan_policy = constant_policy(tmp_path / "nan.onnx", robot, np.nan)
+    with ControllerManager(robot, [plant], with_policy(config, nan_policy), clock=clock) as manager:
+        manager.start()
+        manager.request_mode(Mode.LOCOMOTION)
+        manager.tick(0.0)
+        status = manager.topics.latest(SAFETY_STATUS)
+        assert not status.ok
+        assert status.flags["controller_manager/fallback"].startswith("locomotion_controller: policy produced a "
+                                                                      "non-finite action")
+
+
+def test_the_next_requested_mode_clears_the_fallback_flag(robot, config, clock, tmp_path):
+    nan_policy = constant_policy(tmp_path / "nan.onnx", robot, np.nan)
+    with ControllerManager(robot, [Plant("plant", robot.names)], with_policy(config, nan_policy),
+                           clock=clock) as manager:
+        manager.start()
+        manager.request_mode(Mode.LOCOMOTION)
+        manager.tick(0.0)
+        manager.request_mode(Mode.STANDBY)
+        manager.tick(0.01)
+        assert manager.topics.latest(SAFETY_STATUS).ok
+
+
+def test_a_controller_that_raises_is_replaced_in_the_same_tick(manager, plant):
+    def wrong_size(now, dt, state, command):
+        np.copyto(command.position, np.zeros(13))
+
+    manager.controllers["standby_controller"].update = wrong_size
+    manager.request_mode(Mode.STANDBY)
+    manager.tick(0.0)
+    assert manager.active_mode is Mode.DAMPING
+    assert manager.fallbacks[-1]["reason"].startswith("standby_controller: ValueError: could not broadcast")
+    assert plant.last[4].tolist() == [6.0] * 14
+
+
+def test_a_non_finite_remote_command_falls_back_to_damping(manager, robot, plant):
+    enter_remote(manager, robot)
+    manager.topics.publish("/remote_policy_controller/command",
+                           remote_command(robot, position=np.full(14, np.nan)))
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.DAMPING
+    assert "non-finite position" in manager.fallbacks[-1]["reason"]
+    assert np.all(np.isfinite(plant.last))
+
+
+# ---- the output check ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("row", "value", "reason"), [
+    ("damping", -0.1, "negative damping (-0.1) for left_wrist_roll"),
+    ("stiffness", -1.0, "negative stiffness (-1) for left_wrist_roll"),
+    ("effort", 4.9, "effort of 4.9 Nm for left_wrist_roll, beyond its limit of 4.8 Nm"),
+    ("effort", -4.9, "effort of -4.9 Nm for left_wrist_roll, beyond its limit of 4.8 Nm"),
+])
+def test_an_unsafe_command_is_rejected(manager, robot, row, value, reason):
+    enter_remote(manager, robot)
+    rows = {row: np.where(np.arange(14) == robot.index("left_wrist_roll"), value, 0.0)}
+    manager.topics.publish("/remote_policy_controller/command", remote_command(robot, **rows))
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.DAMPING
+    assert reason in manager.fallbacks[-1]["reason"]
+
+
+def test_a_stiff_target_beyond_a_limit_by_more_than_the_margin_is_rejected(manager, robot):
+    enter_remote(manager, robot)
+    position = np.zeros(14)
+    position[robot.index("left_wrist_pitch")] = 0.785 + 0.006
+    manager.topics.publish("/remote_policy_controller/command",
+                           remote_command(robot, position=position, stiffness=np.full(14, 5.0)))
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.DAMPING
+    assert "position target of 0.791 rad for left_wrist_pitch, outside its limits [-0.785, 0.785]" in \
+        manager.fallbacks[-1]["reason"]
+
+
+def test_a_stiff_target_within_the_margin_is_clipped_onto_the_limit(manager, robot, plant):
+    enter_remote(manager, robot)
+    position = np.zeros(14)
+    position[robot.index("left_wrist_pitch")] = 0.785 + 0.004
+    manager.topics.publish("/remote_policy_controller/command",
+                           remote_command(robot, position=position, stiffness=np.full(14, 5.0)))
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.REMOTE
+    assert plant.last[0][robot.index("left_wrist_pitch")] == 0.785
+
+
+def test_a_target_without_stiffness_is_not_limit_checked(manager, robot, plant):
+    enter_remote(manager, robot)
+    position = np.zeros(14)
+    position[robot.index("left_wrist_pitch")] = 2.0
+    manager.topics.publish("/remote_policy_controller/command", remote_command(robot, position=position))
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.REMOTE
+    assert plant.last[0][robot.index("left_wrist_pitch")] == 2.0
+
+
+# ---- topics --------------------------------------------------------------------------------------
+
+def test_joint_states_are_published_every_tick_with_the_measured_state(manager, plant, robot):
+    seen = []
+    manager.topics.subscribe(JOINT_STATES, lambda msg: seen.append((msg.stamp, msg.position.copy())))
+    plant.position[:] = np.arange(14) * 0.01
+    for k in range(3):
+        manager.tick(k * 0.01)
+    assert [stamp for stamp, _ in seen] == [0.0, 0.01, 0.02]
+    np.testing.assert_array_equal(seen[-1][1], np.arange(14) * 0.01)
+    assert manager.topics.latest(JOINT_STATES).name == robot.names
+
+
+def test_a_failing_joint_state_subscriber_does_not_stop_the_loop(manager):
+    def broken(_msg):
+        raise ValueError("display closed")
+
+    manager.topics.subscribe(JOINT_STATES, broken)
+    manager.tick(0.0)
+    manager.tick(0.01)
+    assert manager.tick_count == 2
+    assert "display closed" in manager.topics.latest(SAFETY_STATUS).flags["controller_manager/broadcast"]
+
+
+def test_safety_status_is_published_at_start_and_then_only_on_change(manager, plant):
+    seen = []
+    manager.topics.subscribe(SAFETY_STATUS, seen.append, latched=True)
+    for k in range(5):
+        manager.tick(k * 0.01)
+    assert [s.ok for s in seen] == [True]
+    plant.set_flag("rx", "can2: rx timeout id 22")
+    for k in range(5, 10):
+        manager.tick(k * 0.01)
+    plant.clear_flag("rx")
+    manager.tick(0.1)
+    assert [(s.ok, s.flags) for s in seen] == [(True, {}), (False, {"plant/rx": "can2: rx timeout id 22"}),
+                                                (True, {})]
+
+
+# ---- shutdown ------------------------------------------------------------------------------------
+
+def test_shutdown_releases_the_controller_then_deactivates_and_shuts_down_the_hardware(manager, plant):
+    manager.request_mode(Mode.STANDBY)
+    manager.tick(0.0)
+    manager.shutdown()
+    assert owners(manager) == {None}
+    assert manager.controllers["standby_controller"].lifecycle is Lifecycle.INACTIVE
+    assert plant.events == ["plant.configure", "plant.activate", "plant.deactivate", "plant.shutdown"]
+
+
+# ---- the paced loop and its statistics -----------------------------------------------------------
+
+@pytest.fixture
+def paced(robot, config):
+    clock = Clock(step=1e-6)
+    manager = ControllerManager(robot, [Plant("plant", robot.names)], config, update_rate=50.0, clock=clock,
+                                sleep=clock.sleep)
+    manager.start()
+    yield manager, clock
+    manager.shutdown()
+
+
+def test_run_ticks_once_per_period_for_the_duration(paced):
+    manager, _ = paced
+    manager.run(duration=1.0)
+    summary = manager.stats.summary()
+    assert summary["ticks"] == 50
+    assert summary["overruns"] == 0
+    assert summary["period_ms"]["mean"] == pytest.approx(20.0, abs=1e-3)
+
+
+def test_a_tick_that_ends_after_the_next_deadline_is_an_overrun_and_the_schedule_restarts(paced):
+    manager, clock = paced
+
+    def slow_third_tick(m):
+        if m.tick_count == 3:
+            clock.now += 0.030
+
+    manager.run(duration=0.2, on_tick=slow_third_tick)
+    assert manager.stats.overruns == 1
+    assert manager.stats.ticks == 10
+    periods_ms = manager.stats.periods[1:10] * 1e3
+    assert periods_ms[2] == pytest.approx(30.0, abs=0.01)  # late once, then back on a 20 ms grid
+    assert periods_ms[3:] == pytest.approx([20.0] * 6, abs=0.01)
+
+
+def test_run_stops_when_the_stop_event_is_set(paced):
+    manager, _ = paced
+    stop = threading.Event()
+    manager.run(stop=stop, on_tick=lambda m: stop.set() if m.tick_count == 7 else None)
+    assert manager.tick_count == 7
+
+
+def test_loop_stats_summary_reports_cost_period_jitter_and_overruns():
+    stats = LoopStats(period=0.02, capacity=8)
+    for k in range(10):  # wraps: keeps the last 8
+        stats.record(cost=(k + 1) * 1e-5, period=float("nan") if k == 0 else 0.02 + 1e-4)
+    stats.overruns = 2
+    summary = stats.summary()
+    assert summary["ticks"] == 10 and summary["overruns"] == 2
+    assert summary["tick_us"]["median"] == pytest.approx(65.0)
+    assert summary["tick_us"]["max"] == pytest.approx(100.0)
+    assert summary["period_ms"]["mean"] == pytest.approx(20.1)
+    assert summary["jitter_us"]["p99"] == pytest.approx(100.0)
+
+
+def test_safety_flags_version_grows_on_every_change_only():
+    flags = SafetyFlags("x")
+    flags.set_flag("a", "one")
+    flags.set_flag("a", "one")
+    flags.set_flag("a", "two")
+    flags.clear_flag("a")
+    flags.clear_flag("a")
+    assert flags.flags_version == 3

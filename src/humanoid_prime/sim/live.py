@@ -1,0 +1,184 @@
+"""What an operator sees and presses while a controller manager runs: a live terminal table, a
+progress line per mode when the output is not a terminal, and mode keys read from the keyboard.
+
+Nothing here knows what drives the manager (simulation or the real buses); a caller adds its own
+status line through ``status``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any, TextIO
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.modes import Mode
+
+# As a gamepad would: one key per mode, in the order of the mode ladder.
+MODE_KEYS: dict[str, Mode] = {"1": Mode.ZERO_TORQUE, "2": Mode.DAMPING, "3": Mode.STANDBY,
+                              "4": Mode.LOCOMOTION, "5": Mode.REMOTE}
+QUIT_KEYS = ("q", "Q")
+KEY_HELP = "  ".join(f"{key} {mode.value}" for key, mode in MODE_KEYS.items()) + "  q quit"
+
+
+def _micros(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
+def loop_line(manager: ControllerManager) -> str:
+    """Tick count, tick cost, overruns and fallbacks in one line."""
+    stats = manager.stats.summary()
+    tick = stats["tick_us"]
+    return (f"ticks {stats['ticks']}  tick {_micros(tick['median'])}/{_micros(tick['p99'])}/{_micros(tick['max'])} us "
+            f"med/p99/max  overruns {stats['overruns']}  fallbacks {len(manager.fallbacks)}")
+
+
+class LiveTable:
+    """A rich Live table of the mode, every joint's q / qd / tau and command, and the loop timing.
+
+    Rendering runs in rich's refresh thread from snapshots of the arrays, so the control loop never
+    waits for the terminal.
+    """
+
+    def __init__(self, manager: ControllerManager, *, console: Console | None = None,
+                 status: Callable[[], str] | None = None, keys: bool = False, refresh_per_second: float = 8.0) -> None:
+        self.manager = manager
+        self.console = console if console is not None else Console()
+        self.status = status
+        self.keys = keys
+        self.note = ""
+        self._live = Live(get_renderable=self.render, console=self.console, refresh_per_second=refresh_per_second,
+                          redirect_stdout=False, redirect_stderr=False)
+
+    def render(self) -> Group:
+        manager = self.manager
+        state = manager.resources.state.data.copy()
+        command = manager.resources.command.data.copy()
+        mode = manager.active_mode.value if manager.active_mode is not None else "-"
+        table = Table(box=None, pad_edge=False, header_style="bold")
+        for column in ("joint", "bus", "q rad", "qd rad/s", "tau Nm", "q_cmd rad", "kp", "kd"):
+            table.add_column(column, justify="left" if column in ("joint", "bus") else "right")
+        for joint in manager.robot.joints:
+            i = joint.index
+            table.add_row(joint.name, joint.family, f"{state[0, i]:+.3f}", f"{state[1, i]:+.3f}", f"{state[2, i]:+.2f}",
+                          f"{command[0, i]:+.3f}", f"{command[3, i]:.1f}", f"{command[4, i]:.1f}")
+        header = Text.assemble(("mode ", "bold"), (mode, "bold cyan"))
+        if self.status is not None:
+            header.append(f"   {self.status()}")
+        parts: list[Any] = [header, Text(loop_line(manager)), table]
+        if self.keys:
+            parts.append(Text(f"keys: {KEY_HELP}" + (f"   [{self.note}]" if self.note else ""), style="dim"))
+        return Group(*parts)
+
+    def __enter__(self) -> LiveTable:
+        self._live.start(refresh=True)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._live.stop()
+
+
+class ProgressLines:
+    """One compact line whenever the active mode changes (for logs and pipes)."""
+
+    def __init__(self, manager: ControllerManager, *, stream: TextIO | None = None,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.manager = manager
+        self.stream = stream if stream is not None else sys.stdout
+        self.clock = clock
+        self._mode: Mode | None = None
+
+    def poll(self) -> None:
+        """Cheap enough for every tick: prints only on a change of mode."""
+        mode = self.manager.active_mode
+        if mode is self._mode:
+            return
+        self._mode = mode
+        when = f"{self.clock():7.2f} s  " if self.clock is not None else ""
+        name = mode.value if mode is not None else "-"
+        print(f"{when}{name:<11}  {loop_line(self.manager)}", file=self.stream, flush=True)
+
+
+class ModeKeys:
+    """Reads single key presses in a thread (terminal in cbreak mode) and turns them into requests.
+
+    Active only when ``stream`` is a terminal. The terminal settings are restored when the context
+    exits, whatever the reason.
+    """
+
+    def __init__(self, on_mode: Callable[[Mode], None], on_quit: Callable[[], None], *,
+                 stream: TextIO | None = None) -> None:
+        self.on_mode = on_mode
+        self.on_quit = on_quit
+        self.stream = stream if stream is not None else sys.stdin
+        self.active = False
+        self._saved: list[Any] | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> ModeKeys:
+        try:
+            fd = self.stream.fileno()
+        except (AttributeError, OSError, ValueError):
+            return self
+        if not os.isatty(fd):
+            return self
+        import termios
+        import tty
+
+        self._saved = termios.tcgetattr(fd)
+        try:
+            tty.setcbreak(fd)
+            self._thread = threading.Thread(target=self._read, args=(fd,), name="mode-keys", daemon=True)
+            self._thread.start()
+        except BaseException:
+            self._restore(fd)
+            raise
+        self.active = True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+        if self._saved is not None:
+            self._restore(self.stream.fileno())
+        self.active = False
+
+    def _restore(self, fd: int) -> None:
+        import termios
+
+        with contextlib.suppress(termios.error, OSError):
+            termios.tcsetattr(fd, termios.TCSADRAIN, self._saved)
+        self._saved = None
+
+    def _read(self, fd: int) -> None:
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([fd], [], [], 0.1)
+                if not ready:
+                    continue
+                key = os.read(fd, 1).decode("utf-8", "ignore")
+            except OSError:
+                return
+            if not key:
+                return
+            self.press(key)
+
+    def press(self, key: str) -> None:
+        """Act on one key, as if it had been typed."""
+        if key in QUIT_KEYS:
+            self.on_quit()
+        elif key in MODE_KEYS:
+            self.on_mode(MODE_KEYS[key])
+

@@ -1,0 +1,102 @@
+"""The operator's view and keys: live table, progress lines, and mode keys on a terminal."""
+
+import io
+import os
+import pty
+import termios
+import time
+
+import pytest
+from rich.console import Console
+
+from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.modes import Mode
+from humanoid_prime.sim.demo import Simulation, Step, build_simulation
+from humanoid_prime.sim.live import MODE_KEYS, LiveTable, ModeKeys, ProgressLines
+
+
+@pytest.fixture()
+def started(sim_robot):
+    system, manager = build_simulation(sim_robot, load_controllers(sim_robot.names))
+    with manager:
+        manager.start()
+        yield system, manager
+
+
+def test_number_keys_1_to_5_select_the_modes_in_ladder_order():
+    assert MODE_KEYS == {"1": Mode.ZERO_TORQUE, "2": Mode.DAMPING, "3": Mode.STANDBY, "4": Mode.LOCOMOTION,
+                         "5": Mode.REMOTE}
+
+
+def test_a_mode_key_requests_its_mode_and_q_quits():
+    modes, quits = [], []
+    keys = ModeKeys(modes.append, lambda: quits.append(True), stream=io.StringIO())
+    for key in "3x5q":
+        keys.press(key)
+    assert modes == [Mode.STANDBY, Mode.REMOTE]
+    assert quits == [True]
+
+
+def test_mode_keys_stay_off_when_input_is_not_a_terminal():
+    read, write = os.pipe()
+    try:
+        with os.fdopen(read, closefd=False) as stream, ModeKeys(print, print, stream=stream) as keys:
+            assert not keys.active
+    finally:
+        os.close(read)
+        os.close(write)
+
+
+@pytest.fixture()
+def terminal():
+    master, slave = pty.openpty()
+    with os.fdopen(slave, "r", closefd=True) as stream:
+        yield master, stream
+    os.close(master)
+
+
+def test_mode_keys_read_a_terminal_in_cbreak_mode_and_restore_it(terminal):
+    master, stream = terminal
+    before = termios.tcgetattr(stream.fileno())
+    modes = []
+    with ModeKeys(modes.append, lambda: None, stream=stream) as keys:
+        assert keys.active
+        assert not termios.tcgetattr(stream.fileno())[3] & termios.ICANON
+        os.write(master, b"2")
+        deadline = time.monotonic() + 2.0
+        while not modes and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert modes == [Mode.DAMPING]
+    assert termios.tcgetattr(stream.fileno()) == before
+
+
+def test_mode_keys_restore_the_terminal_when_the_run_fails(terminal):
+    _, stream = terminal
+    before = termios.tcgetattr(stream.fileno())
+    with pytest.raises(RuntimeError), ModeKeys(print, print, stream=stream):
+        raise RuntimeError("the loop failed")
+    assert termios.tcgetattr(stream.fileno()) == before
+
+
+def test_progress_lines_print_once_per_mode(started):
+    system, manager = started
+    out = io.StringIO()
+    progress = ProgressLines(manager, stream=out, clock=lambda: system.sim_time)
+    sim = Simulation(system, manager, schedule=(Step(0.1, Mode.DAMPING), Step(0.2, Mode.STANDBY)),
+                     realtime=False)
+    sim.run(0.3, on_tick=progress.poll)
+    lines = out.getvalue().splitlines()
+    assert [line.split()[2] for line in lines] == ["ZERO_TORQUE", "DAMPING", "STANDBY"]
+
+
+def test_live_table_shows_the_mode_every_joint_and_the_loop_timing(started, sim_robot):
+    system, manager = started
+    Simulation(system, manager, realtime=False).run(0.05)
+    console = Console(file=io.StringIO(), width=140)
+    console.print(LiveTable(manager, console=console, status=lambda: "sim 0.05 s", keys=True).render())
+    text = console.file.getvalue()
+    assert "mode ZERO_TORQUE   sim 0.05 s" in text
+    assert "ticks 10  tick " in text
+    for name in sim_robot.names:
+        assert name in text
+    assert "1 ZERO_TORQUE  2 DAMPING  3 STANDBY  4 LOCOMOTION  5 REMOTE  q quit" in text

@@ -1,0 +1,263 @@
+"""``prime can monitor`` / ``discover`` look at the Sito wrists' CAN traffic; ``prime can emulate`` answers
+as the four wrists would, for running the stack without the robot (e.g. over udp_multicast).
+
+Monitor and discover are read-only by default. ``discover --probe`` enables feedback on the probed ids
+with zero gains (limp) and disables them again on every exit path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import time
+from collections import Counter
+
+import can
+
+from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.config.hardware import HardwareConfig, load_hardware
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.robot import load_robot
+from humanoid_prime.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
+from humanoid_prime.sito.emulator import InertiaPlant, SitoEmulator
+from humanoid_prime.sito.protocol import (
+    MODE_MIT,
+    MOTOR_FRAME_TYPES,
+    SITO_MODELS,
+    Command,
+    Disable,
+    Enable,
+    Feedback1,
+    Feedback2,
+    FrameType,
+    Gains,
+    InvalidFrame,
+    SitoModel,
+    counts_to_position,
+    counts_to_velocity,
+    current_mA_to_torque,
+    firmware_to_kd,
+    firmware_to_kp,
+    pack_frame,
+    parse,
+    sito_model,
+    split_arbitration_id,
+)
+
+PROBE_FEEDBACK_MS = 10
+_ERROR_CLASSES = ((CAN_ERR_BUSOFF, "bus-off"), (CAN_ERR_ACK, "no acknowledge"),
+                  (CAN_ERR_CRTL, "controller problem"), (CAN_ERR_RESTARTED, "controller restarted"))
+
+
+def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
+    """One line for a frame: Sito frames decoded with raw counts and SI values (motor frame, uncalibrated)."""
+    if msg.is_error_frame:
+        kinds = [text for bit, text in _ERROR_CLASSES if msg.arbitration_id & bit] or ["other"]
+        return f"error frame: {', '.join(kinds)} (class 0x{msg.arbitration_id:03X})"
+    raw = bytes(msg.data[:msg.dlc]).hex(" ")
+    split = split_arbitration_id(msg.arbitration_id) if msg.is_extended_id else None
+    if split is None:
+        return f"foreign id 0x{msg.arbitration_id:X} dlc {msg.dlc}: {raw}"
+    can_id, frame_type = split
+    who = f"id {can_id:3d} {joints.get(can_id, '(not configured)'):<18s}"
+    if msg.is_remote_frame:
+        return f"{who} INVALID remote frame type 0x{frame_type:02X}"
+    try:
+        frame = parse(frame_type, bytes(msg.data[:msg.dlc]))
+    except InvalidFrame as exc:
+        return f"{who} INVALID type 0x{frame_type:02X} ({exc}): {raw}"
+    match frame:
+        case Disable():
+            text = "disable (reset)"
+        case Enable(mode, (fb1, fb2, fb3)):
+            mode_text = "MIT" if mode == MODE_MIT else "not MIT"
+            text = f"enable mode 0x{mode:02X} ({mode_text}), feedback every {fb1}/{fb2}/{fb3} ms (0 = off)"
+        case Command(current, velocity, position):
+            text = (f"command pos {position} ({counts_to_position(position):+.4f} rad) "
+                    f"vel {velocity} ({counts_to_velocity(velocity):+.4f} rad/s) "
+                    f"ff {current} mA ({current_mA_to_torque(current, model):+.3f} Nm)")
+        case Gains(kp_fw, kd_fw):
+            text = (f"gains Kp {kp_fw:.6g} ({firmware_to_kp(kp_fw, model):.3f} Nm/rad) "
+                    f"Kd {kd_fw:.6g} ({firmware_to_kd(kd_fw, model):.3f} Nm·s/rad)")
+        case Feedback1(voltage, pwm, current, velocity):
+            text = (f"feedback-1 voltage {voltage} pwm {pwm} current {current} mA "
+                    f"({current_mA_to_torque(current, model):+.3f} Nm) "
+                    f"vel {velocity} ({counts_to_velocity(velocity):+.4f} rad/s)")
+        case Feedback2(motor, output):
+            text = f"feedback-2 motor {motor} output {output} ({counts_to_position(output):+.4f} rad)"
+    return f"{who} {text}"
+
+
+def _ids(text: str) -> list[int]:
+    """``22,23,38-39`` -> [22, 23, 38, 39]."""
+    ids: list[int] = []
+    try:
+        for part in text.split(","):
+            low, _, high = part.strip().partition("-")
+            ids.extend(range(int(low), int(high or low) + 1))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a list of CAN ids such as 22,23,38-39") from None
+    if not ids or any(not 1 <= i <= 255 for i in ids):
+        raise argparse.ArgumentTypeError(f"{text!r}: CAN ids are 1..255")
+    return sorted(set(ids))
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text} must be positive")
+    return value
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("can", help="monitor, discover or emulate the Sito wrists on CAN",
+                              description="Look at the Sito wrists' CAN traffic, or emulate the wrists.")
+    actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    def bus_options(sub: argparse.ArgumentParser) -> None:
+        add_config_options(sub)
+        sub.add_argument("--interface", help="python-can interface (default: buses.can.interface)")
+        sub.add_argument("--channel", help="CAN channel (default: buses.can.channel)")
+        sub.add_argument("--model", default="TA40-50", choices=sorted(SITO_MODELS), help="Sito model")
+
+    m = actions.add_parser("monitor", help="decode live Sito traffic",
+                           description="Print every frame on the bus, Sito frames decoded (raw motor frame, "
+                                       "no calibration). Read-only. Stops after --count frames, --seconds, "
+                                       "or Ctrl-C.")
+    bus_options(m)
+    m.add_argument("--seconds", type=_positive, help="stop after this long")
+    m.add_argument("--count", type=int, help="stop after this many frames")
+    m.set_defaults(func=_monitor)
+
+    d = actions.add_parser("discover", help="list the Sito CAN ids heard",
+                           description="Listen and list the Sito ids heard. Read-only unless --probe, which "
+                                       "enables feedback with zero gains (limp) and disables again.")
+    bus_options(d)
+    d.add_argument("--seconds", type=_positive, default=1.0, help="how long to listen (default 1 s)")
+    d.add_argument("--probe", action="store_true",
+                   help="enable feedback (zero gains) on the probed ids, listen, then disable them")
+    d.add_argument("--ids", type=_ids, help="ids to probe, e.g. 22,23,38-39 (default: joints.mit_joints)")
+    add_json_option(d)
+    d.set_defaults(func=_discover)
+
+    e = actions.add_parser("emulate", help="answer as the Sito wrists would (no robot needed)",
+                           description="Emulated Sito motors for every joints.mit_joints entry, each on a "
+                                       "link with inertia, gravity and friction, running the MIT law at 1 kHz. "
+                                       "Use a virtual interface, e.g. --interface udp_multicast --channel "
+                                       "239.74.163.2, or a vcan channel; never the robot's bus. Stops after --seconds "
+                                       "or Ctrl-C.")
+    bus_options(e)
+    e.add_argument("--seconds", type=_positive, help="stop after this long")
+    e.set_defaults(func=_emulate)
+
+
+def _open(args: argparse.Namespace) -> tuple[HardwareConfig, can.BusABC, SitoModel]:
+    hardware = load_hardware(args.hardware)
+    bus = open_bus(hardware, interface=args.interface, channel=args.channel)
+    return hardware, bus, sito_model(args.model)
+
+
+def _emulate(args: argparse.Namespace) -> int:
+    robot = load_robot(args.hardware)
+    interface = args.interface or robot.hardware.can.interface
+    channel = args.channel or robot.hardware.can.channel
+    if interface == "socketcan" and not channel.startswith("vcan"):
+        raise PrimeError(f"refusing to emulate wrists on SocketCAN channel {channel!r}, where real ones may live; "
+                         "use a vcan channel or a virtual interface, e.g. --interface udp_multicast")
+    bus = open_bus(robot.hardware, interface=args.interface, channel=args.channel)
+    plants = {name: InertiaPlant(gravity_torque=0.3, coulomb_friction=0.02) for name in robot.hardware.sito_joints}
+    emulator = SitoEmulator.for_robot(robot, bus, plants, model=args.model)
+    ids = ", ".join(str(i) for i in emulator.motors)
+    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface})", flush=True)
+    deadline = time.monotonic() + args.seconds if args.seconds else float("inf")
+    emulator.start()
+    try:
+        while time.monotonic() < deadline:
+            time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emulator.stop()
+        bus.shutdown()
+    enabled = [str(i) for i, m in emulator.motors.items() if m.enabled]
+    print(f"stopped after {emulator.time:.1f} s; enabled at the end: {', '.join(enabled) or 'none'}")
+    return 0
+
+
+def _joint_names(hardware: HardwareConfig) -> dict[int, str]:
+    return {can_id: joint for joint, can_id in hardware.mit_joints.items()}
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    hardware, bus, model = _open(args)
+    joints = _joint_names(hardware)
+    start = time.monotonic()
+    deadline = start + args.seconds if args.seconds else float("inf")
+    seen = 0
+    try:
+        while time.monotonic() < deadline and (args.count is None or seen < args.count):
+            msg = bus.recv(min(0.1, max(0.0, deadline - time.monotonic())))
+            if msg is None:
+                continue
+            seen += 1
+            print(f"{time.monotonic() - start:10.4f}  {describe(msg, model, joints)}", flush=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bus.shutdown()
+    return 0
+
+
+def _discover(args: argparse.Namespace) -> int:
+    hardware, bus, model = _open(args)
+    joints = _joint_names(hardware)
+    probed = (args.ids or sorted(joints)) if args.probe else []
+    heard: dict[int, Counter[str]] = {}
+    try:
+        for can_id in probed:
+            for frame in (Gains(0.0, 0.0), Enable(MODE_MIT, (PROBE_FEEDBACK_MS, PROBE_FEEDBACK_MS, 0)),
+                          Command(0, 0, 0)):
+                ident, data = pack_frame(can_id, frame)
+                bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
+        deadline = time.monotonic() + args.seconds
+        while (left := deadline - time.monotonic()) > 0:
+            msg = bus.recv(min(left, 0.1))
+            if msg is None or msg.is_error_frame or not msg.is_extended_id:
+                continue
+            split = split_arbitration_id(msg.arbitration_id)
+            if split is not None and split[1] in MOTOR_FRAME_TYPES:
+                heard.setdefault(split[0], Counter())[FrameType(split[1]).name.lower()] += 1
+    except can.CanError as exc:
+        raise PrimeError(f"CAN error on {args.channel or hardware.can.channel}: {exc}; check that the interface "
+                         "is up and the wrists are powered") from None
+    finally:
+        for can_id in probed:
+            ident, data = pack_frame(can_id, Disable())
+            with contextlib.suppress(can.CanError):
+                bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
+        bus.shutdown()
+
+    missing = [i for i in (probed or sorted(joints)) if i not in heard]
+    result = {
+        "channel": args.channel or hardware.can.channel,
+        "probed": probed,
+        "heard": [{"can_id": i, "joint": joints.get(i), "frames": dict(heard[i])} for i in sorted(heard)],
+        "not_heard": [{"can_id": i, "joint": joints.get(i)} for i in missing],
+    }
+    if args.json:
+        print_json(result)
+    else:
+        for entry in result["heard"]:
+            frames = ", ".join(f"{k} x{v}" for k, v in sorted(entry["frames"].items()))
+            joint = entry["joint"] or f"not in {hardware.path.name}"
+            print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  {frames}")
+        if missing:
+            names = ", ".join(f"{i} ({joints.get(i, 'unconfigured')})" for i in missing)
+            print(f"not heard: {names}")
+        if not heard and not probed:
+            print("no Sito feedback heard; a Sito streams only after enable, so run with --probe to enable "
+                  "feedback briefly (zero gains, limp)")
+    return 1 if probed and missing else 0

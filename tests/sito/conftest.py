@@ -1,0 +1,145 @@
+"""A Sito rig on a private virtual CAN channel: emulated motors, the host ``SitoSystem`` and a sniffer.
+
+``rig`` runs in lockstep: the emulator is stepped explicitly and the system's clock is the emulator's
+firmware time, so timeouts and intervals are exact and no test depends on the wall clock.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+
+import can
+import pytest
+
+from humanoid_prime.config.calibration import Calibration, identity_calibration
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.robot import Robot
+from humanoid_prime.sito.emulator import InertiaPlant, Plant, SitoEmulator
+from humanoid_prime.sito.system import SitoSystem
+
+CONTROL_RATE = 50.0
+PERIOD = 1.0 / CONTROL_RATE
+SITO_IDS = (22, 23, 38, 39)
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.0002)
+
+
+class Rig:
+    def __init__(self, robot: Robot, calibration: Calibration | None = None,
+                 plants: dict[str, Plant] | None = None, **system_options: object) -> None:
+        self.robot = robot
+        self.channel = f"sito-test-{uuid.uuid4().hex}"
+        self.emulator_bus = can.Bus(interface="virtual", channel=self.channel)
+        self.host_bus = can.Bus(interface="virtual", channel=self.channel)
+        self.sniffer = can.Bus(interface="virtual", channel=self.channel)
+        self.plants = plants or {name: InertiaPlant() for name in robot.hardware.sito_joints}
+        self.emulator = SitoEmulator.for_robot(robot, self.emulator_bus, self.plants)
+        self.system = SitoSystem(robot, calibration or identity_calibration(robot.hardware),
+                                 control_rate=CONTROL_RATE, bus=self.host_bus, clock=lambda: self.emulator.time,
+                                 **system_options)
+        self.command = CommandArrays(robot.n)
+        self.state = StateArrays(robot.n)
+        self.idx = robot.indices("sito")
+
+    def motor(self, can_id: int):
+        return self.emulator.motors[can_id]
+
+    def plant(self, joint: str) -> InertiaPlant:
+        return self.plants[joint]
+
+    def activate(self) -> None:
+        """Activate while the emulator runs, as on the robot; re-raise what activation raised."""
+        if self.system.lifecycle.value == "unconfigured":
+            self.system.configure()
+        errors: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                self.system.activate()
+            except BaseException as exc:
+                errors.append(exc)
+
+        worker = threading.Thread(target=run)
+        worker.start()
+        while worker.is_alive():
+            self.emulator.step(0.001)
+            # firmware time never runs ahead of what the host has received
+            wait_until(lambda: self.drained() or not worker.is_alive(), "the host to drain its queue")
+            time.sleep(0.0001)
+        worker.join()
+        if errors:
+            raise errors[0]
+        self.settle()
+
+    def drained(self) -> bool:
+        return self.system.frames_received >= self.emulator.frames_sent
+
+    def settle(self) -> None:
+        """Wait until the system's receive thread has taken every frame the emulator sent."""
+        wait_until(self.drained, "the host to drain its queue")
+
+    def tick(self, count: int = 1) -> None:
+        """``count`` control periods: firmware time advances, then read() and write() as the loop does."""
+        for _ in range(count):
+            self.emulator.step(PERIOD)
+            self.settle()
+            self.system.read(self.emulator.time, self.state)
+            self.system.write(self.emulator.time, self.command)
+
+    def sniffed(self) -> list[can.Message]:
+        """Every frame on the bus since the last call, in order."""
+        frames = []
+        while (msg := self.sniffer.recv(0.0)) is not None:
+            frames.append(msg)
+        return frames
+
+    def host_frames(self) -> list[tuple[int, bytes]]:
+        """(arbitration id, data) of the frames the host sent since the last call."""
+        return [(m.arbitration_id, bytes(m.data)) for m in self.sniffed()
+                if m.is_extended_id and not m.is_error_frame and (m.arbitration_id & 0xFF) in (0x00, 0x01, 0x09, 0x45)]
+
+    def close(self) -> None:
+        try:
+            self.system.shutdown()
+        finally:
+            self.emulator.stop()
+            for bus in (self.emulator_bus, self.host_bus, self.sniffer):
+                bus.shutdown()
+
+
+@pytest.fixture
+def make_rig(robot: Robot) -> Iterator[Callable[..., Rig]]:
+    rigs: list[Rig] = []
+
+    def make(**options: object) -> Rig:
+        rig = Rig(robot, **options)
+        rigs.append(rig)
+        return rig
+
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+@pytest.fixture
+def rig(make_rig: Callable[..., Rig]) -> Rig:
+    """An activated rig with the bundled robot, identity calibration and free inertia plants."""
+    rig = make_rig()
+    rig.activate()
+    rig.sniffed()
+    return rig
+
+
+
+@pytest.fixture
+def channel() -> str:
+    return f"sito-test-{uuid.uuid4().hex}"

@@ -1,0 +1,169 @@
+"""``prime can monitor`` and ``prime can discover`` against emulated wrists on a virtual bus."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+
+import can
+import pytest
+
+from humanoid_prime.cli import main
+from humanoid_prime.cli.can import describe
+from humanoid_prime.sito.emulator import SitoEmulator
+from humanoid_prime.sito.protocol import (
+    SITO_MODELS,
+    Command,
+    Disable,
+    Enable,
+    Feedback1,
+    Feedback2,
+    FrameType,
+    Gains,
+    pack_frame,
+)
+
+from .conftest import SITO_IDS, wait_until
+
+TA40_50 = SITO_MODELS["TA40-50"]
+JOINTS = {22: "left_wrist_roll"}
+
+
+def message(can_id: int, frame) -> can.Message:
+    ident, data = pack_frame(can_id, frame)
+    return can.Message(arbitration_id=ident, is_extended_id=True, data=data)
+
+
+@pytest.fixture
+def emulated(robot) -> Iterator[tuple[SitoEmulator, str]]:
+    channel = f"sito-cli-{uuid.uuid4().hex}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    emulator = SitoEmulator.for_robot(robot, bus)
+    emulator.start()
+    yield emulator, channel
+    emulator.stop()
+    bus.shutdown()
+
+
+def enable_all(emulator: SitoEmulator) -> None:
+    for motor in emulator.motors.values():
+        motor.receive(FrameType.ENABLE, pack_frame(motor.can_id, Enable(0x09, (10, 10, 0)))[1])
+
+
+def test_describe_command():
+    text = describe(message(22, Command(100, 5215, 10430)), TA40_50, JOINTS)
+    assert text == ("id  22 left_wrist_roll    command pos 10430 (+1.0000 rad) vel 5215 (+0.5000 rad/s) "
+                    "ff 100 mA (+0.459 Nm)")
+
+
+def test_describe_gains_in_si():
+    text = describe(message(22, Gains(1.0, 2.0)), TA40_50, JOINTS)
+    assert "Kp 1 (688.580 Nm/rad) Kd 2 (2.250 Nm·s/rad)" in text
+
+
+def test_describe_enable_and_disable():
+    assert "enable mode 0x09 (MIT), feedback every 20/20/0 ms" in describe(
+        message(22, Enable(0x09, (20, 20, 0))), TA40_50, JOINTS)
+    assert describe(message(22, Disable()), TA40_50, JOINTS).endswith("disable (reset)")
+
+
+def test_describe_feedback():
+    assert "current 100 mA (+0.459 Nm) vel -5215 (-0.5000 rad/s)" in describe(
+        message(22, Feedback1(240, 0, 100, -5215)), TA40_50, JOINTS)
+    assert "output 10430 (+1.0000 rad)" in describe(message(22, Feedback2(531930, 10430)), TA40_50, JOINTS)
+
+
+def test_describe_flags_a_protocol_breaking_frame():
+    msg = can.Message(arbitration_id=0x050616B2, is_extended_id=True, data=bytes(5))
+    assert "INVALID type 0xB2 (5 data bytes" in describe(msg, TA40_50, JOINTS)
+
+
+def test_describe_unconfigured_and_foreign_ids():
+    assert "(not configured)" in describe(message(40, Disable()), TA40_50, JOINTS)
+    assert describe(can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\x01"), TA40_50, JOINTS) == (
+        "foreign id 0x123 dlc 1: 01")
+
+
+def test_monitor_decodes_live_feedback(emulated, capsys):
+    emulator, channel = emulated
+    enable_all(emulator)
+    assert main(["can", "monitor", "--interface", "virtual", "--channel", channel, "--count", "8"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 8
+    assert any("left_wrist_roll" in line and "feedback-2" in line for line in lines)
+
+
+def test_discover_lists_the_streaming_ids_without_sending(emulated, capsys):
+    emulator, channel = emulated
+    enable_all(emulator)
+    assert main(["can", "discover", "--interface", "virtual", "--channel", channel, "--seconds", "0.2"]) == 0
+    out = capsys.readouterr().out
+    assert all(f"CAN id {i:3d}" in out for i in SITO_IDS)
+    assert emulator.frames_received == 0
+
+
+def test_discover_without_traffic_suggests_probe(emulated, capsys):
+    _, channel = emulated
+    main(["can", "discover", "--interface", "virtual", "--channel", channel, "--seconds", "0.1"])
+    assert "--probe" in capsys.readouterr().out
+
+
+def test_discover_probe_enables_with_zero_gains_then_disables(emulated, capsys):
+    emulator, channel = emulated
+    code = main(["can", "discover", "--interface", "virtual", "--channel", channel, "--seconds", "0.2",
+                 "--probe", "--json"])
+    assert code == 0
+    assert '"can_id": 39' in capsys.readouterr().out
+    for motor in emulator.motors.values():
+        assert motor.received[FrameType.GAINS] == 1 and motor.received[FrameType.ENABLE] == 1
+    wait_until(lambda: all(m.disables == 1 and not m.enabled for m in emulator.motors.values()), "the disables")
+
+
+def test_discover_probe_fails_when_a_probed_id_is_silent(emulated, capsys):
+    emulator, channel = emulated
+    emulator.motors[23].silent = True
+    assert main(["can", "discover", "--interface", "virtual", "--channel", channel, "--seconds", "0.2",
+                 "--probe", "--ids", "22-23"]) == 1
+    assert "not heard: 23 (left_wrist_pitch)" in capsys.readouterr().out
+
+
+def test_bad_ids_exit_with_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["can", "discover", "--probe", "--ids", "22,abc"])
+    assert exit_info.value.code == 2
+    assert "not a list of CAN ids" in capsys.readouterr().err
+
+
+def test_missing_interface_is_one_line_and_exit_1(capsys):
+    assert main(["can", "monitor", "--channel", "can_missing0", "--seconds", "0.1"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ip link set can_missing0 up" in err[0]
+
+
+def test_emulate_answers_as_the_wrists(channel):
+    host = can.Bus(interface="virtual", channel=channel)
+    codes: list[int] = []
+    worker = threading.Thread(target=lambda: codes.append(
+        main(["can", "emulate", "--interface", "virtual", "--channel", channel, "--seconds", "0.5"])))
+    worker.start()
+    try:
+        feedback = None
+        deadline = time.monotonic() + 5.0
+        while feedback is None and time.monotonic() < deadline:  # until the emulator has opened the bus
+            host.send(message(22, Enable(0x09, (10, 10, 0))), timeout=0.0)
+            msg = host.recv(0.05)
+            if msg is not None and msg.arbitration_id & 0xFF in (0xB1, 0xB2):
+                feedback = msg
+        worker.join()
+        assert codes == [0]
+        assert feedback is not None and (feedback.arbitration_id >> 8) & 0xFF == 22
+    finally:
+        worker.join()
+        host.shutdown()
+
+
+def test_emulate_refuses_socketcan(capsys):
+    assert main(["can", "emulate", "--seconds", "0.1"]) == 1
+    assert "refusing to emulate wrists on SocketCAN channel 'can2'" in capsys.readouterr().err

@@ -108,7 +108,8 @@ class ControllerManager:
 
     def __init__(self, robot: Robot, components: Sequence[HardwareComponent], config: ControllersConfig, *,
                  update_rate: float | None = None, topics: TopicBus | None = None,
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 broadcaster_only: bool = False) -> None:
         rate = config.update_rate if update_rate is None else update_rate
         if not (math.isfinite(rate) and rate > 0):
             raise PrimeError(f"update rate must be a positive number of Hz, got {rate!r}")
@@ -118,7 +119,8 @@ class ControllerManager:
         self.period = 1.0 / self.update_rate
         self.clock = clock
         self.sleep = sleep
-        self.resources = ResourceManager(robot, components)
+        self.broadcaster_only = broadcaster_only
+        self.resources = ResourceManager(robot, components, partial=broadcaster_only)
         self.topics = topics if topics is not None else TopicBus()
         self.controllers = build_controllers(robot, config)
         self.stats = LoopStats(self.period)
@@ -166,7 +168,15 @@ class ControllerManager:
         t = self._stage("hardware activate", t)
         now = t
         self.resources.read(now)
-        for name in (JOINT_STATE_BROADCASTER, *MODE_CONTROLLERS.values()):
+        if self.broadcaster_only:
+            # No controller claims the commands: "no command" everywhere (NaN position, zero gains), which the
+            # hardware components take as hold (eRob keeps its CSP target) and limp (Sito sends nothing).
+            command = self.resources.command
+            command.data[:] = 0.0
+            command.position[:] = np.nan
+        names = (JOINT_STATE_BROADCASTER,) if self.broadcaster_only else (JOINT_STATE_BROADCASTER,
+                                                                          *MODE_CONTROLLERS.values())
+        for name in names:
             controller = self.controllers[name]
             controller.on_configure(self.robot, self.topics)
             controller.lifecycle = Lifecycle.INACTIVE
@@ -214,6 +224,9 @@ class ControllerManager:
         """Ask for ``mode`` (thread-safe); it is applied at the start of the next tick. The latest request
         wins. Requesting the active mode re-enters it (Standby restarts from the measured pose)."""
         mode = mode if isinstance(mode, Mode) else Mode.parse(mode)
+        if self.broadcaster_only:
+            raise PrimeError("this run has only the joint-state broadcaster (a single-bus or calibration run); "
+                             "no mode controller can be switched on")
         with self._lock:
             self._request = mode
 
@@ -299,7 +312,8 @@ class ControllerManager:
         if self._request is not None:
             self._apply_request(now)
         self._broadcast(now, dt)
-        self._update(now, dt)
+        if self.active is not None:
+            self._update(now, dt)
         resources.write(now)
         self._publish_safety(now)
         self.tick_count += 1

@@ -18,7 +18,9 @@ from humanoid_prime.robot import Robot
 
 
 class ResourceManager:
-    def __init__(self, robot: Robot, components: Sequence[HardwareComponent]) -> None:
+    """``partial`` allows joints no component owns (a single-bus run); their state stays NaN (not measured)."""
+
+    def __init__(self, robot: Robot, components: Sequence[HardwareComponent], *, partial: bool = False) -> None:
         self.robot = robot
         self.components = tuple(components)
         owner: dict[str, str] = {}
@@ -35,12 +37,15 @@ class ResourceManager:
                 indices.append(robot.index(joint))
             component.indices = np.array(indices, dtype=np.intp)
         missing = [name for name in robot.names if name not in owner]
-        if missing:
+        if missing and not partial:
             names = ", ".join(c.name for c in self.components) or "none"
             raise PrimeError(f"no hardware component owns {', '.join(missing)} (components: {names}); "
                              "every joint needs exactly one owner")
         self.state = StateArrays(robot.n)
         self.command = CommandArrays(robot.n)
+        self.owned = np.zeros(robot.n, dtype=bool)
+        self.owned[[robot.index(j) for j in owner]] = True
+        self.state.data[:, ~self.owned] = np.nan
 
     def read(self, now: float) -> None:
         for component in self.components:

@@ -330,3 +330,14 @@ def test_flags_version_changes_only_when_flags_change(rig):
     version = rig.system.flags_version
     rig.tick(5)
     assert rig.system.flags_version == version
+
+
+def test_no_command_is_limp_without_a_flag(rig):
+    """Nothing claims the wrists (a calibration run): NaN position and zero gains send them limp, unflagged."""
+    system, emulator = rig.system, rig.emulator
+    rig.command.data[:] = 0.0
+    rig.command.position[:] = float("nan")
+    rig.tick(3)
+    assert not any("invalid_command" in key for key in system.flags)
+    for motor in emulator.motors.values():
+        assert motor.kp == 0.0 and motor.kd == 0.0

@@ -190,6 +190,7 @@ class SitoSystem(HardwareComponent):
         self._cmd = np.zeros((5, n))
         self._ok = np.zeros((5, n), dtype=bool)
         self._valid = np.zeros(n, dtype=bool)
+        self._no_position = np.zeros(n, dtype=bool)
         self._wire = np.zeros((3, n))  # position counts, velocity counts/s, ff current mA
         self._clipped = np.zeros((3, n))
         self._raw = np.zeros((3, n))
@@ -387,11 +388,18 @@ class SitoSystem(HardwareComponent):
         if math.isfinite(cmd.sum()) and cmd[3:].min() >= 0.0:
             problems[2] = False
         else:
+            # "No command" (NaN position, everything else zero: nothing claims the joint) is limp, not a fault.
+            np.isnan(cmd[0], out=self._no_position)
+            np.equal(cmd[1:], 0.0, out=self._ok[1:])
+            np.logical_and.reduce(self._ok[1:], axis=0, out=self._valid)
+            np.logical_and(self._no_position, self._valid, out=self._no_position)
             np.isfinite(cmd, out=self._ok)
             np.greater_equal(cmd[3:], 0.0, out=self._ok[3:], where=self._ok[3:])
             np.logical_and.reduce(self._ok, axis=0, out=self._valid)
-            np.logical_not(self._valid, out=problems[2])
-            np.copyto(cmd, 0.0, where=problems[2])  # limp: zero gains, zero effort
+            np.logical_not(self._valid, out=self._valid)
+            np.copyto(cmd, 0.0, where=self._valid)  # limp: zero gains, zero effort
+            np.logical_not(self._no_position, out=self._no_position)
+            np.logical_and(self._valid, self._no_position, out=problems[2])
 
         wire, clipped = self._wire, self._clipped
         np.multiply(cmd[:3], self._to_wire, out=wire)

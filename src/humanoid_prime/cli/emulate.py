@@ -1,0 +1,112 @@
+"""``prime emulate ec``: the ten eRob as an EtherCAT ring a real master (SOEM) can open, no robot needed.
+
+``--veth`` creates a veth pair, runs the ring on one end inside a private network namespace and prints
+the other end for the master; ``--interface IF`` serves an existing interface in this process. Either
+runs in the foreground until Ctrl-C and cleans up. Without root, ``--veth`` re-runs itself under
+``unshare -rn``; the master end then exists only inside that namespace, so give the master's command
+after ``--`` ({iface} in it is replaced by the interface; PRIME_EC_INTERFACE and PRIME_EC_CONTROL are
+set for it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import tempfile
+import time
+
+from humanoid_prime.cli._common import add_config_options
+from humanoid_prime.config.hardware import load_hardware
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.ethercat.emulator import __main__ as emulator_main
+from humanoid_prime.ethercat.emulator.options import RingOptions
+from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason, reexec_in_user_netns
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("emulate", help="emulate hardware for running the stack without the robot",
+                              description="Emulated hardware a real driver can talk to.")
+    kinds = p.add_subparsers(dest="emulate_kind", metavar="KIND", required=True)
+    ec = kinds.add_parser(
+        "ec", help="an EtherCAT ring of eRob drives on a veth pair or an interface",
+        description="An EtherCAT ring of emulated eRob drives answering a real master frame by frame. --veth "
+                    "creates a veth pair (root, or user namespaces) and prints the master's end; --interface "
+                    "serves an existing interface. Runs until Ctrl-C, or until the command after -- exits.")
+    where = ec.add_mutually_exclusive_group(required=True)
+    where.add_argument("--veth", action="store_true", help="create a veth pair in a private network namespace")
+    where.add_argument("--interface", "--iface", metavar="IF", help="serve this existing interface (needs root)")
+    ec.add_argument("--control", metavar="PATH", help="control socket path for --interface (default: a temp file)")
+    RingOptions.add_arguments(ec)
+    add_config_options(ec)
+    ec.add_argument("master_command", nargs=argparse.REMAINDER, metavar="-- CMD",
+                    help="run this master command against the ring, then stop")
+    ec.set_defaults(func=run_ec)
+
+
+def _options(args: argparse.Namespace) -> RingOptions:
+    try:
+        return RingOptions.from_args(args)
+    except ValueError as exc:
+        raise PrimeError(f"{exc}") from None
+
+
+def _master_command(args: argparse.Namespace) -> list[str]:
+    command = list(args.master_command)
+    if command and command[0] == "--":
+        command = command[1:]
+    return command
+
+
+def run_ec(args: argparse.Namespace) -> int:
+    options = _options(args)
+    command = _master_command(args)
+    if args.interface:
+        return _serve_interface(args, options, command)
+    reason = netns_unavailable_reason()
+    if reason is not None:
+        if os.geteuid() != 0 and "unshare -rn" in reason:
+            if not command:
+                raise PrimeError("without root the master end of the veth pair exists only inside a private "
+                                 "namespace: give the master's command after --, e.g. "
+                                 "`prime emulate ec --veth -- prime ec scan --interface {iface}`, or run as root")
+            reexec_in_user_netns()
+        raise PrimeError(f"{reason}")
+    with EmulatedRing(**vars(options)) as ring:
+        print(f"emulating {options.slaves} eRob; master interface: {ring.master_interface}; "
+              f"control socket: {ring.control.path}", flush=True)
+        if command:
+            return _run_master(command, ring.master_interface, ring.control.path)
+        try:
+            while ring.running:
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            print("stopped", flush=True)
+            return 0
+    raise PrimeError("the emulator stopped unexpectedly")
+
+
+def _run_master(command: list[str], interface: str, control: str) -> int:
+    environment = dict(os.environ, PRIME_EC_INTERFACE=interface, PRIME_EC_CONTROL=control)
+    try:
+        return subprocess.run([part.replace("{iface}", interface) for part in command], env=environment).returncode
+    except FileNotFoundError:
+        raise PrimeError(f"command {command[0]!r} not found") from None
+    except KeyboardInterrupt:
+        return 130
+
+
+def _serve_interface(args: argparse.Namespace, options: RingOptions, command: list[str]) -> int:
+    if command:
+        raise PrimeError("a master command after -- needs --veth (with --interface the master runs "
+                         "wherever the interface's other end is)")
+    robot_nic = load_hardware(args.hardware).ethercat.interface
+    if args.interface == robot_nic:
+        raise PrimeError(f"refusing to emulate on {robot_nic}, the robot's EtherCAT NIC (buses.ethercat.interface); "
+                         "use --veth or another interface")
+    control = args.control or os.path.join(tempfile.gettempdir(), f"prime-ec-{os.getpid()}.sock")
+    print(f"emulating {options.slaves} eRob on {args.interface}; control socket: {control}", flush=True)
+    status = emulator_main.main(["--iface", args.interface, "--control", control, *options.to_args()])
+    if status:
+        raise PrimeError(f"the emulator could not serve {args.interface} (see the message above)")
+    return 0

@@ -1,0 +1,76 @@
+"""The emulator's tunables, shared by the command line, the harness and the ring."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field, fields
+
+# 350 process-data cycles to DC lock: a 50 Hz bring-up loop needs 7 s per slave (the ROS 2 original's
+# figure), a 1 kHz loop 0.35 s.
+DEFAULT_DC_LOCK_CYCLES = 350
+PLANTS = ("inertia", "mujoco")
+
+
+def _option(default: float | int, text: str) -> object:
+    return field(default=default, metadata={"help": text})
+
+
+@dataclass
+class RingOptions:
+    slaves: int = _option(10, "number of eRob drives on the ring")
+    dc_lock_cycles: int = _option(
+        DEFAULT_DC_LOCK_CYCLES, "process-data frames carrying the DC time distribution a slave needs after SYNC0 "
+                                "starts before it accepts SAFE-OP -> OP")
+    sync_tolerance: float = _option(
+        0.2, "a frame interval above SYNC0 cycle * (1 + this) counts as SYNC0 outrunning the frames (restarts "
+             "the lock; in OP, sync_fault_cycles in a row fault the drive)")
+    sync_fault_cycles: int = _option(5, "consecutive too-long frame intervals that fault a drive in OP")
+    mailbox_latency_s: float = _option(0.0005, "time from an SDO request to its reply in the read mailbox")
+    mailbox_size: int = _option(128, "bytes of each mailbox (SM0/SM1)")
+    physics_dt_s: float = _option(0.001, "integration step of drives and plant")
+    hop_delay_ns: int = _option(700, "frame delay per slave, as latched in the DC receive-time registers")
+    plant: str = _option("inertia", "mechanics: inertia (one joint per drive) or mujoco (Prime's arms, bundled "
+                                    "hardware and calibration files; needs one slave per joints.erob_slaves entry)")
+
+    def check(self) -> None:
+        """Raise ValueError naming the first option out of range."""
+        if not 1 <= self.slaves <= 64:
+            raise ValueError(f"slaves must be 1..64, got {self.slaves}")
+        if self.dc_lock_cycles < 0:
+            raise ValueError(f"dc_lock_cycles must be >= 0, got {self.dc_lock_cycles}")
+        if not 0 <= self.sync_tolerance < 10:
+            raise ValueError(f"sync_tolerance must be in [0, 10), got {self.sync_tolerance}")
+        if self.sync_fault_cycles < 1:
+            raise ValueError(f"sync_fault_cycles must be >= 1, got {self.sync_fault_cycles}")
+        if not 0 <= self.mailbox_latency_s < 1:
+            raise ValueError(f"mailbox_latency_s must be in [0, 1), got {self.mailbox_latency_s}")
+        if not 32 <= self.mailbox_size <= 1024:
+            raise ValueError(f"mailbox_size must be 32..1024 bytes, got {self.mailbox_size}")
+        if not 1e-5 <= self.physics_dt_s <= 0.01:
+            raise ValueError(f"physics_dt_s must be 1e-5..0.01, got {self.physics_dt_s}")
+        if not 0 <= self.hop_delay_ns <= 1_000_000:
+            raise ValueError(f"hop_delay_ns must be 0..1000000, got {self.hop_delay_ns}")
+        if self.plant not in PLANTS:
+            raise ValueError(f"plant must be one of {', '.join(PLANTS)}, got {self.plant!r}")
+
+    def to_args(self) -> list[str]:
+        """Command-line arguments that reproduce these options."""
+        out = []
+        for f in fields(self):
+            out += ["--" + f.name.replace("_", "-"), str(getattr(self, f.name))]
+        return out
+
+    @staticmethod
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        defaults = RingOptions()
+        for f in fields(RingOptions):
+            default = getattr(defaults, f.name)
+            parser.add_argument("--" + f.name.replace("_", "-"), type=type(default), default=default,
+                                metavar=type(default).__name__.upper(),
+                                help=f"{f.metadata['help']} (default {default})")
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> RingOptions:
+        options = cls(**{f.name: getattr(args, f.name) for f in fields(cls)})
+        options.check()
+        return options

@@ -1,0 +1,30 @@
+"""``prime emulate ec``: runs a ring for a master, refuses the robot's NIC and bad options in one line."""
+
+from __future__ import annotations
+
+import pytest
+
+from humanoid_prime.cli import main
+from humanoid_prime.ethercat.netns import netns_unavailable_reason
+
+_REASON = netns_unavailable_reason()
+
+
+@pytest.mark.netns
+@pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
+def test_master_command_runs_against_the_master_end_and_its_exit_status_is_returned(capsys):
+    script = 'test "$PRIME_EC_INTERFACE" = "{iface}" && test -e "/sys/class/net/{iface}" && test -S "$PRIME_EC_CONTROL"'
+    assert main(["emulate", "ec", "--veth", "--slaves", "2", "--", "sh", "-c", script + " && exit 7"]) == 7
+    assert "master interface: ecm" in capsys.readouterr().out
+
+
+def test_the_robots_ethercat_nic_is_refused(capsys):
+    assert main(["emulate", "ec", "--interface", "eth0"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0
+    assert "refusing to emulate on eth0" in err
+
+
+def test_an_option_out_of_range_is_one_line(capsys):
+    assert main(["emulate", "ec", "--veth", "--mailbox-size", "8"]) == 1
+    assert capsys.readouterr().err.strip() == "prime emulate: mailbox_size must be 32..1024 bytes, got 8"

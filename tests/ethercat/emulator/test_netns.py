@@ -1,0 +1,231 @@
+"""SOEM (through pysoem) against the emulated ring on a veth pair: the master cannot tell it from drives.
+
+Needs a private network namespace (root, or the test run under ``unshare -rn``); skipped otherwise."""
+
+from __future__ import annotations
+
+import os
+import struct
+import time
+
+import pytest
+
+from humanoid_prime.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, VENDOR_ID
+from humanoid_prime.erob.objects import RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
+from humanoid_prime.ethercat.emulator.control import ControlError
+from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason
+
+pysoem = pytest.importorskip("pysoem")
+_REASON = netns_unavailable_reason()
+pytestmark = [pytest.mark.netns, pytest.mark.skipif(_REASON is not None, reason=_REASON or "")]
+
+SLAVES = 10
+LOCK_CYCLES = 30
+SYNC0_NS = 10_000_000
+PERIOD_S = 0.001
+
+
+@pytest.fixture(scope="module")
+def ring():
+    with EmulatedRing(slaves=SLAVES, dc_lock_cycles=LOCK_CYCLES) as emulated:
+        yield emulated
+
+
+@pytest.fixture
+def master(ring):
+    master = pysoem.Master()
+    master.open(ring.master_interface)
+    yield master
+    master.close()
+
+
+def exchange(master) -> int:
+    master.send_processdata()
+    return master.receive_processdata(2000)
+
+
+def to_op(master, timeout_s: float = 5.0) -> float:
+    """ec_config_map, ec_configdc, SYNC0 on every slave, then a 1 kHz loop until all slaves are in OP."""
+    master.config_map()
+    assert master.state_check(pysoem.SAFEOP_STATE, 500_000) == pysoem.SAFEOP_STATE
+    assert master.config_dc()
+    for slave in master.slaves:
+        slave.dc_sync(True, SYNC0_NS)
+    start = time.monotonic()
+    master.state = pysoem.OP_STATE
+    master.write_state()
+    next_tick = start
+    while time.monotonic() - start < timeout_s:
+        exchange(master)
+        if master.read_state() == pysoem.OP_STATE:
+            return time.monotonic() - start
+        next_tick += PERIOD_S
+        time.sleep(max(0.0, next_tick - time.monotonic()))
+    raise AssertionError(f"not in OP after {timeout_s} s: {[hex(s.state) for s in master.slaves]}")
+
+
+def test_config_init_finds_every_erob_with_its_identity(master):
+    assert master.config_init() == SLAVES
+    assert [(s.man, s.id) for s in master.slaves] == [(VENDOR_ID, PRODUCT_CODE)] * SLAVES
+    assert master.slaves[0].name == "eRob CiA402 (emulated)"
+    assert master.state_check(pysoem.PREOP_STATE, 500_000) == pysoem.PREOP_STATE
+
+
+def test_config_map_maps_13_output_and_15_input_bytes_per_drive(master):
+    master.config_init()
+    assert master.config_map() == SLAVES * (RXPDO_STRUCT.size + TXPDO_STRUCT.size)
+    assert [(len(s.output), len(s.input)) for s in master.slaves] == [(13, 15)] * SLAVES
+    assert master.expected_wkc == 3 * SLAVES
+
+
+def test_drives_reach_op_after_the_dc_lock_and_count_in_the_working_counter(master):
+    master.config_init()
+    elapsed = to_op(master)
+    assert elapsed >= LOCK_CYCLES * PERIOD_S
+    assert exchange(master) == master.expected_wkc
+
+
+def test_sdo_write_of_the_position_gain_round_trips(master, ring):
+    master.config_init()
+    slave = master.slaves[3]
+    since = len(ring.control.sdo_log())
+    slave.sdo_write(0x2383, 0, struct.pack("<B", 1))
+    slave.sdo_write(0x2382, 1, struct.pack("<I", 777))
+    assert struct.unpack("<I", slave.sdo_read(0x2382, 1))[0] == 777
+    log = ring.control.sdo_log(since)
+    assert [(e["position"], e["index"], e["sub"], e["value"], e["applied"]) for e in log] == [
+        (3, 0x2383, 0, 1, True), (3, 0x2382, 1, 777, True)]
+    assert ring.control.slave(3)["drive"]["pos_reg"] == 777
+
+
+def test_sdo_abort_reaches_the_master_with_its_code(master):
+    master.config_init()
+    with pytest.raises(pysoem.SdoError) as error:
+        master.slaves[0].sdo_read(0x2999, 0)
+    assert error.value.abort_code == 0x06020000
+
+
+def next_controlword(statusword: int) -> int:
+    """Shutdown from switch-on disabled, switch on from ready, enable from switched on."""
+    if statusword & 0x4F == 0x40:
+        return 0x06
+    return 0x07 if statusword & 0x6F == 0x21 else 0x0F
+
+
+def test_process_data_moves_a_drive(master, ring):
+    master.config_init()
+    to_op(master)
+    drive = master.slaves[4]
+    before = ring.control.slave(4)["joint"]["q_rad"]
+    target = struct.unpack_from("<i", bytes(drive.input), 2)[0]
+    step = round(0.3 * COUNTS_PER_RAD / 1000)  # 0.3 rad over 1000 cycles once enabled
+    start = time.monotonic()
+    next_tick = start
+    moved = 0
+    while time.monotonic() - start < 3.0 and moved < 1500:
+        statusword = struct.unpack_from("<H", bytes(drive.input))[0]
+        if statusword == 5687:
+            moved += 1
+            if moved <= 1000:
+                target += step
+        drive.output = RXPDO_STRUCT.pack(next_controlword(statusword), target, 0, 0, 8)
+        exchange(master)
+        next_tick += PERIOD_S
+        time.sleep(max(0.0, next_tick - time.monotonic()))
+    status = ring.control.slave(4)
+    assert status["drive"]["statusword"] == 5687
+    assert status["joint"]["q_rad"] - before == pytest.approx(0.3, abs=0.03)
+
+
+def test_remapped_txpdo_is_honoured(master):
+    master.config_init()
+
+    def drop_torque(position: int) -> None:
+        slave = master.slaves[position]
+        entries = [e for e in TXPDO if e.index != 0x6077]
+        slave.sdo_write(0x1A00, 0, b"\x00")
+        for sub, entry in enumerate(entries, 1):
+            slave.sdo_write(0x1A00, sub, struct.pack("<I", entry.mapping))
+        slave.sdo_write(0x1A00, 0, bytes([len(entries)]))
+
+    master.slaves[1].config_func = drop_torque
+    master.config_map()
+    assert len(master.slaves[1].input) == TXPDO_STRUCT.size - 2
+    assert master.state_check(pysoem.SAFEOP_STATE, 500_000) == pysoem.SAFEOP_STATE
+
+
+def test_long_object_arrives_by_segmented_upload():
+    with EmulatedRing(slaves=1, mailbox_size=48) as small:
+        master = pysoem.Master()
+        master.open(small.master_interface)
+        try:
+            master.config_init()
+            assert master.slaves[0].sdo_read(0x1008, 0) == b"eRob rotary actuator, CiA402 (emulated)"
+        finally:
+            master.close()
+
+
+def test_lost_slave_shortens_the_ring_the_master_finds(master, ring):
+    ring.control.lose_slave(7)
+    try:
+        assert master.config_init() == 7
+    finally:
+        ring.control.restore_slave(7)
+    assert master.config_init() == SLAVES
+
+
+def test_harness_removes_the_veth_pair_on_exit():
+    with EmulatedRing(slaves=1) as emulated:
+        interface = emulated.master_interface
+        assert os.path.exists(f"/sys/class/net/{interface}")
+    assert not os.path.exists(f"/sys/class/net/{interface}")
+
+
+def test_harness_removes_the_veth_pair_when_the_body_raises():
+    with pytest.raises(RuntimeError), EmulatedRing(slaves=1) as emulated:
+        interface = emulated.master_interface
+        pid = emulated.pid
+        raise RuntimeError("test body failed")
+    assert not os.path.exists(f"/sys/class/net/{interface}")
+    assert not os.path.exists(f"/proc/{pid}")
+
+
+def test_control_refuses_an_unknown_slave(ring):
+    with pytest.raises(ControlError, match="no slave at ring position 99"):
+        ring.control.slave(99)
+
+
+def in_op(master) -> None:
+    master.config_init()
+    to_op(master)
+
+
+def test_a_dropped_frame_costs_one_cycle(master, ring):
+    in_op(master)
+    ring.control.drop_frames(1)
+    assert exchange(master) == -1  # SOEM's EC_NOFRAME
+    assert exchange(master) == master.expected_wkc
+
+
+def test_junk_frames_between_replies_do_not_disturb_the_master(master, ring):
+    in_op(master)
+    ring.control.garbage_frames(5)
+    assert [exchange(master) for _ in range(5)] == [master.expected_wkc] * 5
+
+
+def test_a_silent_slave_stops_answering_sdo_and_serves_it_when_it_wakes(master, ring):
+    master.config_init()
+    master.sdo_read_timeout = 50_000
+    ring.control.silence(2)
+    try:
+        with pytest.raises(pysoem.WkcError):
+            master.slaves[2].sdo_read(0x1018, 1)
+    finally:
+        ring.control.silence(2, False)
+    assert struct.unpack("<I", master.slaves[2].sdo_read(0x1018, 1))[0] == VENDOR_ID
+
+
+def test_responder_reports_its_turnaround(ring):
+    stats = ring.control.stats()
+    assert stats["frames"] > 0
+    assert stats["turnaround_median_us"] > 0

@@ -1,0 +1,404 @@
+"""The slave ring seen through frames, without a network: addressing, working counters, EEPROM, AL
+states, mailbox, process data, the DC lock model and its faults."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from humanoid_prime.erob.constants import COUNTS_PER_RAD
+from humanoid_prime.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
+from humanoid_prime.ethercat.emulator.frames import Command, Datagram
+from humanoid_prime.ethercat.emulator.mailbox import sdo_abort_code
+from humanoid_prime.ethercat.emulator.options import RingOptions
+from humanoid_prime.ethercat.emulator.ring import Ring
+
+from .wire import STATION_BASE, WireMaster
+
+START_NS = 5_000_000_000_000
+MS = 1_000_000
+IDLE_OUTPUT = RXPDO_STRUCT.pack(0, 0, 0, 0, 8)
+
+
+def make(slaves: int = 3, **options: object) -> tuple[Ring, WireMaster]:
+    ring = Ring(RingOptions(slaves=slaves, **options), clock=lambda: START_NS)
+    return ring, WireMaster(ring, START_NS)
+
+
+def in_safeop(slaves: int = 3, sync0_ns: int | None = 10 * MS, **options: object) -> tuple[Ring, WireMaster]:
+    ring, master = make(slaves, **options)
+    master.bring_to_safeop()
+    if sync0_ns is not None:
+        for i in range(slaves):
+            master.start_sync0(STATION_BASE + i, sync0_ns)
+    return ring, master
+
+
+def request_op(master: WireMaster, slaves: int) -> None:
+    for i in range(slaves):
+        master.request_state(STATION_BASE + i, 0x08)
+
+
+def states(master: WireMaster, slaves: int) -> list[tuple[int, int]]:
+    return [master.al_status(STATION_BASE + i) for i in range(slaves)]
+
+
+def run_cycles(master: WireMaster, count: int, period_ns: int, outputs: list[bytes] | None = None,
+               distribute_time: bool = True) -> tuple[int, list[bytes]]:
+    outputs = outputs or [IDLE_OUTPUT] * len(master.ring.reachable)
+    result = (0, [])
+    for _ in range(count):
+        result = master.cycle(outputs, period_ns, distribute_time)
+    return result
+
+
+def in_op(slaves: int = 3, **options: object) -> tuple[Ring, WireMaster]:
+    ring, master = in_safeop(slaves, dc_lock_cycles=5, **options)
+    request_op(master, slaves)
+    run_cycles(master, 10, MS)
+    assert all(status == 0x08 for status, _code in states(master, slaves))
+    return ring, master
+
+
+def enable_outputs(slaves: int, controlword: int, target: int = 0) -> list[bytes]:
+    return [RXPDO_STRUCT.pack(controlword, target, 0, 0, 8)] * slaves
+
+
+# ---- addressing and working counters ---------------------------------------------------------------------
+def test_broadcast_read_counts_every_slave():
+    _ring, master = make(10)
+    assert master.brd(0x0000, 2).wkc == 10
+
+
+def test_broadcast_read_returns_the_or_of_the_slaves_data():
+    ring, master = make(3)
+    master.set_station_addresses()
+    assert master.brd(0x0010, 2).data == struct.pack("<H", 0x1001 | 0x1002 | 0x1003)
+
+
+def test_auto_increment_write_sets_station_addresses_in_ring_order():
+    ring, master = make(3)
+    master.set_station_addresses()
+    assert [s.esc.station_address for s in ring.slaves] == [0x1001, 0x1002, 0x1003]
+
+
+def test_each_slave_adds_one_to_the_auto_increment_address():
+    _ring, master = make(4)
+    assert master.aprd(2, 0x0000, 1).adp == (-2 + 4) & 0xFFFF
+
+
+def test_configured_address_read_of_no_slave_has_working_counter_zero():
+    _ring, master = make(2)
+    master.set_station_addresses()
+    assert master.fprd(0x2000, 0x0130, 2).wkc == 0
+    assert master.fprd(0x1002, 0x0130, 2).wkc == 1
+
+
+def test_esc_reports_dc_support_and_both_ports():
+    _ring, master = make(2)
+    master.set_station_addresses()
+    assert struct.unpack("<H", master.fprd(0x1001, 0x0008, 2).data)[0] & 0x0004
+    assert struct.unpack("<H", master.fprd(0x1001, 0x0110, 2).data)[0] & 0x0F00 == 0x0A00  # ports 0, 1 open
+    assert struct.unpack("<H", master.fprd(0x1002, 0x0110, 2).data)[0] & 0x0F00 == 0x0600  # port 1 closed
+
+
+def test_status_registers_are_read_only_for_the_master():
+    _ring, master = make(1)
+    master.set_station_addresses()
+    master.fpwr(0x1001, 0x0130, b"\x08\x00")
+    assert master.al_status(0x1001) == (0x01, 0)
+
+
+def test_eeprom_read_delivers_eight_bytes_of_the_sii():
+    _ring, master = make(1)
+    master.set_station_addresses()
+    master.fpwr(0x1001, 0x0502, struct.pack("<HI", 0x0100, 0x0008))
+    status = struct.unpack("<H", master.fprd(0x1001, 0x0502, 2).data)[0]
+    assert status & 0x8000 == 0 and status & 0x0040
+    assert struct.unpack("<II", master.fprd(0x1001, 0x0508, 8).data) == (0x5A65726F, 0x00029252)
+
+
+def test_malformed_frame_is_dropped():
+    ring, _master = make(1)
+    assert not ring.process(bytearray(b"\xff" * 12 + b"\x88\xa4" + b"\xff\x1f"), START_NS)
+    assert ring.dropped_malformed == 1
+
+
+# ---- AL state machine -----------------------------------------------------------------------------------------
+def test_init_to_safeop_is_refused_with_0x0011():
+    _ring, master = make(1)
+    master.set_station_addresses()
+    master.request_state(0x1001, 0x04)
+    assert master.al_status(0x1001) == (0x11, 0x0011)
+
+
+def test_preop_needs_the_mailbox_sync_managers():
+    _ring, master = make(1)
+    master.set_station_addresses()
+    master.request_state(0x1001, 0x02)
+    assert master.al_status(0x1001) == (0x11, 0x0016)
+
+
+def test_error_needs_acknowledging_before_going_up():
+    _ring, master = make(1)
+    master.set_station_addresses()
+    master.request_state(0x1001, 0x04)
+    master.program_mailbox(0x1001)
+    master.request_state(0x1001, 0x02)
+    assert master.al_status(0x1001) == (0x11, 0x0011)
+    master.request_state(0x1001, 0x12)
+    assert master.al_status(0x1001) == (0x02, 0)
+
+
+def test_safeop_needs_sm2_matching_the_rxpdo_size():
+    _ring, master = make(1)
+    master.set_station_addresses()
+    master.program_mailbox(0x1001)
+    master.request_state(0x1001, 0x12)
+    master.program_process_data(0)
+    master.fpwr(0x1001, 0x0810, struct.pack("<HHI", 0x1100, RXPDO_STRUCT.size + 1, 0x00010064))
+    master.request_state(0x1001, 0x04)
+    assert master.al_status(0x1001) == (0x12, 0x001D)
+
+
+def test_safeop_counts_only_inputs_in_the_working_counter():
+    _ring, master = in_safeop(3)
+    wkc, inputs = run_cycles(master, 1, MS)
+    assert wkc == 3
+    assert struct.unpack_from("<H", inputs[0])[0] == 0x0250
+
+
+def test_op_counts_outputs_twice_and_inputs_once():
+    _ring, master = in_op(3)
+    wkc, _inputs = run_cycles(master, 1, MS)
+    assert wkc == 3 * 3
+
+
+# ---- DC lock model ---------------------------------------------------------------------------------------------
+def test_op_request_waits_for_the_dc_lock_cycles():
+    _ring, master = in_safeop(2, dc_lock_cycles=50)
+    request_op(master, 2)
+    run_cycles(master, 2 + 40, MS)  # the first 2 ms pass before SYNC0 starts
+    assert states(master, 2) == [(0x04, 0), (0x04, 0)]
+    run_cycles(master, 10, MS)
+    assert states(master, 2) == [(0x08, 0), (0x08, 0)]
+
+
+def test_lock_needs_the_time_distribution_in_the_frames():
+    _ring, master = in_safeop(1, dc_lock_cycles=5)
+    request_op(master, 1)
+    run_cycles(master, 50, MS, distribute_time=False)
+    assert states(master, 1) == [(0x04, 0)]
+
+
+def test_sync0_faster_than_the_frames_never_locks():
+    _ring, master = in_safeop(1, sync0_ns=MS, dc_lock_cycles=5)
+    request_op(master, 1)
+    run_cycles(master, 100, 20 * MS)
+    assert states(master, 1) == [(0x04, 0)]
+
+
+def test_frames_faster_than_sync0_lock():
+    _ring, master = in_safeop(1, sync0_ns=20 * MS, dc_lock_cycles=5)
+    request_op(master, 1)
+    run_cycles(master, 30, MS)
+    assert states(master, 1) == [(0x08, 0)]
+
+
+def test_a_50_hz_loop_needs_7_s_to_lock_by_default():
+    ring, master = in_safeop(1, sync0_ns=20 * MS)
+    request_op(master, 1)
+    run_cycles(master, 349, 20 * MS)
+    assert states(master, 1) == [(0x04, 0)]
+    run_cycles(master, 2, 20 * MS)
+    assert states(master, 1) == [(0x08, 0)]
+    assert ring.options.dc_lock_cycles * 20 * MS == 7_000 * MS
+
+
+def test_sync0_cycle_below_500_us_is_refused():
+    _ring, master = in_safeop(1, sync0_ns=250_000, dc_lock_cycles=5)
+    request_op(master, 1)
+    assert states(master, 1) == [(0x14, 0x0035)]
+
+
+def test_sync0_outrunning_frames_in_op_faults_the_drive_with_4616():
+    ring, master = in_op(1)
+    enabled = enable_outputs(1, 0x06)
+    for controlword in (0x06, 0x07, 0x0F):
+        enabled = enable_outputs(1, controlword)
+        run_cycles(master, 1, MS, enabled)
+    run_cycles(master, 6, 30 * MS, enabled)  # SYNC0 is 10 ms
+    _wkc, inputs = run_cycles(master, 1, 30 * MS, enabled)
+    assert struct.unpack_from("<H", inputs[0])[0] == 4616
+    assert struct.unpack_from("<H", inputs[0], 12)[0] == 0xA000
+    assert states(master, 1) == [(0x14, 0x001A)]
+
+
+def test_free_run_csp_without_dc_faults():
+    ring, master = in_safeop(1, sync0_ns=None)
+    request_op(master, 1)
+    for controlword in (0x06, 0x07, 0x0F):
+        _wkc, inputs = run_cycles(master, 1, MS, enable_outputs(1, controlword))
+    _wkc, inputs = run_cycles(master, 1, MS, enable_outputs(1, 0x0F))
+    assert struct.unpack_from("<H", inputs[0])[0] == 4616
+
+
+def test_mailbox_traffic_during_dc_activation_faults_with_0xa000():
+    ring, master = in_safeop(2, dc_lock_cycles=50)
+    request_op(master, 2)
+    run_cycles(master, 10, MS)
+    master.mailbox_write(0x1002, struct.pack("<HBHBI", 0x2000, 0x40, 0x1018, 1, 0))
+    assert ring.slaves[1].drive.error_code.value == 0xA000
+    assert ring.slaves[0].drive.error_code.value == 0
+    assert ring.slaves[1].lock_count == 0
+
+
+def test_mailbox_traffic_after_lock_is_harmless():
+    ring, master = in_op(1)
+    master.mailbox_write(0x1001, struct.pack("<HBHBI", 0x2000, 0x40, 0x1018, 1, 0))
+    assert ring.slaves[0].drive.error_code.value == 0
+
+
+# ---- watchdog and faults ----------------------------------------------------------------------------------------
+def test_outputs_missing_for_100_ms_drop_the_slave_to_safeop_with_0x001b():
+    ring, master = in_op(1)
+    master.now_ns += 101 * MS
+    ring.advance(master.now_ns)
+    assert states(master, 1) == [(0x14, 0x001B)]
+
+
+def test_leaving_op_while_enabled_faults_the_drive_with_0xa000():
+    ring, master = in_op(1)
+    for controlword in (0x06, 0x07, 0x0F):
+        run_cycles(master, 1, MS, enable_outputs(1, controlword))
+    master.request_state(0x1001, 0x04)
+    assert ring.slaves[0].drive.error_code.value == 0xA000
+
+
+def test_lost_slave_ends_the_line():
+    ring, master = make(4)
+    ring.lose(2)
+    assert master.brd(0x0000, 2).wkc == 2
+    assert ring.slaves[1].esc.mem[0x0111] & 0x04  # slave 1 closed port 1
+
+
+def test_restored_slave_comes_back_in_init_without_address():
+    ring, master = make(3)
+    master.set_station_addresses()
+    ring.lose(1)
+    ring.restore(1)
+    assert master.brd(0x0000, 2).wkc == 3
+    assert ring.slaves[1].esc.station_address == 0
+    assert ring.slaves[2].esc.station_address == 0x1003
+
+
+# ---- mailbox mechanics ------------------------------------------------------------------------------------------
+def test_reading_an_empty_mailbox_is_refused():
+    ring, master = in_safeop(1, sync0_ns=None)
+    assert master.fprd(0x1001, 0x1080, 128).wkc == 0
+
+
+def test_reply_appears_after_the_mailbox_latency():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.002)
+    master.mailbox_write(0x1001, struct.pack("<HBHBI", 0x2000, 0x40, 0x1018, 1, 0))
+    assert master.mailbox_read(0x1001) is None
+    master.now_ns += 2 * MS
+    reply = master.mailbox_read(0x1001)
+    assert struct.unpack_from("<I", reply, 12)[0] == 0x5A65726F
+
+
+def test_write_mailbox_refuses_a_second_request_while_full():
+    ring, master = in_safeop(1, sync0_ns=None)
+    ring.slaves[0].esc._set_mailbox_full(0, True)
+    assert master.mailbox_write(0x1001, b"\x00" * 10).wkc == 0
+
+
+def test_repeat_request_offers_the_last_reply_again():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.0)
+    master.mailbox_write(0x1001, struct.pack("<HBHBI", 0x2000, 0x40, 0x1018, 1, 0))
+    first = master.mailbox_read(0x1001)
+    assert master.mailbox_read(0x1001) is None
+    master.fpwr(0x1001, 0x080E, b"\x03")  # enable + toggled repeat request
+    assert master.fprd(0x1001, 0x080F, 1).data[0] & 0x02
+    assert master.mailbox_read(0x1001) == first
+
+
+# ---- process data moves the drive -------------------------------------------------------------------------------
+def test_process_data_enables_the_drive_and_tracks_the_target():
+    ring, master = in_op(1)
+    ring.plant.gravity[:] = 0.0
+    for controlword in (0x06, 0x07, 0x0F):
+        run_cycles(master, 1, MS, enable_outputs(1, controlword))
+    target = 8000  # counts, about 0.096 rad
+    _wkc, inputs = run_cycles(master, 1500, MS, enable_outputs(1, 0x0F, target))
+    statusword, position = struct.unpack_from("<Hi", inputs[0])
+    assert statusword == 5687
+    assert position == pytest.approx(target, abs=40)
+
+
+def test_lrw_leaves_the_output_bytes_of_the_frame_unchanged():
+    ring, master = in_op(2)
+    outputs = [RXPDO_STRUCT.pack(0x06, 1234, 0, 0, 8), RXPDO_STRUCT.pack(0x06, 5678, 0, 0, 8)]
+    master.now_ns += MS
+    image = b"".join(outputs) + bytes(TXPDO_STRUCT.size * 2)
+    reply = master.exchange([Datagram.logical(Command.LRW, 0, image)])[0]
+    assert reply.data[:2 * RXPDO_STRUCT.size] == b"".join(outputs)
+
+
+def test_mujoco_plant_follows_the_drive_on_the_arm():
+    ring, master = in_op(10, plant="mujoco")
+    outputs = [IDLE_OUTPUT] * 10
+    for controlword in (0x06, 0x07, 0x0F):
+        outputs[3] = RXPDO_STRUCT.pack(controlword, 0, 0, 0, 8)
+        run_cycles(master, 1, MS, outputs)
+    target = -40000  # left elbow pitch, about -0.48 rad
+    outputs[3] = RXPDO_STRUCT.pack(0x0F, target, 0, 0, 8)
+    _wkc, inputs = run_cycles(master, 1000, MS, outputs)
+    statusword, position = struct.unpack_from("<Hi", inputs[3])
+    assert statusword == 5687
+    assert position == pytest.approx(target, rel=0.02)
+
+
+# ---- PDO mapping over SDO --------------------------------------------------------------------------------
+def in_preop(**options: object) -> tuple[Ring, WireMaster]:
+    ring, master = make(1, mailbox_latency_s=0.0, **options)
+    master.set_station_addresses()
+    master.program_mailbox(0x1001)
+    master.request_state(0x1001, 0x12)
+    return ring, master
+
+
+def test_mapping_entries_change_only_while_the_count_is_zero():
+    _ring, master = in_preop()
+    reply = master.sdo_download(0x1001, 0x1A00, 1, struct.pack("<I", 0x60410010))
+    assert sdo_abort_code(reply) == 0x06010003
+
+
+def test_mapping_an_output_object_into_the_txpdo_is_refused():
+    _ring, master = in_preop()
+    master.sdo_download(0x1001, 0x1A00, 0, b"\x00")
+    master.sdo_download(0x1001, 0x1A00, 1, struct.pack("<I", 0x60400010))  # controlword is an RxPDO object
+    assert sdo_abort_code(master.sdo_download(0x1001, 0x1A00, 0, b"\x01")) == 0x06040041
+
+
+def test_mapping_cannot_change_outside_preop():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.0)
+    assert sdo_abort_code(master.sdo_download(0x1001, 0x1A00, 0, b"\x00")) == 0x08000022
+
+
+def test_remapped_inputs_fill_sm3_in_the_new_order():
+    ring, master = in_preop()
+    master.sdo_download(0x1001, 0x1A00, 0, b"\x00")
+    master.sdo_download(0x1001, 0x1A00, 1, struct.pack("<I", 0x60640020))  # position actual first
+    master.sdo_download(0x1001, 0x1A00, 2, struct.pack("<I", 0x60410010))
+    master.sdo_download(0x1001, 0x1A00, 0, b"\x02")
+    master.fpwr(0x1001, 0x0810, struct.pack("<HHI", 0x1100, RXPDO_STRUCT.size, 0x00010064))
+    master.fpwr(0x1001, 0x0818, struct.pack("<HHI", 0x1180, 6, 0x00010020))
+    master.request_state(0x1001, 0x04)
+    assert master.al_status(0x1001) == (0x04, 0)
+    ring.plant.q[0] = 0.5
+    master.now_ns += MS
+    ring.advance(master.now_ns)
+    position, statusword = struct.unpack("<iH", master.fprd(0x1001, 0x1180, 6).data)
+    assert (position, statusword) == (round(0.5 * COUNTS_PER_RAD), 0x0250)

@@ -1,5 +1,6 @@
 """``prime sim``: the simulated Prime (MuJoCo), brought up with the staged start and run through the
-demonstration (every mode in 20 simulated seconds), or held in one mode."""
+demonstration (every mode in 20 simulated seconds), or held in one mode. ``--hil can`` puts the Sito
+wrists behind real CAN frames: SitoSystem and emulated motors on a virtual bus (``sim/hil.py``)."""
 
 from __future__ import annotations
 
@@ -24,11 +25,13 @@ from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
 from humanoid_prime.robot import load_robot
 from humanoid_prime.sim.demo import DEMO_SECONDS, SCHEDULE, START_POSE, Simulation, Step, build_simulation, demo_stream
+from humanoid_prime.sim.hil import build_hil_simulation
 from humanoid_prime.sim.live import LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.sim.mujoco_system import MujocoSystem
 
 VIEWER_SYNC_S = 1.0 / 60.0
 VIEWER_CLOSE_S = 5.0
+HIL_CHOICES = ("none", "can")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -44,6 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", metavar="MODE", help="stay in MODE instead of running the demonstration")
     p.add_argument("--summary", metavar="FILE", help="write a JSON summary of the run to FILE")
     p.add_argument("--model", metavar="FILE", help="MuJoCo model (default: the bundled prime.xml)")
+    p.add_argument("--hil", choices=HIL_CHOICES, default="none",
+                   help="hardware in the loop: 'can' drives the Sito wrists through SitoSystem and emulated motors "
+                        "on a virtual CAN bus, their plants the wrists of the same model (default: none)")
     p.add_argument("--socket", metavar="PATH",
                    help=f"control socket for 'prime switch' (default: {default_socket_path()})")
     add_config_options(p, controllers=True)
@@ -107,7 +113,9 @@ def _format_line(summary: dict[str, Any]) -> str:
     tick = f"tick {median:.0f}/{p99:.0f} us median/p99" if median is not None else "no ticks"
     return (f"visited {' -> '.join(summary['modes_visited'])} | {summary['ticks']} ticks, "
             f"{summary['sim_seconds']:.2f} s simulated in {summary['wall_seconds']:.2f} s"
-            f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks")
+            f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks"
+            + (f" | CAN {summary['can']['host_frames_sent']} frames sent, {summary['can']['host_frames_received']} "
+               "received" if "can" in summary else ""))
 
 
 @contextlib.contextmanager
@@ -138,9 +146,19 @@ def run(args: argparse.Namespace) -> int:
 
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
-    system, manager = build_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
-    stream = demo_stream(robot, config, manager)
-    viewer, close_viewer = _open_viewer(system) if args.viewer else (None, None)
+    hil = None
+    if args.hil == "can":
+        hil = build_hil_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
+        system, manager, start, close = hil.system, hil.manager, hil.start, hil.close
+    else:
+        system, manager = build_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
+        start, close = manager.start, manager.shutdown
+    try:
+        stream = demo_stream(robot, config, manager)
+        viewer, close_viewer = _open_viewer(system) if args.viewer else (None, None)
+    except BaseException:
+        close()  # the CAN buses are open already
+        raise
     schedule = SCHEDULE if mode is None else (Step(0.0, mode),)
     sim = Simulation(system, manager, schedule=schedule, stream=stream, realtime=not args.fast,
                      lock=viewer.lock if viewer is not None else None)
@@ -152,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
         wall = sim.wall_elapsed()
         rate = f"{system.sim_time / wall:5.1f}x real time" if wall > 0 else ""
         driver = "demonstration" if mode is None and sim.following_schedule else "operator"
-        return f"sim {system.sim_time:6.2f} s  wall {wall:6.2f} s  {rate}  ({driver})"
+        wrists = ", wrists over CAN" if hil is not None else ""
+        return f"sim {system.sim_time:6.2f} s  wall {wall:6.2f} s  {rate}  ({driver}{wrists})"
 
     table = LiveTable(manager, status=status) if live_terminal else None
 
@@ -175,9 +194,9 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack, _sigterm_stops():
         if close_viewer is not None:
             stack.callback(close_viewer)
-        stack.callback(manager.shutdown)
+        stack.callback(close)
         try:
-            manager.start()
+            start()
             stages = " -> ".join(name for name, _ in manager.stages)
             print(f"staged start: {stages} ({sum(s for _, s in manager.stages) * 1e3:.1f} ms); "
                   f"ZERO_TORQUE active, the other mode controllers loaded inactive", file=out, flush=True)
@@ -195,6 +214,9 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM before the loop began
             sim.stopped_by = "interrupt"
         summary = sim.summary()
+    summary["hil"] = args.hil
+    if hil is not None:
+        summary["can"] = hil.frame_counts()  # after shutdown: the disable frames count too
 
     if args.summary:
         atomic_write_text(args.summary, json.dumps(summary, indent=2) + "\n")

@@ -6,6 +6,10 @@ actuator whose bias terms are ``-kp*q - kd*qd`` and whose control is ``kp*q_cmd 
 ``write`` sets those per tick and advances physics by one control period, so simulated time moves
 exactly ``physics_rate / control_rate`` steps per tick.
 
+The system may own a subset of the joints (``joints``); the actuators of the others stay at zero gain
+and zero control, so another component (e.g. emulated motors applying their own torque) drives them.
+``advance`` replaces MuJoCo's own step, once per physics step, for whoever must run alongside physics.
+
 The model is ``data/description/prime.xml``. The robot description is authoritative: the loader checks
 that the model has the description's bodies, joint origins and axes, sets every joint range from the
 description's limits (hard stops), and generates the actuators with the description's effort limits.
@@ -15,7 +19,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -161,12 +165,23 @@ def _check_tree(model: mujoco.MjModel, urdf_joints: list[_UrdfJoint], path: Path
 
 
 class MujocoSystem(HardwareComponent):
-    """All 14 joints in MuJoCo, in canonical order; the MIT law at ``physics_rate`` with live state."""
+    """The joints in MuJoCo (default all 14), in canonical order; the MIT law at ``physics_rate`` with live state.
+
+    ``joints``: the subset this component owns. ``advance(dt)``: called once per physics step instead of
+    ``mujoco.mj_step``; it must step the world exactly once.
+    """
 
     def __init__(self, robot: Robot, *, physics_rate: float = 1000.0, control_rate: float = 200.0,
                  model_path: str | Path | None = None, initial_pose: Mapping[str, float] | None = None,
-                 name: str = "MujocoSystem") -> None:
-        super().__init__(name, robot.names)
+                 name: str = "MujocoSystem", joints: tuple[str, ...] | None = None,
+                 advance: Callable[[float], None] | None = None) -> None:
+        owned = robot.names if joints is None else tuple(joints)
+        unknown = [j for j in owned if j not in robot.names]
+        if unknown or len(set(owned)) != len(owned) or not owned:
+            raise PrimeError(f"{name}: joints must be distinct joints of the robot, got {', '.join(owned) or 'none'}"
+                             f"; known joints: {', '.join(robot.names)}")
+        owned = tuple(j for j in robot.names if j in owned)  # canonical order
+        super().__init__(name, owned)
         ratio = physics_rate / control_rate if control_rate > 0 else 0.0
         if not (physics_rate > 0 and ratio >= 1 and abs(ratio - round(ratio)) < 1e-9):
             raise PrimeError(f"simulation rates: physics_rate {physics_rate:g} Hz must be a whole multiple of the "
@@ -176,18 +191,23 @@ class MujocoSystem(HardwareComponent):
         self.physics_rate = float(physics_rate)
         self.control_rate = float(control_rate)
         self.substeps = round(ratio)
+        self.advance = advance
         self.model = load_model(robot, model_path, physics_rate=physics_rate)
         self.data = mujoco.MjData(self.model)
+        self.physics_dt = float(self.model.opt.timestep)
 
-        joint_ids = [self.model.joint(n).id for n in robot.names]
+        joint_ids = [self.model.joint(n).id for n in owned]
         self.qpos_adr = self.model.jnt_qposadr[joint_ids].astype(np.intp)
         self.dof_adr = self.model.jnt_dofadr[joint_ids].astype(np.intp)
-        # Actuator k drives component joint k (they are generated in that order).
+        # Actuators are generated in canonical order, one per robot joint; these are the owned joints' ones.
+        self.actuator_ids = np.array([robot.index(j) for j in owned], dtype=np.intp)
+        self._actuators = slice(None) if owned == robot.names else self.actuator_ids
         self._bias_kp = self.model.actuator_biasprm[:, 1]
         self._bias_kd = self.model.actuator_biasprm[:, 2]
-        n = len(robot.names)
+        n = len(owned)
         self._kp = np.zeros(n)
         self._kd = np.zeros(n)
+        self._u = np.zeros(n)
         self._a = np.zeros(n)
         self._b = np.zeros(n)
         # Views into MuJoCo's buffers, taken once.
@@ -207,17 +227,18 @@ class MujocoSystem(HardwareComponent):
         return self.substeps / self.physics_rate
 
     def set_pose(self, pose: Mapping[str, float]) -> None:
-        """Place joints (rad, joint frame) at rest; joints left out keep their position."""
+        """Place joints of the model (rad, joint frame, owned or not) at rest; joints left out keep their position."""
+        names = self.robot.names
         for joint, value in pose.items():
-            if joint not in self.joints:
-                raise PrimeError(f"initial pose: {joint!r} matches no joint; known joints: {', '.join(self.joints)}")
+            if joint not in names:
+                raise PrimeError(f"initial pose: {joint!r} matches no joint; known joints: {', '.join(names)}")
             spec = self.robot.joints[self.robot.index(joint)]
             if not spec.lower <= value <= spec.upper:
                 raise PrimeError(f"initial pose: {joint} = {value:g} rad is outside its limits "
                                  f"[{spec.lower:g}, {spec.upper:g}]")
-            k = self.joints.index(joint)
-            self.data.qpos[self.qpos_adr[k]] = value
-            self.data.qvel[self.dof_adr[k]] = 0.0
+            model_joint = self.model.joint(joint)
+            self.data.qpos[model_joint.qposadr[0]] = value
+            self.data.qvel[model_joint.dofadr[0]] = 0.0
         mujoco.mj_forward(self.model, self.data)
 
     def on_activate(self) -> None:
@@ -237,20 +258,30 @@ class MujocoSystem(HardwareComponent):
         state.position[idx] = self._a
         np.take(self._qvel, self.dof_adr, out=self._a)
         state.velocity[idx] = self._a
-        state.effort[idx] = self._force
+        np.take(self._force, self.actuator_ids, out=self._a)
+        state.effort[idx] = self._a
 
     def write(self, now: float, command: CommandArrays) -> None:
-        idx = self.indices
-        ctrl = self._ctrl
+        idx, actuators = self.indices, self._actuators
+        u = self._u
         np.take(command.stiffness, idx, out=self._kp)
         np.take(command.damping, idx, out=self._kd)
-        np.negative(self._kp, out=self._bias_kp)
-        np.negative(self._kd, out=self._bias_kd)
+        np.negative(self._kp, out=self._a)
+        self._bias_kp[actuators] = self._a
+        np.negative(self._kd, out=self._a)
+        self._bias_kd[actuators] = self._a
         np.take(command.position, idx, out=self._a)
-        np.multiply(self._kp, self._a, out=ctrl)
+        np.multiply(self._kp, self._a, out=u)
         np.take(command.velocity, idx, out=self._a)
         np.multiply(self._kd, self._a, out=self._b)
-        ctrl += self._b
+        u += self._b
         np.take(command.effort, idx, out=self._a)
-        ctrl += self._a
-        mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        u += self._a
+        self._ctrl[actuators] = u
+        advance = self.advance
+        if advance is None:
+            mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        else:
+            dt = self.physics_dt
+            for _ in range(self.substeps):
+                advance(dt)

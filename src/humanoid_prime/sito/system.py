@@ -87,7 +87,12 @@ class _FeedbackReceiver(can.Listener):
         self.down_error = ""
 
     def on_message_received(self, msg: can.Message) -> None:
-        self.frames += 1
+        try:
+            self._take(msg)
+        finally:
+            self.frames += 1  # counted once stored, so frames seen by a waiter are visible to read()
+
+    def _take(self, msg: can.Message) -> None:
         ident = msg.arbitration_id
         if msg.is_error_frame:
             if ident & CAN_ERR_BUSOFF:
@@ -120,6 +125,7 @@ class _FeedbackReceiver(can.Listener):
             with self.lock:
                 self.raw[0, slot] = output
                 self.stamp[1, slot] = now
+
 
     def _invalid(self, msg: can.Message, why: str) -> None:
         self.invalid_frames += 1

@@ -17,7 +17,13 @@ from .drives import DriveMailboxes
 @pytest.fixture
 def served(tmp_path):
     drives = DriveMailboxes()
-    with ControlServer(None, tmp_path / "control.sock", sdo=drives) as srv:
+    drives.limp_marks = []
+
+    def joint_limp(position, limp):
+        drives.limp_marks.append((position, limp))
+        return f"ring{position}"
+
+    with ControlServer(None, tmp_path / "control.sock", sdo=drives, joint_limp=joint_limp) as srv:
         yield srv, drives
 
 
@@ -30,6 +36,16 @@ def test_limp_for_a_scripted_time_then_restores(served, capsys):
     assert out["limp"]["pos_reg"] == 0 and out["limp"]["gate"] == 1
     assert out["restored"] == before
     assert drives.values[3] == before
+    assert drives.limp_marks == [(3, True), (3, False)]
+
+
+def test_limp_is_refused_where_a_controller_commands_the_erob(tmp_path, capsys):
+    drives = DriveMailboxes()
+    before = dict(drives.values[3])
+    with ControlServer(lambda mode: None, tmp_path / "c.sock", sdo=drives) as srv:
+        assert main(["limp", "3", "--seconds", "0", "--socket", str(srv.path)]) == 1
+    assert "needs a running `prime calibrate`" in capsys.readouterr().err
+    assert drives.values[3] == before and drives.log == []
 
 
 def test_damping_argument_sets_the_velocity_gain(served, capsys):

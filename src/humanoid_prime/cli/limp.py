@@ -61,10 +61,14 @@ def run(args: argparse.Namespace) -> int:
         if not args.damping > 0:
             raise PrimeError(f"DAMPING must be > 0 Nm*s/rad (it slows the fall), got {args.damping}")
         vel_reg = round(vel_reg_exact(args.damping, kt=kt, gear=gear, efficiency=hardware.torque_efficiency))
+    sdo = _sdo(args)
+    marker = sdo if isinstance(sdo, SocketSdoClient) else None
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
-    limp = DampedLimp(_sdo(args), args.ring_position, vel_reg)
+    limp = DampedLimp(sdo, args.ring_position, vel_reg)
     interrupted = False
     try:
+        if marker is not None:
+            marker.mark_limp(args.ring_position, True)  # the target follows the joint while it is limp
         with limp:
             back = limp.readback
             assert back is not None
@@ -83,7 +87,11 @@ def run(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 interrupted = True
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        try:
+            if marker is not None and limp.snapshot is not None:
+                marker.mark_limp(args.ring_position, False)  # restored: hold where it is now
+        finally:
+            signal.signal(signal.SIGTERM, previous)
     snap = limp.snapshot
     assert snap is not None
     restored = {"gate": snap.gate, "pos_reg": snap.registers.pos_reg, "vel_reg": snap.registers.vel_reg,

@@ -42,9 +42,10 @@ class ControlServer:
     """Serves mode requests (handed to ``request_mode``) and, if given an ``sdo`` client, SDO requests."""
 
     def __init__(self, request_mode: Callable[[Mode], None] | None, path: str | Path | None = None, *,
-                 sdo: SdoClient | None = None) -> None:
+                 sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None) -> None:
         self.request_mode = request_mode
         self.sdo = sdo
+        self.joint_limp = joint_limp
         self.path = Path(path) if path is not None else default_socket_path()
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -100,6 +101,12 @@ class ControlServer:
                 mode = Mode.parse(str(request["mode"]))
                 self.request_mode(mode)
                 return {"ok": True, "mode": mode.value}
+            if op == "limp":
+                if self.joint_limp is None:
+                    return {"ok": False, "error": "prime limp needs a running `prime calibrate` (or a single-bus "
+                                                  "`prime bringup`), where no mode controller commands the eRob"}
+                joint = self.joint_limp(int(request["position"]), bool(request["limp"]))
+                return {"ok": True, "joint": joint}
             if op in ("sdo_read", "sdo_write"):
                 if self.sdo is None:
                     return {"ok": False, "error": "this prime instance has no EtherCAT master"}
@@ -180,7 +187,10 @@ def send_mode_request(mode: Mode, path: str | Path | None = None) -> str:
 
 
 class SocketSdoClient:
-    """SDO through the control socket of the running process that owns the EtherCAT master."""
+    """SDO through the control socket of the running process that owns the EtherCAT master.
+
+    ``mark_limp`` tells that process a joint is going limp (its CSP target then follows the actual
+    position, so sweeping it builds no following error) or holds again."""
 
     def __init__(self, path: str | Path | None = None, timeout: float = 5.0) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
@@ -194,3 +204,6 @@ class SocketSdoClient:
     def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
         request(self.path, {"op": "sdo_write", "position": position, "index": index, "sub_index": sub_index,
                             "data": data.hex()}, self.timeout)
+
+    def mark_limp(self, position: int, limp: bool) -> None:
+        request(self.path, {"op": "limp", "position": position, "limp": limp}, self.timeout)

@@ -76,16 +76,15 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 print(f"{joint} (ring {args.ring_position}) is damped-limp: read back gate={back.gate} "
                       f"Kp(pos_reg)={back.registers.pos_reg} vel_reg={back.registers.vel_reg} "
-                      f"(kd ~ {kd:.2f} Nm*s/rad nominal)")
-            try:
-                if args.seconds is not None:
-                    time.sleep(max(0.0, args.seconds))
-                else:
-                    print("Sweep it firmly to both mechanical stops, return near neutral, then press Enter "
-                          "to re-hold (Ctrl-C also restores).", flush=True)
-                    sys.stdin.readline()
-            except KeyboardInterrupt:
-                interrupted = True
+                      f"(kd ~ {kd:.2f} Nm*s/rad nominal)", flush=True)
+            if args.seconds is not None:
+                time.sleep(max(0.0, args.seconds))
+            else:
+                print("Sweep it firmly to both mechanical stops, return near neutral, then press Enter "
+                      "to re-hold (Ctrl-C also restores).", flush=True)
+                sys.stdin.readline()
+    except KeyboardInterrupt:
+        interrupted = True
     finally:
         try:
             if marker is not None and limp.snapshot is not None:
@@ -93,7 +92,9 @@ def run(args: argparse.Namespace) -> int:
         finally:
             signal.signal(signal.SIGTERM, previous)
     snap = limp.snapshot
-    assert snap is not None
+    if snap is None:
+        print(f"{joint} (ring {args.ring_position}): interrupted before anything was changed", file=sys.stderr)
+        return 130
     restored = {"gate": snap.gate, "pos_reg": snap.registers.pos_reg, "vel_reg": snap.registers.vel_reg,
                 "integral": snap.registers.integral}
     if args.json:

@@ -51,3 +51,36 @@ def test_tracker_listens_to_joint_states(robot):
     q[robot.index("right_wrist_pitch")] = 0.5
     topics.publish(JOINT_STATES, JointState(0.0, robot.names, q, np.zeros(robot.n), np.zeros(robot.n)))
     assert tracker.sweeps() == {"right_wrist_pitch": (0.5, 0.5)}
+
+
+def _sweep(tracker, robot, joint, values):
+    for value in values:
+        q = np.zeros(robot.n)
+        q[robot.index(joint)] = value
+        tracker.update(q)
+
+
+def test_order_says_which_extreme_came_first(robot):
+    tracker = SweepTracker(robot, ["left_wrist_roll", "right_wrist_roll"])
+    _sweep(tracker, robot, "left_wrist_roll", [0.0, -0.3, -0.7, -0.2, 0.4, 0.7, 0.1])
+    assert tracker.order()["left_wrist_roll"] == "min"
+    tracker = SweepTracker(robot, ["left_wrist_roll"])
+    _sweep(tracker, robot, "left_wrist_roll", [0.0, 0.7, 0.0, -0.7, 0.0])
+    assert tracker.order()["left_wrist_roll"] == "max"
+
+
+def test_order_is_unknown_for_a_joint_that_starts_at_a_stop(robot):
+    tracker = SweepTracker(robot, ["left_elbow_pitch"])
+    _sweep(tracker, robot, "left_elbow_pitch", [0.0, -1.0, -2.356, -1.0, 0.0])  # hanging on its upper stop
+    assert tracker.order()["left_elbow_pitch"] is None
+
+
+def test_a_reading_that_rises_first_is_flagged_as_a_flip(robot):
+    from humanoid_prime.calibration.math import Status, calibrate_from_sweeps
+    from humanoid_prime.config.calibration import identity_calibration
+
+    sweeps = {"left_wrist_roll": (-0.698, 0.698)}
+    _, reports = calibrate_from_sweeps(sweeps, identity_calibration(robot.hardware), robot,
+                                       max_first={"left_wrist_roll"})
+    report = next(r for r in reports if r.joint == "left_wrist_roll")
+    assert report.status is Status.PROBABLE_FLIP and "lower stop first" in report.message

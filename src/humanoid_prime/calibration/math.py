@@ -7,7 +7,7 @@ direction applied, offset 0), so a joint swept stop to stop reads ``[lower, uppe
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -59,12 +59,15 @@ def _misses_limits(sweep: SweepStats, lower: float, upper: float) -> bool:
 
 
 def calibrate_from_sweeps(sweeps: Mapping[str, SweepStats | tuple[float, float]], prior: Calibration,
-                          robot: Robot) -> tuple[Calibration, list[JointReport]]:
+                          robot: Robot, *, max_first: Collection[str] = ()) -> tuple[Calibration, list[JointReport]]:
     """New calibration of every joint of ``robot`` from the sweeps, carrying ``prior`` where there is none.
 
     Directions stay as in ``prior`` (the sweeps were sampled with them). A joint whose offset exceeds half
     a turn, or whose sweep misses the described range entirely, gets the computed offset but is reported
-    as a probable direction flip, so ``flip_direction`` can fix it without a re-sweep.
+    as a probable direction flip, so ``flip_direction`` can fix it without a re-sweep. ``max_first`` names
+    joints whose trace reached its maximum before its minimum although the operator swept to the lower
+    stop first: the same flag. (A sweep alone cannot show a flip on a symmetric joint: its range maps onto
+    the limits either way; the order of the stops can.)
     """
     unknown = sorted(set(sweeps) - set(robot.names))
     if unknown:
@@ -92,6 +95,10 @@ def calibrate_from_sweeps(sweeps: Mapping[str, SweepStats | tuple[float, float]]
                 message = (f"sweep [{sweep.min:.3f}, {sweep.max:.3f}] misses the limits "
                            f"[{spec.lower}, {spec.upper}]: probably a direction flip; "
                            f"run `prime calibration flip {spec.name}` or re-sweep with the other direction")
+            elif spec.name in max_first:
+                status = Status.PROBABLE_FLIP
+                message = ("swept to the lower stop first, but the reading rose to its maximum first: probably "
+                           f"a direction flip; run `prime calibration flip {spec.name}`")
             else:
                 status, message = Status.CALIBRATED, f"sweep {sweep.span:.3f} rad"
         joints[spec.name] = JointCalibration(before.direction, offset)

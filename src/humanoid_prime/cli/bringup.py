@@ -1,0 +1,187 @@
+"""``prime bringup``: bring Prime up on the real robot (or the virtual one with --emulate) and run it."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+from humanoid_prime.bringup import (
+    BACKENDS,
+    BringupOptions,
+    control_server,
+    measure_stiffness,
+    open_session,
+    run_loop,
+    stop_on_signals,
+)
+from humanoid_prime.cli._common import add_json_option
+from humanoid_prime.control.operator import default_socket_path
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.files import atomic_write_text
+from humanoid_prime.modes import Mode
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "bringup", help="bring up Prime on both buses (or one) and run the controller manager",
+        description="Bring Prime up: fold the calibration into the eRob configs, take the EtherCAT ring to OP "
+                    "with the fast bring-up loop (SYNC0 derived from update_rate), enable the Sito wrists, start "
+                    "the controllers in stages (broadcaster, ZERO_TORQUE, the other modes inactive), then arm "
+                    "the eRob gain gate and follow the mode. Keys 1-5 switch modes on a terminal; "
+                    "`prime switch MODE` does it from another terminal.")
+    p.add_argument("--backends", choices=BACKENDS, default="all",
+                   help="all: both buses and the mode controllers; ec / can: that bus alone with only the "
+                        "joint-state broadcaster (calibration, diagnostics)")
+    p.add_argument("--emulate", action="store_true",
+                   help="run against the virtual Prime (eRob ring on a veth pair, Sito motors on a CAN bus, one "
+                        "MuJoCo plant) inside a private network namespace; needs root or user namespaces")
+    p.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    p.add_argument("--calibration", metavar="FILE", help="calibration file (default: bundled)")
+    p.add_argument("--controllers", metavar="FILE", help="controllers file (default: bundled)")
+    p.add_argument("--interface", metavar="NIC", help="EtherCAT interface (default: from the hardware file)")
+    p.add_argument("--can-interface", metavar="NAME", help="python-can interface (default: from the hardware file)")
+    p.add_argument("--can-channel", metavar="NAME", help="python-can channel (default: from the hardware file)")
+    p.add_argument("--sync0-period", type=float, metavar="S",
+                   help="cross-check: must equal 1/update_rate (it is derived from it); a different value is "
+                        "refused with the reason")
+    p.add_argument("--bringup-rate", type=float, metavar="HZ", help="EtherCAT bring-up loop rate (default: 1000)")
+    p.add_argument("--sequential-sdo", action="store_true",
+                   help="write the eRob gains one slave after another (the slow baseline) instead of in parallel")
+    p.add_argument("--mode", metavar="MODE", help="switch to MODE once up")
+    p.add_argument("--sequence", metavar="MODE,...", help="visit these modes, one every --dwell seconds, then stop")
+    p.add_argument("--dwell", type=float, default=2.0, metavar="S", help="seconds per mode of --sequence")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of control loop")
+    p.add_argument("--load-test", nargs="?", const="all", metavar="JOINT,...",
+                   help="(with --emulate) measure realised eRob stiffness in STANDBY: push each joint with a known "
+                        "torque in the plant and read the deflection; prints nominal vs realised kp")
+    p.add_argument("--truth", metavar="FILE",
+                   help="(with --emulate) the virtual robot's wiring and factory offsets, as a calibration file")
+    p.add_argument("--dc-lock-cycles", type=int, metavar="N", help="(with --emulate) DC lock cycles per drive")
+    p.add_argument("--mailbox-latency", type=float, metavar="S",
+                   help="(with --emulate) time each emulated drive takes to answer an SDO (default 0.0005)")
+    p.add_argument("--erob-config-dir", metavar="DIR", help="keep the folded per-slave eRob configs here")
+    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    p.add_argument("--summary", metavar="FILE", help="write the run's figures as JSON")
+    p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
+    add_json_option(p)
+    p.set_defaults(func=run)
+
+
+def _modes(text: str | None) -> list[Mode]:
+    if not text:
+        return []
+    try:
+        return [Mode.parse(item) for item in text.split(",") if item.strip()]
+    except ValueError as exc:
+        raise PrimeError(str(exc)) from None
+
+
+def options_from_args(args: argparse.Namespace) -> BringupOptions:
+    if args.duration is not None and not args.duration > 0:
+        raise PrimeError(f"--duration must be > 0 seconds, got {args.duration}")
+    if not args.emulate and (args.load_test or args.truth or args.dc_lock_cycles is not None
+                             or args.mailbox_latency is not None):
+        raise PrimeError("--load-test, --truth, --dc-lock-cycles and --mailbox-latency need --emulate "
+                         "(they act on the virtual Prime)")
+    sequence = _modes(args.sequence)
+    if args.mode:
+        sequence = _modes(args.mode) + sequence
+    if sequence and args.backends != "all":
+        raise PrimeError(f"--backends {args.backends} runs only the joint-state broadcaster; modes need --backends all")
+    ring_options = {}
+    if args.dc_lock_cycles is not None:
+        ring_options["dc_lock_cycles"] = args.dc_lock_cycles
+    if args.mailbox_latency is not None:
+        ring_options["mailbox_latency_s"] = args.mailbox_latency
+    return BringupOptions(
+        backends=args.backends, emulate=args.emulate, hardware_file=args.hardware,
+        calibration_file=args.calibration, controllers_file=args.controllers, interface=args.interface,
+        can_interface=args.can_interface, can_channel=args.can_channel, sync0_period_s=args.sync0_period,
+        bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
+        duration=args.duration, sequence=sequence, dwell=args.dwell, truth_file=args.truth,
+        erob_config_dir=args.erob_config_dir, control_socket=args.socket, ring_options=ring_options)
+
+
+def run(args: argparse.Namespace) -> int:
+    options = options_from_args(args)
+    if options.emulate:
+        from humanoid_prime.emulation.harness import enter_private_netns
+
+        enter_private_netns()  # re-executes this command in a private network namespace (returns inside)
+    stop = threading.Event()
+    report = print if not args.json else (lambda *a, **k: None)
+    with contextlib.ExitStack() as stack, stop_on_signals(stop):
+        session = open_session(options, stack)
+        report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
+               f"{', emulated' if options.emulate else ''}):")
+        for name, seconds in session.stages:
+            report(f"  {name:<28} {seconds * 1e3:9.1f} ms")
+        stack.enter_context(control_server(session, options.control_socket))
+        load_test = None
+        if args.load_test:
+            joints = (session.robot.hardware.erob_joints if args.load_test == "all"
+                      else [j.strip() for j in args.load_test.split(",") if j.strip()])
+            load_test = _start_load_test(session, joints, stop)
+        if sys.stdout.isatty() and not args.no_live and not args.json:
+            from humanoid_prime.sim.live import LiveTable, ModeKeys
+
+            full = not session.manager.broadcaster_only
+            if sys.stdin.isatty():
+                stack.enter_context(ModeKeys(session.manager.request_mode if full else _refuse, stop.set))
+            stack.enter_context(LiveTable(session.manager, keys=full))
+        run_loop(session, stop)
+        if load_test is not None:
+            load_test.join()
+    summary = session.summary()
+    if args.summary:
+        atomic_write_text(Path(args.summary), json.dumps(summary, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        _print_report(summary)
+    if summary["gate_reset_failures"]:
+        print("prime bringup: gate not reset on: " + "; ".join(summary["gate_reset_failures"]), file=sys.stderr)
+        return 1
+    return 0
+
+
+def _refuse(mode: Mode) -> None:
+    """Mode keys in a broadcaster-only run: nothing to switch."""
+
+
+def _start_load_test(session, joints: list[str], stop: threading.Event) -> threading.Thread:
+    def work() -> None:
+        try:
+            session.manager.request_mode(Mode.STANDBY)
+            time.sleep(session.config.standby.duration + 1.0)
+            session.load_test.extend(measure_stiffness(session, joints))
+        except PrimeError as exc:
+            session.faults["load_test"] = str(exc)
+        finally:
+            stop.set()
+
+    thread = threading.Thread(target=work, name="load-test", daemon=True)
+    thread.start()
+    return thread
+
+
+def _print_report(summary: dict) -> None:
+    for switch in summary["mode_switches"]:
+        state = "ok" if switch["ok"] else f"FAILED {switch['failed']}"
+        print(f"mode {switch['mode']:<12} gains on all slaves in {switch['wall_seconds'] * 1e3:6.1f} ms, "
+              f"skew {switch['skew_seconds'] * 1e3:5.1f} ms, retries {switch['retries']}: {state}")
+    tick, jitter = summary["tick_us"], summary["jitter_us"]
+    if summary["ticks"]:
+        print(f"loop: {summary['ticks']} ticks at {summary['update_rate_hz']:g} Hz, "
+              f"tick median {tick['median']:.0f} us p99 {tick['p99']:.0f} us, "
+              f"period jitter p99 {jitter['p99']:.0f} us, overruns {summary['overruns']}")
+    for row in summary["load_test"]:
+        print(f"load test {row['joint']:<22} kp nominal {row['kp_nominal']:5.1f}  realised {row['kp_realised']:5.1f} "
+              f"Nm/rad  ({row['ratio']:.2f}x, torque_efficiency {row['torque_efficiency']:g})")
+    for key, text in summary["faults"].items():
+        print(f"flag {key}: {text}")

@@ -1,0 +1,255 @@
+"""``prime calibrate``: sweep tracker and offset computation for one physical robot (or the virtual one)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import threading
+import time
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+from humanoid_prime.bringup import BACKENDS, Session, control_server, open_session, run_loop, stop_on_signals
+from humanoid_prime.calibration.tracker import SweepTracker
+from humanoid_prime.calibration.workflow import (
+    VERIFY_TOLERANCE_RAD,
+    CalibrationResult,
+    VerifyRow,
+    bringup_options,
+    check_joint_names,
+    compute,
+    identity_from,
+    plot_sweeps,
+    tracked_joints,
+    write,
+)
+from humanoid_prime.cli._common import add_json_option
+from humanoid_prime.config.calibration import load_calibration
+from humanoid_prime.config.hardware import load_hardware
+from humanoid_prime.control.operator import default_socket_path
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.robot import Robot
+
+READOUT_HZ = 5.0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "calibrate", help="track joint sweeps to both stops and write prime_calibration.yaml",
+        description="Bring up the chosen buses with identity calibration (the prior's directions, offset 0) and "
+                    "only the joint-state broadcaster, and track each joint's min/max while you sweep it to both "
+                    "mechanical stops, the lower stop first (eRob: `prime limp RING_POS` in another terminal; "
+                    "Sito wrists are limp already). Ctrl-C (or q) computes the offsets and writes a complete "
+                    "14-joint file atomically, carrying the prior through for joints not swept.")
+    p.add_argument("--backends", choices=BACKENDS, default="all", help="which buses to bring up (default all)")
+    p.add_argument("--output", metavar="FILE", default="prime_calibration.yaml",
+                   help="calibration file to write (default ./prime_calibration.yaml)")
+    p.add_argument("--prior", metavar="FILE",
+                   help="calibration carried through for joints not swept, and the source of the directions "
+                        "(default: the bundled prime_calibration.yaml)")
+    p.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    p.add_argument("--controllers", metavar="FILE", help="controllers file (default: bundled)")
+    p.add_argument("--emulate", action="store_true", help="calibrate the virtual Prime (private network namespace)")
+    p.add_argument("--truth", metavar="FILE", help="(with --emulate) the virtual robot's wiring and factory offsets")
+    p.add_argument("--scripted", nargs="?", const="all", metavar="JOINT,...",
+                   help="(with --emulate) a scripted operator sweeps these joints (default: every joint of the "
+                        "run) to both stops, then the run ends")
+    p.add_argument("--verify", action="store_true",
+                   help="instead of calibrating: bring up with --calibration folded and check that each joint "
+                        "at a stop reads that stop's limit (driven on the emulator, by you on the robot)")
+    p.add_argument("--calibration", metavar="FILE", help="(with --verify) the calibration to check (default --output)")
+    p.add_argument("--joints", metavar="JOINT,...", help="(with --verify) check only these joints")
+    p.add_argument("--plot", metavar="PNG", help="also draw each joint's sweep against its limits")
+    p.add_argument("--any-order", action="store_true",
+                   help="the stops were swept in any order: skip the direction check that relies on sweeping "
+                        "each joint to its lower stop first")
+    p.add_argument("--dc-lock-cycles", type=int, metavar="N", help="(with --emulate) DC lock cycles per drive")
+    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
+    add_json_option(p)
+    p.set_defaults(func=run)
+
+
+def _joint_list(text: str | None) -> list[str]:
+    return [j.strip() for j in (text or "").split(",") if j.strip()]
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.emulate and (args.truth or args.scripted or args.dc_lock_cycles is not None):
+        raise PrimeError("--truth, --scripted and --dc-lock-cycles need --emulate (they act on the virtual Prime)")
+    if args.plot and args.verify:
+        raise PrimeError("--plot draws a calibration run's sweeps; it does not go with --verify")
+    hardware = load_hardware(args.hardware)
+    prior = load_calibration(hardware, args.prior)
+    checked = load_calibration(hardware, args.calibration or args.output) if args.verify else None
+    if args.emulate:
+        from humanoid_prime.emulation.harness import enter_private_netns
+
+        enter_private_netns()
+    ring_options = {} if args.dc_lock_cycles is None else {"dc_lock_cycles": args.dc_lock_cycles}
+    overrides = dict(emulate=args.emulate, hardware_file=args.hardware, controllers_file=args.controllers,
+                     truth_file=args.truth, control_socket=args.socket, ring_options=ring_options)
+    if args.verify:
+        return _verify(args, checked, overrides)
+    return _calibrate(args, prior, overrides)
+
+
+class _Readout:
+    """The live table: position, min, max, sweep and range coverage per joint, redrawn in place at 5 Hz."""
+
+    def __init__(self, tracker: SweepTracker, console: Console) -> None:
+        self.tracker = tracker
+        self.console = console
+
+    def __rich__(self) -> Table:
+        table = Table(title="prime calibrate: sweep each joint to its LOWER stop first, then the upper; "
+                            "Ctrl-C or q writes the file",
+                      title_justify="left", box=None, header_style="bold")
+        for column in ("joint", "q rad", "min", "max", "sweep", "range covered"):
+            table.add_column(column, justify="left" if column == "joint" else "right")
+        for row in self.tracker.rows():
+            seen = row.maximum >= row.minimum
+            sweep = row.sweep
+            style = "green" if sweep >= 0.5 else ("yellow" if seen else "dim")
+            bar = "#" * round(10 * min(row.coverage, 1.0))
+            table.add_row(row.joint, f"{row.position:+.3f}" if seen else "-",
+                          f"{row.minimum:+.3f}" if seen else "-", f"{row.maximum:+.3f}" if seen else "-",
+                          Text(f"{sweep:.3f}", style=style), f"{bar:<10} {100 * row.coverage:3.0f}%")
+        return table
+
+
+def _calibrate(args: argparse.Namespace, prior: Any, overrides: dict[str, Any]) -> int:
+    hardware = load_hardware(args.hardware)
+    stop = threading.Event()
+    console = Console()
+    result: CalibrationResult | None = None
+    with contextlib.ExitStack() as stack, stop_on_signals(stop):
+        session = open_session(bringup_options(args.backends, identity_from(prior), **overrides), stack)
+        robot = session.robot
+        joints = tracked_joints(robot, args.backends)
+        scripted = None
+        if args.scripted:
+            scripted = joints if args.scripted == "all" else tuple(_joint_list(args.scripted))
+            check_joint_names(robot, scripted, joints, "--scripted")
+        tracker = SweepTracker(robot, joints)
+        tracker.attach(session.manager.topics)
+        stack.enter_context(control_server(session, args.socket))
+        if not args.json:
+            console.print(f"Prime up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
+                          f"{len(joints)} joints ({args.backends}).")
+        if scripted is not None:
+            _start_scripted(session, scripted, stop)
+        if console.is_terminal and not args.no_live and not args.json:
+            stack.enter_context(Live(_Readout(tracker, console), console=console, refresh_per_second=READOUT_HZ))
+            if sys.stdin.isatty():
+                from humanoid_prime.sim.live import ModeKeys
+
+                stack.enter_context(ModeKeys(lambda mode: None, stop.set))
+        run_loop(session, stop)
+        result = compute(tracker, prior, robot, lower_first=not args.any_order)
+    write(args.output, result, robot)
+    if args.plot:
+        plot_sweeps(args.plot, result, robot)
+    if args.json:
+        print(json.dumps({"output": str(args.output), **result.as_dict(), "faults": session.faults}, indent=2))
+    else:
+        _report(console, result, args.output, hardware.path.name)
+    return 0
+
+
+def _start_scripted(session: Session, joints: tuple[str, ...], stop: threading.Event) -> None:
+    from humanoid_prime.emulation.operator import ScriptedOperator
+
+    def work() -> None:
+        try:
+            operator = ScriptedOperator(session)
+            for joint in joints:
+                if stop.is_set():
+                    return
+                operator.sweep(joint)
+        except Exception as exc:  # reported with the run; the file is still written from what was swept
+            session.faults["scripted_operator"] = f"{type(exc).__name__}: {exc}"
+        finally:
+            stop.set()
+
+    threading.Thread(target=work, name="scripted-operator", daemon=True).start()
+
+
+def _report(console: Console, result: CalibrationResult, output: str, hardware_name: str) -> None:
+    console.print(f"wrote {output}")
+    for r in result.reports:
+        style = {"calibrated": "green", "skipped": "yellow", "probable_flip": "bold red", "carried": "dim"}[r.status]
+        console.print(Text(f"  {r.joint:<22} {r.status:<13} offset {r.offset:+.4f} rad  {r.message}", style=style))
+    console.print("mirror check (left vs right):")
+    for m in result.mirror:
+        mark = "ok" if m.ok else "CHECK"
+        console.print(f"  {m.left:<22} {m.left_offset:+.4f}  {m.right:<22} {m.right_offset:+.4f}  "
+                      f"{m.relation:<8} residual {m.residual:+.4f}  {mark}")
+
+
+def _verify(args: argparse.Namespace, calibration: Any, overrides: dict[str, Any]) -> int:
+    stop = threading.Event()
+    rows: list[VerifyRow] = []
+    errors: list[str] = []
+    with contextlib.ExitStack() as stack, stop_on_signals(stop):
+        session = open_session(bringup_options(args.backends, calibration, **overrides), stack)
+        robot = session.robot
+        joints = tracked_joints(robot, args.backends)
+        chosen = tuple(_joint_list(args.joints)) or joints
+        check_joint_names(robot, chosen, joints, "--joints")
+        stack.enter_context(control_server(session, args.socket))
+        worker = threading.Thread(target=_verify_joints, args=(session, chosen, rows, errors, stop, args.emulate),
+                                  name="verify", daemon=True)
+        worker.start()
+        run_loop(session, stop)
+        worker.join(timeout=5.0)
+    if errors:
+        raise PrimeError(errors[0])
+    ok = all(r.ok for r in rows)
+    if args.json:
+        print(json.dumps({"tolerance_rad": VERIFY_TOLERANCE_RAD, "ok": ok, "rows": [r.as_dict() for r in rows]},
+                         indent=2))
+    else:
+        for r in rows:
+            print(f"{r.joint:<22} {r.stop:<5} limit {r.limit:+.4f}  reads {r.reading:+.4f}  "
+                  f"error {1e3 * r.error:+7.2f} mrad  {'ok' if r.ok else 'FAIL'}")
+        print(("verified: every joint reads its limit within " if ok else "NOT verified: readings off by more than ")
+              + f"{1e3 * VERIFY_TOLERANCE_RAD:g} mrad")
+    return 0 if ok else 1
+
+
+def _verify_joints(session: Session, joints: tuple[str, ...], rows: list[VerifyRow], errors: list[str],
+                   stop: threading.Event, emulated: bool) -> None:
+    robot: Robot = session.robot
+    try:
+        if emulated:
+            from humanoid_prime.emulation.operator import ScriptedOperator
+
+            operator = ScriptedOperator(session)
+            for joint in joints:
+                spec = robot.joints[robot.index(joint)]
+                with operator.limp(joint):
+                    for side, name, limit in ((-1, "lower", spec.lower), (+1, "upper", spec.upper)):
+                        rows.append(VerifyRow(joint, name, limit, operator.push_to(joint, side)))
+                    operator.let_go(joint)
+        else:
+            position = session.manager.resources.state.position
+            for joint in joints:
+                spec = robot.joints[robot.index(joint)]
+                for name, limit in (("lower", spec.lower), ("upper", spec.upper)):
+                    hint = (f" (limp it first: prime limp {spec.ring_position})" if spec.family == "erob" else "")
+                    print(f"Hold {joint} against its {name} stop{hint}, then press Enter", flush=True)
+                    if not sys.stdin.readline():
+                        raise PrimeError("stdin closed before every stop was checked")
+                    time.sleep(0.1)
+                    rows.append(VerifyRow(joint, name, limit, float(position[spec.index])))
+    except Exception as exc:
+        errors.append(f"verify: {exc}")
+    finally:
+        stop.set()

@@ -1,0 +1,185 @@
+"""`prime calibrate` end to end on the virtual Prime with injected wiring directions and factory offsets."""
+
+from __future__ import annotations
+
+import json
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from humanoid_prime.calibration.math import flip_direction
+from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration, save_calibration
+from humanoid_prime.control.operator import SocketSdoClient, request
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.ethercat.netns import netns_unavailable_reason
+
+pytestmark = pytest.mark.netns
+REASON = netns_unavailable_reason()
+if REASON is not None:
+    pytest.skip(f"emulated calibration: {REASON}", allow_module_level=True)
+
+PRIME = [sys.executable, "-m", "humanoid_prime"]
+FLIPPED = ("left_shoulder_roll", "right_wrist_pitch", "right_wrist_yaw")
+
+
+def prime(*args: str, timeout: float = 240.0) -> subprocess.CompletedProcess:
+    return subprocess.run([*PRIME, *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def truth(robot, tmp_path_factory) -> tuple[Calibration, Path]:
+    """Random factory offsets on every joint, three joints wired backwards."""
+    rng = random.Random(20261121)
+    cal = Calibration({j: JointCalibration(-1 if j in FLIPPED else 1, round(rng.uniform(-0.9, 0.9), 5))
+                       for j in robot.names})
+    path = tmp_path_factory.mktemp("truth") / "truth.yaml"
+    save_calibration(path, cal, robot.hardware)
+    return cal, path
+
+
+@pytest.fixture(scope="module")
+def calibrated(robot, truth, tmp_path_factory) -> tuple[dict, Path, Path]:
+    """The documented procedure with the bundled (all +1) directions: the ten eRob on EtherCAT alone, then
+    the four wrists on CAN alone carrying the eRob result through as the prior."""
+    tmp = tmp_path_factory.mktemp("calibrate")
+    erob, output, plot = tmp / "erob.yaml", tmp / "prime_calibration.yaml", tmp / "sweeps.png"
+    reports = {}
+    for backends, prior, out in (("ec", None, erob), ("can", erob, output)):
+        args = ["calibrate", "--emulate", "--backends", backends, "--truth", str(truth[1]), "--scripted",
+                "--output", str(out), "--socket", str(tmp / "control.sock"), "--json"]
+        if prior is not None:
+            args += ["--prior", str(prior), "--plot", str(plot)]
+        proc = prime(*args)
+        assert proc.returncode == 0, proc.stderr
+        joints = json.loads(proc.stdout)["joints"]
+        reports.update({j: r for j, r in joints.items() if r["status"] != "carried"})
+    return {"joints": reports}, output, plot
+
+
+def test_every_correctly_wired_offset_is_recovered_within_1_mrad(robot, truth, calibrated):
+    report, output, _ = calibrated
+    written = load_calibration(robot.hardware, output)
+    for joint, true in truth[0].joints.items():
+        if joint in FLIPPED:
+            continue
+        assert report["joints"][joint]["status"] == "calibrated", report["joints"][joint]
+        assert written.joints[joint].homing_offset == pytest.approx(true.homing_offset, abs=1e-3), joint
+
+
+def test_joints_wired_backwards_are_flagged_and_a_flip_recovers_them(robot, truth, calibrated):
+    report, output, _ = calibrated
+    flagged = {j for j, r in report["joints"].items() if r["status"] == "probable_flip"}
+    assert flagged == set(FLIPPED)
+    written = load_calibration(robot.hardware, output)
+    for joint in FLIPPED:
+        spec = robot.joints[robot.index(joint)]
+        fixed = flip_direction(written.joints[joint], spec.lower, spec.upper)
+        assert fixed.direction == truth[0].joints[joint].direction
+        assert fixed.homing_offset == pytest.approx(truth[0].joints[joint].homing_offset, abs=1e-3), joint
+
+
+def test_the_plot_is_written(calibrated):
+    _, _, plot = calibrated
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_after_folding_every_joint_at_a_stop_reads_its_limit(robot, truth, calibrated, tmp_path):
+    _, output, _ = calibrated
+    fixed = tmp_path / "fixed.yaml"
+    fixed.write_bytes(output.read_bytes())
+    for joint in FLIPPED:
+        assert prime("calibration", "flip", joint, "--calibration", str(fixed)).returncode == 0
+    proc = prime("calibrate", "--emulate", "--verify", "--truth", str(truth[1]), "--calibration", str(fixed),
+                 "--socket", str(tmp_path / "control.sock"), "--json")
+    result = json.loads(proc.stdout)
+    bad = [r for r in result["rows"] if not r["ok"]]
+    assert proc.returncode == 0 and not bad, bad
+    assert len(result["rows"]) == 28
+    assert max(abs(r["error"]) for r in result["rows"]) <= 0.002
+
+
+def test_an_unswept_joint_keeps_its_prior_and_is_listed(robot, truth, tmp_path):
+    prior = tmp_path / "prior.yaml"
+    cal = Calibration({j: JointCalibration(1, 0.0) for j in robot.names}).with_joint(
+        "right_shoulder_yaw", JointCalibration(1, 0.4321))
+    save_calibration(prior, cal, robot.hardware)
+    output = tmp_path / "out.yaml"
+    proc = prime("calibrate", "--emulate", "--backends", "ec", "--truth", str(truth[1]), "--prior", str(prior),
+                 "--scripted", "right_shoulder_pitch,right_elbow_pitch", "--output", str(output),
+                 "--socket", str(tmp_path / "control.sock"), "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["joints"]["right_shoulder_yaw"]["status"] in ("skipped", "carried")
+    written = load_calibration(robot.hardware, output)
+    assert written.joints["right_shoulder_yaw"].homing_offset == pytest.approx(0.4321)
+    assert set(written.joints) == set(robot.names)  # a one-bus run still writes all 14 joints
+    assert written.joints["right_elbow_pitch"].homing_offset == pytest.approx(
+        truth[0].joints["right_elbow_pitch"].homing_offset, abs=1e-3)
+
+
+def _start(tmp_path: Path, output: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
+    socket = tmp_path / "control.sock"
+    proc = subprocess.Popen([*PRIME, "calibrate", "--emulate", "--output", str(output), "--socket", str(socket),
+                             "--no-live", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            request(socket, {"op": "ping"}, timeout=0.5)
+            return proc, socket
+        except PrimeError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                raise AssertionError(proc.stderr.read()) from None
+            time.sleep(0.1)
+
+
+@pytest.mark.parametrize("signals", [1, 2])
+def test_ctrl_c_leaves_the_previous_file_or_a_complete_new_one(robot, tmp_path, signals):
+    output = tmp_path / "prime_calibration.yaml"
+    previous = Calibration({j: JointCalibration(1, 0.1234) for j in robot.names})
+    save_calibration(output, previous, robot.hardware)
+    before = output.read_text()
+    proc, _ = _start(tmp_path, output, "--scripted")
+    time.sleep(2.0)  # somewhere in the middle of the scripted sweeps
+    for _ in range(signals):
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+    proc.wait(timeout=60)
+    text = output.read_text()
+    assert text == before or set(yaml.safe_load(text)["joints"]) == set(robot.names)
+    load_calibration(robot.hardware, output)  # whichever it is, it is complete and valid
+    assert not list(tmp_path.glob(".prime_calibration.yaml.*.tmp"))
+
+
+@pytest.mark.parametrize("how", ["seconds", "sigterm"])
+def test_prime_limp_leaves_the_registers_as_it_found_them(tmp_path, how):
+    proc, socket = _start(tmp_path, tmp_path / "out.yaml")
+    try:
+        sdo = SocketSdoClient(socket)
+        objects = [(0x2383, 0), (0x2382, 1), (0x2381, 1), (0x2381, 2)]
+        before = [sdo.sdo_read(3, index, sub) for index, sub in objects]
+        if how == "seconds":
+            limp = subprocess.run([*PRIME, "limp", "3", "--seconds", "0.5", "--socket", str(socket)],
+                                  capture_output=True, text=True, timeout=60)
+            assert limp.returncode == 0, limp.stderr
+        else:
+            limp = subprocess.Popen([*PRIME, "limp", "3", "--socket", str(socket)], stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            deadline = time.monotonic() + 30
+            while int.from_bytes(sdo.sdo_read(3, 0x2382, 1)[:4], "little") != 0:
+                assert time.monotonic() < deadline, "the joint never went limp"
+                time.sleep(0.05)
+            limp.send_signal(signal.SIGTERM)
+            limp.communicate(timeout=30)
+            assert limp.returncode == 130
+        after = [sdo.sdo_read(3, index, sub) for index, sub in objects]
+        assert after == before
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)

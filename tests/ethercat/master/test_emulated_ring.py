@@ -1,0 +1,248 @@
+"""The SOEM master and EthercatSystem against ten emulated eRob on a veth pair (DESIGN §4.2)."""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from humanoid_prime.config.calibration import JointCalibration, load_calibration
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.erob.constants import COUNTS_PER_RAD
+from humanoid_prime.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.ethercat.master import SdoRefused, expected_ring
+from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason
+from humanoid_prime.ethercat.soem_master import SoemMaster
+from humanoid_prime.ethercat.system import EthercatSystem
+
+REASON = netns_unavailable_reason()
+pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"no emulated ring: {REASON}")]
+
+UPDATE_RATE_HZ = 50.0
+
+
+def wait_for(condition, timeout_s: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} not reached within {timeout_s} s")
+        time.sleep(0.01)
+
+
+class Loop:
+    """The controller manager's part: read() then write() at the update rate, in a thread."""
+
+    def __init__(self, system: EthercatSystem, n: int) -> None:
+        self.system = system
+        self.command = CommandArrays(n)
+        self.state = StateArrays(n)
+        self.ticks = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        next_tick = time.monotonic()
+        while not self._stop.is_set():
+            self.system.read(0.0, self.state)
+            self.system.write(0.0, self.command)
+            self.ticks += 1
+            next_tick += 1.0 / UPDATE_RATE_HZ
+            self._stop.wait(max(0.0, next_tick - time.monotonic()))
+
+    def __enter__(self) -> Loop:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+@pytest.fixture
+def ring():
+    with EmulatedRing(slaves=10) as r:
+        yield r
+
+
+def make_system(robot, ring, calibration=None, **master_options) -> EthercatSystem:
+    master = SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ, bringup_rate_hz=1000.0,
+                        **master_options)
+    system = EthercatSystem(robot, calibration or load_calibration(robot.hardware), update_rate_hz=UPDATE_RATE_HZ,
+                            master=master)
+    system.indices = robot.indices("erob")
+    return system
+
+
+@pytest.fixture
+def system(robot, ring):
+    cal = load_calibration(robot.hardware).with_joint("left_wrist_yaw", JointCalibration(-1, 0.3))
+    s = make_system(robot, ring, cal)
+    s.configure()
+    s.activate()
+    yield s
+    s.shutdown()
+
+
+def test_ten_emulated_erob_reach_op_and_operation_enabled(system, ring):
+    status = ring.control.status()
+    assert [s["al_state"] for s in status] == ["OP"] * 10
+    assert [s["drive"]["statusword"] for s in status] == [5687] * 10
+    assert system.master.expected_wkc == 30
+
+
+def test_each_joint_commands_and_reads_its_own_ring_position(system, ring, robot):
+    cal = system.calibration
+    targets = {joint: 0.03 * (position + 1) for joint, position in robot.hardware.erob_slaves.items()}
+
+    def raw(joint: str, q: float) -> float:
+        return cal.joints[joint].direction * q + cal.joints[joint].homing_offset
+
+    with Loop(system, robot.n) as loop:
+        for joint, q in targets.items():
+            loop.command.position[robot.index(joint)] = q
+            loop.command.stiffness[robot.index(joint)] = 20.0
+        wait_for(lambda: loop.ticks > 5, what="five ticks")
+        status = ring.control.status()
+        for joint, position in robot.hardware.erob_slaves.items():
+            assert status[position]["drive"]["target_position"] == math.floor(
+                raw(joint, targets[joint]) * COUNTS_PER_RAD + 0.5), joint
+
+        def settled() -> bool:
+            status = ring.control.status()
+            return all(abs(loop.state.position[robot.index(joint)] - cal.joints[joint].direction * (
+                status[position]["drive"]["position_actual"] / COUNTS_PER_RAD - cal.joints[joint].homing_offset))
+                < 1e-3 for joint, position in robot.hardware.erob_slaves.items())
+
+        wait_for(settled, what="every joint reading its own drive")
+
+
+def test_a_commanded_position_reaches_the_drive_through_factor_and_offset_and_reads_back(system, ring, robot):
+    j = robot.index("left_wrist_yaw")
+    position = robot.hardware.erob_slaves["left_wrist_yaw"]
+    with Loop(system, robot.n) as loop:
+        wait_for(lambda: loop.ticks > 2, what="two ticks")
+        loop.command.position[j] = loop.state.position[j]
+        loop.command.stiffness[j] = 20.0
+        time.sleep(0.1)
+        loop.command.position[j] = 0.2
+        wait_for(lambda: ring.control.slave(position)["drive"]["target_position"]
+                 == math.floor(-0.2 * COUNTS_PER_RAD + 0.3 * COUNTS_PER_RAD + 0.5), what="target at the drive")
+        wait_for(lambda: abs(loop.state.position[j] - 0.2) < 0.01, what="joint at 0.2 rad")
+    raw = ring.control.slave(position)["drive"]["position_actual"] / COUNTS_PER_RAD
+    assert raw == pytest.approx(-0.2 + 0.3, abs=0.01)  # q_raw = direction*q + homing_offset
+
+
+def test_zero_stiffness_keeps_the_drive_target_on_the_actual_position(system, ring, robot):
+    ring.control.set_joint(2, 0.4)
+    with Loop(system, robot.n) as loop:
+        loop.command.position[:] = -1.0  # far away, but limp: must not be followed
+        wait_for(lambda: loop.ticks > 5, what="five ticks")
+        drive = ring.control.slave(2)["drive"]
+    assert abs(drive["target_position"] - drive["position_actual"]) < 0.001 * COUNTS_PER_RAD
+    assert drive["error_code"] == 0
+
+
+def test_the_products_bringup_never_faults_a_drive_with_0xa000(system, ring):
+    status = ring.control.status()
+    assert [s["mailbox_faults"] for s in status] == [0] * 10
+    assert [s["drive"]["error_history"] for s in status] == [[]] * 10
+
+
+def test_an_sdo_before_op_is_refused_by_the_master(robot, ring):
+    master = SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ)
+    with master:
+        master.open()
+        with pytest.raises(SdoRefused, match="0xA000"):
+            master.sdo_read(0, ERROR_CODE, 0)
+    assert [s["mailbox_faults"] for s in ring.control.status()] == [0] * 10
+
+
+def test_an_sdo_forced_during_activation_faults_the_drive_with_0xa000(robot, ring):
+    master = SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ, bringup_rate_hz=1000.0)
+    cycles = []
+
+    def sdo_during_activation(m: SoemMaster) -> None:
+        cycles.append(1)
+        if len(cycles) == 20:  # SAFE-OP, SYNC0 armed, DC not locked: the activation phase
+            m.sdo_read(2, ERROR_CODE, 0, unsafe_before_op=True)
+
+    with master:
+        master.start(expected_ring(robot.hardware.erob_slaves), on_cycle=sdo_during_activation)
+        for _ in range(3):  # the drive reports CSP (bit 12 of 4616) once it has seen mode 8 in OP
+            master.exchange()
+        slave = ring.control.slave(2)
+        assert slave["mailbox_faults"] == 1
+        assert slave["drive"]["error_code"] == 0xA000
+        assert int(master.inputs["statusword"][2]) == 4616
+        assert int(master.inputs["error_code"][2]) == 0xA000
+        assert [s["mailbox_faults"] for s in ring.control.status() if s["position"] != 2] == [0] * 9
+
+
+def test_a_sync0_that_differs_from_the_loop_is_refused_before_the_ring_is_touched(ring):
+    with pytest.raises(Exception, match="never locks.*4616"):
+        SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ, sync0_period_s=0.005)
+    assert [s["al_state"] for s in ring.control.status()] == ["INIT"] * 10
+
+
+def test_a_forced_sync0_faster_than_the_loop_faults_the_drives_with_4616(robot, ring):
+    system = make_system(robot, ring, unsafe_sync0_period_s=0.005)
+    system.configure()
+    system.activate()
+    try:
+        with Loop(system, robot.n) as loop:
+            wait_for(lambda: "ethercat/ring0/fault" in system.flags, what="drive fault flag")
+            assert loop.ticks > 0
+        assert "statusword 4616 (0x1208)" in system.flags["ethercat/ring0/fault"]
+        status = ring.control.slave(0)
+        assert status["drive"]["statusword"] == 4616 and status["drive"]["error_code"] == 0xA000
+        assert status["al_state"] != "OP"  # dropped out of OP (AL 0x001A) and never relocks at this frame rate
+    finally:
+        system.shutdown()
+
+
+def test_gains_written_over_sdo_read_back(system, ring, robot):
+    master = system.master
+    with Loop(system, robot.n):
+        wait_for(lambda: system.bus_ready, what="SDO gate open")
+
+        def write(position: int) -> tuple[int, int]:
+            master.sdo_write(position, *BUS_GAIN_GATE, struct.pack("<B", 1))
+            master.sdo_write(position, *POS_LOOP_GAIN, struct.pack("<I", 400 + position))
+            master.sdo_write(position, *VEL_LOOP_GAIN, struct.pack("<I", 20 + position))
+            return (struct.unpack("<I", master.sdo_read(position, *POS_LOOP_GAIN)[:4])[0],
+                    struct.unpack("<I", master.sdo_read(position, *VEL_LOOP_GAIN)[:4])[0])
+
+        with ThreadPoolExecutor(max_workers=10) as pool:
+            read_back = list(pool.map(write, range(10)))
+    assert read_back == [(400 + p, 20 + p) for p in range(10)]
+    assert [(s["drive"]["pos_reg"], s["drive"]["vel_reg"]) for s in ring.control.status()] == read_back
+    assert "ethercat/wkc" not in system.flags
+
+
+def test_a_lost_slave_raises_flags_while_the_loop_keeps_running(system, ring, robot):
+    with Loop(system, robot.n) as loop:
+        wait_for(lambda: loop.ticks > 3, what="ticks")
+        ring.control.lose_slave(9)
+        wait_for(lambda: {"ethercat/ring9/lost", "ethercat/wkc"} <= set(system.flags), what="lost and WKC flags")
+        assert system.flags["ethercat/ring9/lost"].startswith("right_wrist_yaw (ring 9): slave lost")
+        ticks = loop.ticks
+        j = robot.index("left_shoulder_pitch")
+        loop.command.position[j] = 0.05
+        loop.command.stiffness[j] = 20.0
+        wait_for(lambda: abs(loop.state.position[j] - 0.05) < 0.04, what="ring 0 still commanded and read")
+        wait_for(lambda: loop.ticks > ticks + 5, what="loop still running")
+
+
+def test_a_restored_slave_is_recovered_to_op_and_its_flags_clear(system, ring, robot):
+    ring.control.set_options(dc_lock_cycles=20)  # a recovering slave relocks at the 50 Hz control rate
+    with Loop(system, robot.n):
+        ring.control.lose_slave(9)
+        wait_for(lambda: "ethercat/ring9/lost" in system.flags, what="lost flag")
+        ring.control.restore_slave(9)
+        wait_for(lambda: not system.flags, timeout_s=10.0, what="every flag cleared")
+        wait_for(lambda: ring.control.slave(9)["drive"]["statusword"] == 5687, what="drive enabled again")
+    assert system.master.recoveries >= 1

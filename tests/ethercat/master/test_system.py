@@ -1,0 +1,353 @@
+"""EthercatSystem against the recorded process image of FakeMaster: calibration, CSP targets, enable, flags."""
+
+from __future__ import annotations
+
+import math
+import time
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from humanoid_prime.config.calibration import JointCalibration, load_calibration
+from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
+from humanoid_prime.ethercat.master import AL_ERROR, AL_SAFE_OP, SdoRefused
+from humanoid_prime.ethercat.system import EthercatSystem
+
+from .fake import FAULT, OPERATION_ENABLED, FakeMaster, erob_ring
+
+C = COUNTS_PER_RAD
+
+
+class Rig:
+    def __init__(self, robot, tmp_path, calibration=None, master=None) -> None:
+        self.robot = robot
+        self.master = master or FakeMaster()
+        calibration = calibration or load_calibration(robot.hardware)
+        self.system = EthercatSystem(robot, calibration, update_rate_hz=50.0, master=self.master,
+                                     config_dir=tmp_path)
+        self.system.indices = robot.indices("erob")
+        self.command = CommandArrays(robot.n)
+        self.state = StateArrays(robot.n)
+
+    def tick(self) -> None:
+        self.system.read(0.0, self.state)
+        self.system.write(0.0, self.command)
+
+    def ring_of(self, joint: str) -> int:
+        return self.robot.hardware.erob_slaves[joint]
+
+
+@pytest.fixture
+def rig(robot, tmp_path):
+    r = Rig(robot, tmp_path)
+    r.master.position_counts[:] = np.arange(10) * 1000 - 4321
+    r.system.configure()
+    r.system.activate()
+    yield r
+    r.system.shutdown()
+
+
+@pytest.fixture
+def calibrated(robot, tmp_path):
+    cal = load_calibration(robot.hardware).with_joint("left_wrist_yaw", JointCalibration(-1, 0.3))
+    r = Rig(robot, tmp_path, cal)
+    r.system.configure()
+    r.system.activate()
+    yield r
+    r.system.shutdown()
+
+
+def test_activation_enables_every_drive(rig):
+    assert (rig.master.statusword == OPERATION_ENABLED).all()
+    assert rig.master.operational
+
+
+def test_enabling_puts_the_target_on_the_actual_position(rig):
+    assert (rig.master.sent["target_position"] == rig.master.position_counts).all()
+    assert (rig.master.sent["controlword"] == 0x0F).all()
+
+
+def test_configure_writes_one_folded_slave_config_per_erob_joint(rig, tmp_path):
+    assert sorted(p.stem for p in tmp_path.glob("*.yaml")) == sorted(rig.robot.hardware.erob_joints)
+
+
+def test_the_keeper_feeds_the_ring_while_nobody_ticks(rig):
+    sent = rig.master.frames
+    deadline = time.monotonic() + 5.0
+    while rig.master.kept_cycles < 5 and time.monotonic() < deadline:  # nobody calls read() or write()
+        time.sleep(0.01)
+    assert rig.master.kept_cycles >= 5
+    assert rig.master.frames - sent >= 5
+
+
+def test_the_keeper_stays_quiet_while_the_owner_ticks(rig):
+    rig.tick()
+    kept = rig.master.kept_cycles
+    for _ in range(40):
+        rig.tick()
+        time.sleep(0.002)  # far inside the two periods (40 ms) the keeper waits before it takes over
+    assert rig.master.kept_cycles == kept
+
+
+def test_a_commanded_position_reaches_the_drive_through_factor_and_offset(calibrated):
+    j = calibrated.robot.index("left_wrist_yaw")
+    calibrated.command.position[j] = 0.5
+    calibrated.command.stiffness[j] = 20.0
+    calibrated.tick()
+    ring = calibrated.ring_of("left_wrist_yaw")
+    assert calibrated.master.sent["target_position"][ring] == math.floor(-0.5 * C + 0.3 * C + 0.5)
+
+
+def test_the_drive_position_reads_back_in_the_joint_frame(calibrated):
+    ring = calibrated.ring_of("left_wrist_yaw")
+    calibrated.master.position_counts[ring] = round(-0.5 * C + 0.3 * C)
+    calibrated.tick()
+    assert calibrated.state.position[calibrated.robot.index("left_wrist_yaw")] == pytest.approx(0.5, abs=1e-5)
+
+
+def test_each_joint_is_bound_to_its_ring_position(rig):
+    for joint in rig.robot.hardware.erob_joints:
+        rig.master.position_counts[rig.ring_of(joint)] = round(0.01 * rig.robot.index(joint) * C)
+    rig.tick()
+    for joint in rig.robot.hardware.erob_joints:
+        assert rig.state.position[rig.robot.index(joint)] == pytest.approx(0.01 * rig.robot.index(joint), abs=1e-5)
+
+
+def test_zero_stiffness_keeps_the_target_on_the_actual_position(rig):
+    rig.command.position[:] = 1.0
+    rig.command.stiffness[:] = 0.0
+    rig.command.damping[:] = 6.0
+    rig.master.position_counts[:] = [11, -22, 33, -44, 55, -66, 77, -88, 99, -110]
+    rig.tick()
+    rig.tick()
+    assert (rig.master.sent["target_position"] == rig.master.position_counts).all()
+
+
+def test_stiffness_makes_the_target_follow_the_command(rig):
+    rig.command.position[:] = 0.25
+    rig.command.stiffness[:] = 20.0
+    rig.tick()
+    assert (rig.master.sent["target_position"] == math.floor(0.25 * C + 0.5)).all()
+
+
+def test_a_drive_that_is_not_enabled_keeps_its_target_on_the_actual_position(rig):
+    rig.command.position[:] = 0.25
+    rig.command.stiffness[:] = 20.0
+    rig.master.fault(2, 0x8500)
+    rig.master.position_counts[2] = 777
+    rig.tick()
+    assert rig.master.sent["target_position"][2] == 777
+
+
+def test_velocity_and_effort_feed_forward_are_scaled_into_counts_and_per_mille(rig):
+    j = rig.robot.index("left_shoulder_pitch")
+    rig.command.velocity[j] = 1.0
+    rig.command.effort[j] = 2.3
+    rig.command.stiffness[j] = 20.0
+    rig.tick()
+    assert rig.master.sent["velocity_offset"][0] == math.floor(C + 0.5)
+    assert rig.master.sent["torque_offset"][0] == round(2.3 * 1000 / RATED_TORQUE_NM)
+
+
+def test_velocity_and_effort_read_back_in_si_units(rig):
+    rig.master.velocity_counts[0] = round(2.0 * C)
+    rig.master.torque_per_mille[0] = 100
+    rig.tick()
+    j = rig.robot.index("left_shoulder_pitch")
+    assert rig.state.velocity[j] == pytest.approx(2.0, abs=1e-5)
+    assert rig.state.effort[j] == pytest.approx(100 * RATED_TORQUE_NM / 1000)
+
+
+def test_the_calibration_direction_flips_velocity_and_effort(calibrated):
+    ring = calibrated.ring_of("left_wrist_yaw")
+    calibrated.master.velocity_counts[ring] = round(2.0 * C)
+    calibrated.master.torque_per_mille[ring] = 100
+    calibrated.tick()
+    j = calibrated.robot.index("left_wrist_yaw")
+    assert calibrated.state.velocity[j] == pytest.approx(-2.0, abs=1e-5)
+    assert calibrated.state.effort[j] == pytest.approx(-100 * RATED_TORQUE_NM / 1000)
+
+
+def test_a_nan_position_holds_the_last_target_while_the_joint_moves(rig):
+    rig.command.position[:] = 0.25
+    rig.command.stiffness[:] = 20.0
+    rig.tick()
+    rig.command.position[:] = np.nan
+    rig.command.stiffness[:] = 0.0
+    rig.master.position_counts[:] = 12345
+    rig.tick()
+    rig.tick()
+    assert (rig.master.sent["target_position"] == math.floor(0.25 * C + 0.5)).all()
+
+
+def test_a_nan_position_right_after_enabling_holds_the_enabled_position(rig):
+    rig.command.position[:] = np.nan
+    enabled_at = rig.master.position_counts.copy()
+    rig.master.position_counts[:] += 5000
+    rig.tick()
+    assert (rig.master.sent["target_position"] == enabled_at).all()
+
+
+def test_a_finite_position_with_zero_stiffness_follows_even_after_a_hold(rig):
+    rig.command.position[:] = np.nan
+    rig.tick()
+    rig.command.position[:] = 0.0
+    rig.master.position_counts[:] = 4242
+    rig.tick()
+    rig.tick()
+    assert (rig.master.sent["target_position"] == 4242).all()
+
+
+def test_a_single_lost_frame_is_counted_but_not_flagged(rig):
+    rig.master.wkc_override = -1
+    rig.tick()
+    rig.tick()
+    rig.master.wkc_override = None
+    rig.tick()
+    assert rig.system.wkc_errors == 2
+    assert "ethercat/wkc" not in rig.system.flags
+
+
+def test_a_working_counter_mismatch_for_three_cycles_raises_a_flag_until_it_recovers(rig):
+    rig.master.wkc_override = 20
+    for _ in range(3):
+        rig.tick()
+    assert rig.system.flags["ethercat/wkc"] == ("EtherCAT working counter 20, expected 30 on fake0 for 3 cycles: "
+                                                "process data is not reaching every drive")
+    rig.master.wkc_override = None
+    rig.tick()
+    assert "ethercat/wkc" not in rig.system.flags
+
+
+def test_a_drive_fault_raises_a_flag_with_the_decoded_statusword_and_error(rig):
+    rig.master.fault(3, 0x8500)
+    rig.system.read(0.0, rig.state)
+    text = rig.system.flags["ethercat/ring3/fault"]
+    assert text.startswith("left_elbow_pitch (ring 3): fault, statusword 4616 (0x1208), "
+                           "error 0x8500 position (following) error over limit")
+
+
+def test_a_faulted_drive_gets_a_fault_reset_then_the_enable_sequence(rig):
+    rig.master.fault(3, 0xA000)
+    controlwords = []
+    for _ in range(5):
+        rig.tick()
+        controlwords.append(int(rig.master.sent["controlword"][3]))
+    assert controlwords == [0x80, 0x06, 0x07, 0x0F, 0x0F]
+    assert rig.master.statusword[3] == OPERATION_ENABLED
+    rig.system.read(0.0, rig.state)
+    assert "ethercat/ring3/fault" not in rig.system.flags
+
+
+def test_a_drive_that_stays_in_fault_gets_fault_reset_as_a_rising_edge_every_other_cycle(rig):
+    rig.master.fault(3, 0x730F)
+    step = rig.master._step_drives
+    rig.master._step_drives = lambda cw: None  # the drive refuses the reset (latched error)
+    controlwords = []
+    for _ in range(4):
+        rig.tick()
+        controlwords.append(int(rig.master.sent["controlword"][3]))
+    rig.master._step_drives = step
+    assert controlwords == [0x80, 0x00, 0x80, 0x00]
+
+
+def test_a_lost_slave_raises_a_flag_naming_the_joint_and_its_state(rig):
+    rig.master.slave_ok[2] = False
+    rig.master.al_state[2] = AL_SAFE_OP | AL_ERROR
+    rig.master.health_version += 1
+    rig.tick()
+    assert rig.system.flags["ethercat/ring2/lost"] == ("left_shoulder_yaw (ring 2): slave lost "
+                                                       "(in SAFE-OP + ERROR); recovering")
+    rig.master.slave_ok[2] = True
+    rig.master.health_version += 1
+    rig.tick()
+    assert "ethercat/ring2/lost" not in rig.system.flags
+
+
+def test_deactivation_disables_every_drive_and_keeps_the_ring_fed(rig):
+    rig.tick()
+    rig.system.deactivate()
+    assert (rig.master.sent["controlword"] == 0).all()
+    assert (rig.master.sent["target_position"] == rig.master.position_counts).all()
+    assert rig.master.operational
+
+
+def test_a_deactivated_system_enables_again_without_a_second_bringup(rig):
+    rig.system.deactivate()
+    frames = rig.master.frames
+    rig.system.activate()
+    assert (rig.master.statusword == OPERATION_ENABLED).all()
+    assert rig.master.frames - frames < 10
+
+
+def test_a_ring_that_does_not_match_fails_configure_and_releases_the_master(robot, tmp_path):
+    from humanoid_prime.ethercat.master import RingError
+
+    r = Rig(robot, tmp_path, master=FakeMaster(erob_ring(9)))
+    with pytest.raises(RingError, match="found 9 slaves, expected 10"):
+        r.system.configure()
+    assert r.master.closed
+
+
+def test_an_sdo_before_the_ring_is_in_op_is_refused(robot, tmp_path):
+    r = Rig(robot, tmp_path)
+    r.system.configure()
+    with pytest.raises(SdoRefused, match="refused: the ring is still being brought up.*0xA000"):
+        r.master.sdo_read(0, 0x603F, 0)
+    assert r.master.sdo_log == []
+
+
+def test_an_sdo_after_activation_with_joint_states_flowing_goes_out(rig):
+    rig.tick()
+    rig.master.sdo_write(4, 0x2383, 0, b"\x01")
+    assert rig.master.objects[(4, 0x2383, 0)] == b"\x01"
+    assert rig.system.bus_ready
+
+
+def test_an_sdo_is_refused_while_a_slave_is_out_of_op(rig):
+    rig.tick()
+    rig.master.slave_ok[5] = False
+    with pytest.raises(SdoRefused, match="ring 5 is not in OP"):
+        rig.master.sdo_read(5, 0x603F, 0)
+
+
+def test_the_unsafe_path_lets_an_sdo_through_before_op(robot, tmp_path):
+    r = Rig(robot, tmp_path)
+    r.system.configure()
+    r.master.sdo_write(0, 0x2383, 0, b"\x01", unsafe_before_op=True)
+    assert r.master.sdo_log == [("write", 0, 0x2383, 0)]
+
+
+def test_read_and_write_keep_no_memory_per_tick(rig):
+    rig.command.stiffness[:] = 20.0
+    rig.command.position[:] = 0.1
+    rig.tick()
+    rig.master._stop_keeping.set()
+    rig.master.send = lambda: None  # freeze the double itself: only the component's own work is measured
+    rig.master.receive = lambda: 30
+    for _ in range(10):
+        rig.tick()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(2000):
+            rig.tick()
+        retained = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert retained < 1024  # NumPy's one-off caches only; one array kept per tick would be 2000 times more
+
+
+def test_a_drive_stuck_in_fault_fails_activation_with_its_state(robot, tmp_path):
+    master = FakeMaster()
+    master.fault(7, 0x730F)
+    master._step_drives = lambda cw: None  # drives ignore every controlword
+    r = Rig(robot, tmp_path, master=master)
+    r.system.enable_timeout_s = 0.05
+    r.system.configure()
+    with pytest.raises(Exception, match=r"right_shoulder_yaw \(ring 7\): fault, statusword 4616 \(0x1208\), "
+                                        r"error 0x730F multi-turn battery low"):
+        r.system.activate()
+    assert FAULT == 4616

@@ -16,6 +16,7 @@ from humanoid_prime.control.operator import SdoClient
 from humanoid_prime.erob.gains import ErobRegisters, write_order
 from humanoid_prime.erob.objects import (
     BUS_GAIN_GATE,
+    BUS_GAIN_GATE_FORMAT,
     GAIN_REGISTER_FORMAT,
     POS_LOOP_GAIN,
     VEL_LOOP_GAIN,
@@ -23,7 +24,6 @@ from humanoid_prime.erob.objects import (
 )
 from humanoid_prime.errors import PrimeError
 
-GATE_FORMAT = "<B"
 REGISTER_NAMES = {POS_LOOP_GAIN: "pos_reg 0x2382:01", VEL_LOOP_GAIN: "vel_reg 0x2381:01",
                   VEL_LOOP_INTEGRAL: "integral 0x2381:02", BUS_GAIN_GATE: "gate 0x2383"}
 
@@ -77,7 +77,7 @@ class DampedLimp:
         try:
             limp = ErobRegisters(pos_reg=0, vel_reg=self.snapshot.registers.vel_reg if self.vel_reg is None
                                  else self.vel_reg, integral=0)
-            self._write(BUS_GAIN_GATE, 1, GATE_FORMAT)
+            self._write(BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
             for address, value in write_order(self.snapshot.registers, limp):
                 self._write(address, value, GAIN_REGISTER_FORMAT)
             self.readback = read_snapshot(self.sdo, self.position)
@@ -104,7 +104,7 @@ class DampedLimp:
             except Exception as exc:
                 self.unrestored.append(f"{REGISTER_NAMES[address]} (wanted {value}): {exc}")
         try:
-            self._write(BUS_GAIN_GATE, self.snapshot.gate, GATE_FORMAT)
+            self._write(BUS_GAIN_GATE, self.snapshot.gate, BUS_GAIN_GATE_FORMAT)
         except Exception as exc:
             self.unrestored.append(f"{REGISTER_NAMES[BUS_GAIN_GATE]} (wanted {self.snapshot.gate}): {exc}")
         return self.unrestored

@@ -11,7 +11,6 @@ on one wrist) and ``truth`` (the wiring and factory offsets it was given).
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 from typing import Any
 
@@ -23,7 +22,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.ethercat.emulator.__main__ import wait_for_interface
 from humanoid_prime.ethercat.emulator.options import RingOptions
 from humanoid_prime.ethercat.emulator.ring import Ring
-from humanoid_prime.ethercat.emulator.server import EmulatorServer, bring_up
+from humanoid_prime.ethercat.emulator.server import EmulatorServer, bring_up, run_until_signalled
 from humanoid_prime.robot import load_robot
 from humanoid_prime.sito.emulator import SitoEmulator
 
@@ -128,14 +127,8 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 1
 
-    def stop(_signum: int, _frame: object) -> None:
-        server.running = False
-
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
     try:
-        server.serve_forever()
+        run_until_signalled(server)
     finally:
-        server.close()
         bus.shutdown()
     return 0

@@ -33,6 +33,7 @@ from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMod
 from humanoid_prime.erob.gains import ErobRegisters, gains_to_registers, write_order
 from humanoid_prime.erob.objects import (
     BUS_GAIN_GATE,
+    BUS_GAIN_GATE_FORMAT,
     GAIN_REGISTER_FORMAT,
     POS_LOOP_GAIN,
     VEL_LOOP_GAIN,
@@ -41,8 +42,6 @@ from humanoid_prime.erob.objects import (
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.robot import Robot
-
-GATE_FORMAT = "<B"
 
 
 @dataclass(frozen=True)
@@ -200,7 +199,7 @@ class ImpedanceManager(SafetyFlags):
         def arm_one(slave: _Slave) -> str | None:
             with slave.lock:
                 try:
-                    self._write(slave, BUS_GAIN_GATE, 1, GATE_FORMAT)
+                    self._write(slave, BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
                     slave.registers = self._read_registers(slave)
                 except Exception as exc:
                     slave.registers = None
@@ -268,7 +267,7 @@ class ImpedanceManager(SafetyFlags):
             def reset(slave: _Slave) -> str | None:
                 with slave.lock:
                     try:
-                        self._write(slave, BUS_GAIN_GATE, 0, GATE_FORMAT)
+                        self._write(slave, BUS_GAIN_GATE, 0, BUS_GAIN_GATE_FORMAT)
                     except Exception as exc:
                         return f"{slave.joint} (ring {slave.position}): gate not reset: {exc}"
                 return None

@@ -4,9 +4,6 @@ ring on an existing interface until SIGTERM, SIGINT or a ``stop`` control reques
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
-import signal
 import socket
 import sys
 import time
@@ -14,9 +11,7 @@ import time
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.ethercat.emulator.options import RingOptions
 from humanoid_prime.ethercat.emulator.ring import Ring
-from humanoid_prime.ethercat.emulator.server import EmulatorServer, bring_up
-
-REALTIME_PRIORITY = 20
+from humanoid_prime.ethercat.emulator.server import EmulatorServer, bring_up, run_until_signalled
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,17 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"emulator: {exc}", file=sys.stderr)
         return 1
 
-    def stop(_signum: int, _frame: object) -> None:
-        server.running = False
-
-    with contextlib.suppress(OSError, AttributeError):  # hardware answers at once; get ahead of ordinary processes
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
-    try:
-        server.serve_forever()
-    finally:
-        server.close()
+    run_until_signalled(server)
     return 0
 
 

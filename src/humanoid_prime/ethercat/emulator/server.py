@@ -16,6 +16,7 @@ import json
 import os
 import random
 import select
+import signal
 import socket
 import struct
 import time
@@ -340,6 +341,28 @@ class EmulatorServer:
 
     def _op_stop(self) -> None:
         self.running = False
+
+
+REALTIME_PRIORITY = 20
+
+
+def run_until_signalled(server: EmulatorServer) -> None:
+    """Serve until SIGTERM, SIGINT, a ``stop`` request or the parent's death, then close the server.
+
+    Hardware answers at once, so the emulator asks for real-time scheduling (ignored where not permitted):
+    an ordinary process that stalls it would look like lost frames to the master."""
+
+    def stop(_signum: int, _frame: object) -> None:
+        server.running = False
+
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        server.serve_forever()
+    finally:
+        server.close()
 
 
 def bring_up(interface: str) -> None:

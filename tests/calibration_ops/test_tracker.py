@@ -84,3 +84,13 @@ def test_a_reading_that_rises_first_is_flagged_as_a_flip(robot):
                                        max_first={"left_wrist_roll"})
     report = next(r for r in reports if r.joint == "left_wrist_roll")
     assert report.status is Status.PROBABLE_FLIP and "lower stop first" in report.message
+
+
+def test_a_sweep_short_of_stop_to_stop_is_called_out(robot):
+    from humanoid_prime.calibration.math import Status, calibrate_from_sweeps
+    from humanoid_prime.config.calibration import identity_calibration
+
+    _, reports = calibrate_from_sweeps({"left_wrist_pitch": (-0.6, 0.5)}, identity_calibration(robot.hardware), robot)
+    report = next(r for r in reports if r.joint == "left_wrist_pitch")
+    assert report.status is Status.CALIBRATED
+    assert "70% of the described range: short of stop to stop" in report.message

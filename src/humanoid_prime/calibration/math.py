@@ -15,6 +15,7 @@ from humanoid_prime.config.calibration import Calibration, JointCalibration
 from humanoid_prime.robot import Robot
 
 MIN_SWEEP_RAD = 0.5  # a shorter sweep did not reach both stops; keep the prior offset (DESIGN §5)
+FULL_SWEEP_FRACTION = 0.95  # a stop-to-stop sweep spans the described range; much less means a stop was missed
 FLIP_OFFSET_RAD = math.pi  # an offset beyond half a turn means the direction is probably wrong (DESIGN §5)
 MIRROR_TOLERANCE_RAD = 0.1  # assembly tolerance between the arms' offsets; a cross-check, not a hardware fact
 
@@ -100,7 +101,11 @@ def calibrate_from_sweeps(sweeps: Mapping[str, SweepStats | tuple[float, float]]
                 message = ("swept to the lower stop first, but the reading rose to its maximum first: probably "
                            f"a direction flip; run `prime calibration flip {spec.name}`")
             else:
-                status, message = Status.CALIBRATED, f"sweep {sweep.span:.3f} rad"
+                status = Status.CALIBRATED
+                coverage = sweep.span / (spec.upper - spec.lower)
+                message = f"sweep {sweep.span:.3f} rad, {coverage:.0%} of the described range"
+                if coverage < FULL_SWEEP_FRACTION:
+                    message += ": short of stop to stop, were both stops reached? (the offset assumes they were)"
         joints[spec.name] = JointCalibration(before.direction, offset)
         reports.append(JointReport(spec.name, status, before.direction, offset, before.homing_offset, sweep, message))
     return Calibration(joints), reports

@@ -185,6 +185,8 @@ def _report(console: Console, result: CalibrationResult, output: str, hardware_n
     console.print(f"wrote {output}")
     for r in result.reports:
         style = {"calibrated": "green", "skipped": "yellow", "probable_flip": "bold red", "carried": "dim"}[r.status]
+        if "short of stop to stop" in r.message:
+            style = "yellow"
         console.print(Text(f"  {r.joint:<22} {r.status:<13} offset {r.offset:+.4f} rad  {r.message}", style=style))
     console.print("mirror check (left vs right):")
     for m in result.mirror:

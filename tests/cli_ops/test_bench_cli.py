@@ -1,0 +1,28 @@
+"""`prime bench`: runs the chosen suites and reports each figure against its DESIGN §6 target."""
+
+import json
+
+from humanoid_prime.cli import main
+from humanoid_prime.cli.bench import TARGETS, figure
+
+
+def test_unknown_suite_is_one_line_error(capsys):
+    assert main(["bench", "--only", "warp"]) == 1
+    err = capsys.readouterr().err
+    assert "unknown suite 'warp'" in err and err.count("\n") == 1
+
+
+def test_sim_suite_reports_the_realtime_factor(capsys, tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--only", "sim", "--json", "--output", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(out.read_text())
+    assert printed["sim"]["realtime_factor"] > 1.0
+    assert printed["sim"]["modes_visited"][0] == "ZERO_TORQUE"
+
+
+def test_figures_are_found_by_dotted_path():
+    results = {"bringup": {"tick_us": {"median": 87.0}}}
+    assert figure(results, "bringup", "tick_us.median") == 87.0
+    assert figure(results, "bringup", "jitter_us.p99") is None
+    assert {suite for suite, *_ in TARGETS} == {"sim", "sito", "bringup"}

@@ -58,7 +58,8 @@ class BringupOptions:
     bringup_rate: float | None = None  # Hz of the EtherCAT bring-up loop (default: prime_controllers.yaml)
     parallel_sdo: bool | None = None  # default: prime_controllers.yaml
     duration: float | None = None  # seconds of control loop after bringup; None = until stopped
-    sequence: Sequence[Mode] = ()  # modes to visit, one every ``dwell`` seconds
+    mode: Mode | None = None  # switch to this mode once up, and keep running
+    sequence: Sequence[Mode] = ()  # modes to visit, one every ``dwell`` seconds, then stop
     dwell: float = 2.0
     load_test: Sequence[str] = ()  # eRob joints to load-test (emulation only)
     truth_file: str | Path | None = None  # the virtual robot's wiring and factory offsets (emulation only)
@@ -207,6 +208,7 @@ def open_session(options: BringupOptions, stack: contextlib.ExitStack) -> Sessio
                                      retries=config.impedance.sdo_retries)
         session.impedance = impedance
         manager.add_flag_source(impedance)
+        # Normally closed by run_loop while the loop still ticks; this covers an exception on the way.
         stack.callback(lambda: session.gate_reset_failures.extend(impedance.close()))
         # The bus is ready and joint states have flowed (the first tick); arm the gate and follow the mode.
         impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0)
@@ -258,6 +260,8 @@ def run_loop(session: Session, stop: threading.Event,
              on_tick: Callable[[ControllerManager], None] | None = None) -> None:
     """The control-rate loop until ``stop``, the duration, or the end of the mode sequence plus one dwell."""
     options = session.options
+    if options.mode is not None:
+        session.manager.request_mode(options.mode)
     sequence = ModeSequence(session.manager, options.sequence, options.dwell) if options.sequence else None
     deadline = None if options.duration is None else time.monotonic() + options.duration
     settle_until: list[float] = []
@@ -277,10 +281,35 @@ def run_loop(session: Session, stop: threading.Event,
     session.manager.run(stop=stop, on_tick=tick)
     if session.impedance is not None:
         session.impedance.wait_idle(5.0)
+        close_impedance_while_ticking(session)
+
+
+def close_impedance_while_ticking(session: Session, timeout: float = 10.0) -> None:
+    """Reset the eRob gain gate with the loop still running, so every drive keeps a live target (the
+    active mode's, or the actual position while limp) at the moment its factory gains take over; a
+    stopped loop would leave a stale target that the stiff factory gains snap to."""
+    impedance = session.impedance
+    done = threading.Event()
+
+    def close() -> None:
+        try:
+            session.gate_reset_failures.extend(impedance.close())
+        finally:
+            done.set()
+
+    threading.Thread(target=close, name="erob-gate-reset", daemon=True).start()
+    deadline = time.monotonic() + timeout
+
+    def until_done(manager: ControllerManager) -> None:
+        if time.monotonic() > deadline:
+            done.set()
+
+    session.manager.run(stop=done, on_tick=until_done)
 
 
 def measure_stiffness(session: Session, joints: Sequence[str], *, torque_nm: float = 5.0,
-                      settle_s: float = 3.0, average_s: float = 1.0) -> list[dict[str, Any]]:
+                      settle_s: float = 3.0, average_s: float = 1.0,
+                      stop: threading.Event | None = None) -> list[dict[str, Any]]:
     """Load test on the virtual Prime: in STANDBY with gravity off in the plant, push each eRob joint with
     +torque and -torque and read the deflection; realised kp = 2*torque / (q(+) - q(-)).
 
@@ -297,8 +326,11 @@ def measure_stiffness(session: Session, joints: Sequence[str], *, torque_nm: flo
     efficiency = robot.hardware.torque_efficiency
     results = []
 
+    stop = stop or threading.Event()
+
     def settle_and_average(i: int) -> float:
-        time.sleep(settle_s)
+        if stop.wait(settle_s):
+            raise PrimeError("load test stopped before it finished")
         samples = []
         end = time.monotonic() + average_s
         while time.monotonic() < end:
@@ -317,8 +349,9 @@ def measure_stiffness(session: Session, joints: Sequence[str], *, torque_nm: flo
             control.call("push", joint=joint, torque_nm=0.0)
             deflection = q_plus - q_minus
             kp = 2.0 * torque_nm / deflection if deflection > 0 else float("nan")
+            ratio = kp / kp_nominal if kp_nominal > 0 else float("nan")
             results.append({"joint": joint, "torque_nm": torque_nm, "deflection_rad": deflection,
-                            "kp_nominal": kp_nominal, "kp_realised": kp, "ratio": kp / kp_nominal,
+                            "kp_nominal": kp_nominal, "kp_realised": kp, "ratio": ratio,
                             "torque_efficiency": efficiency})
     finally:
         for joint in joints:
@@ -330,16 +363,16 @@ def measure_stiffness(session: Session, joints: Sequence[str], *, torque_nm: flo
 
 @contextlib.contextmanager
 def stop_on_signals(stop: threading.Event):
-    """SIGINT and SIGTERM set ``stop`` (the loop then ends and everything is torn down in order); a second
-    signal raises KeyboardInterrupt at once."""
+    """SIGINT, SIGTERM and SIGHUP set ``stop``: the loop ends and everything is torn down in order (gate
+    reset, drives disabled, wrists off). Later signals are ignored, so a second Ctrl-C cannot cut the
+    teardown in half; every step of it is bounded by its own timeout. Enter this before the ExitStack that
+    holds the session, so the handlers stay in place until the teardown is over."""
     previous = {}
 
     def handler(signum: int, frame: object) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
         stop.set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         previous[sig] = signal.signal(sig, handler)
     try:
         yield
@@ -354,9 +387,10 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
     manager = session.manager
     request = None if manager.broadcaster_only else manager.request_mode
     sdo = session.ethercat.master if session.ethercat is not None else None
-    joint_limp = None
+    joint_limp = on_close = None
     if manager.broadcaster_only and session.ethercat is not None:
         ring_joints = {pos: joint for joint, pos in session.robot.hardware.erob_slaves.items()}
+        marked: set[int] = set()
 
         def joint_limp(position: int, limp: bool) -> str:
             joint = ring_joints.get(position)
@@ -365,6 +399,16 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
             # A finite target with zero stiffness: the CSP target follows the actual position (no following
             # error while the operator sweeps); NaN again: no command, the drive holds where it is.
             manager.resources.command.position[session.robot.index(joint)] = 0.0 if limp else np.nan
+            (marked.add if limp else marked.discard)(position)
             return joint
 
-    return ControlServer(request, path, sdo=sdo, joint_limp=joint_limp)
+        def on_close() -> None:
+            """A `prime limp` still running elsewhere cannot restore once this run ends: put its drive back on
+            factory gains (gate 0) rather than leave it limp in drive memory for the next bringup."""
+            for position in sorted(marked):
+                with contextlib.suppress(Exception):
+                    sdo.sdo_write(position, 0x2383, 0, b"\x00")
+                session.faults[f"limp/ring{position}"] = (f"{ring_joints[position]} (ring {position}) was still "
+                                                          "limp when the run ended; its gate was reset to 0")
+
+    return ControlServer(request, path, sdo=sdo, joint_limp=joint_limp, on_close=on_close)

@@ -215,3 +215,18 @@ def test_per_joint_kt_scales_only_vel_reg(robot, gains, tmp_path):
     assert regs[3].vel_reg == round(6 / 0.1063 * 0.132 / 0.134)
     assert regs[3].pos_reg == regs[0].pos_reg
     mgr.close()
+
+
+def test_a_gate_that_failed_to_arm_is_armed_before_gains_and_stays_flagged_until_it_is(robot, gains):
+    drives = DriveMailboxes()
+    drives.dead.add(4)
+    mgr = make(robot, gains, drives, retries=0)
+    mgr.arm()
+    assert "erob/impedance/ring4" in mgr.flags
+    report = mgr.apply(Mode.ZERO_TORQUE)  # gain writes would be ignored with the gate at 0
+    assert not report.ok and "erob/impedance/ring4" in mgr.flags
+    drives.dead.discard(4)
+    assert mgr.apply(Mode.STANDBY).ok
+    assert drives.values[4]["gate"] == 1 and drives.registers(4) == (515, 19, 0)
+    assert mgr.flags == {}
+    mgr.close()

@@ -9,7 +9,9 @@ gate) and report any register that could not be restored.
 
 from __future__ import annotations
 
+import signal
 import struct
+import threading
 from dataclasses import dataclass
 
 from humanoid_prime.control.operator import SdoClient
@@ -91,22 +93,32 @@ class DampedLimp:
         return self
 
     def restore(self) -> list[str]:
-        """Write the snapshot back; returns (and keeps) the registers that could not be restored."""
+        """Write the snapshot back; returns (and keeps) the registers that could not be restored.
+
+        Signals are held off while it runs, so an impatient Ctrl-C cannot leave the pair half-written."""
         assert self.snapshot is not None
         self.unrestored = []
+        held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+        on_main_thread = threading.current_thread() is threading.main_thread()
+        if on_main_thread:
+            signal.pthread_sigmask(signal.SIG_BLOCK, held)
         try:
-            current = read_snapshot(self.sdo, self.position).registers
-        except Exception:
-            current = None
-        for address, value in write_order(current, self.snapshot.registers):
             try:
-                self._write(address, value, GAIN_REGISTER_FORMAT)
+                current = read_snapshot(self.sdo, self.position).registers
+            except Exception:
+                current = self.readback.registers if self.readback is not None else None
+            for address, value in write_order(current, self.snapshot.registers):
+                try:
+                    self._write(address, value, GAIN_REGISTER_FORMAT)
+                except Exception as exc:
+                    self.unrestored.append(f"{REGISTER_NAMES[address]} (wanted {value}): {exc}")
+            try:
+                self._write(BUS_GAIN_GATE, self.snapshot.gate, BUS_GAIN_GATE_FORMAT)
             except Exception as exc:
-                self.unrestored.append(f"{REGISTER_NAMES[address]} (wanted {value}): {exc}")
-        try:
-            self._write(BUS_GAIN_GATE, self.snapshot.gate, BUS_GAIN_GATE_FORMAT)
-        except Exception as exc:
-            self.unrestored.append(f"{REGISTER_NAMES[BUS_GAIN_GATE]} (wanted {self.snapshot.gate}): {exc}")
+                self.unrestored.append(f"{REGISTER_NAMES[BUS_GAIN_GATE]} (wanted {self.snapshot.gate}): {exc}")
+        finally:
+            if on_main_thread:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
         return self.unrestored
 
     def __exit__(self, *exc: object) -> None:

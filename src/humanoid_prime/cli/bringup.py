@@ -89,9 +89,10 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         raise PrimeError("--load-test, --truth, --dc-lock-cycles and --mailbox-latency need --emulate "
                          "(they act on the virtual Prime)")
     sequence = _modes(args.sequence)
-    if args.mode:
-        sequence = _modes(args.mode) + sequence
-    if sequence and args.backends != "all":
+    initial = _modes(args.mode)
+    if len(initial) > 1:
+        raise PrimeError("--mode takes one mode; use --sequence for several")
+    if (sequence or initial) and args.backends != "all":
         raise PrimeError(f"--backends {args.backends} runs only the joint-state broadcaster; modes need --backends all")
     ring_options = {}
     if args.dc_lock_cycles is not None:
@@ -103,7 +104,8 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         calibration_file=args.calibration, controllers_file=args.controllers, interface=args.interface,
         can_interface=args.can_interface, can_channel=args.can_channel, sync0_period_s=args.sync0_period,
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
-        duration=args.duration, sequence=sequence, dwell=args.dwell, truth_file=args.truth,
+        duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
+        truth_file=args.truth,
         erob_config_dir=args.erob_config_dir, control_socket=args.socket, ring_options=ring_options)
 
 
@@ -115,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         enter_private_netns()  # re-executes this command in a private network namespace (returns inside)
     stop = threading.Event()
     report = print if not args.json else (lambda *a, **k: None)
-    with contextlib.ExitStack() as stack, stop_on_signals(stop):
+    with stop_on_signals(stop), contextlib.ExitStack() as stack:
         session = open_session(options, stack)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulate else ''}):")
@@ -136,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
             stack.enter_context(LiveTable(session.manager, keys=full))
         run_loop(session, stop)
         if load_test is not None:
-            load_test.join()
+            load_test.join(timeout=30.0)
     summary = session.summary()
     if args.summary:
         atomic_write_text(Path(args.summary), json.dumps(summary, indent=2) + "\n")
@@ -159,7 +161,7 @@ def _start_load_test(session, joints: list[str], stop: threading.Event) -> threa
         try:
             session.manager.request_mode(Mode.STANDBY)
             time.sleep(session.config.standby.duration + 1.0)
-            session.load_test.extend(measure_stiffness(session, joints))
+            session.load_test.extend(measure_stiffness(session, joints, stop=stop))
         except PrimeError as exc:
             session.faults["load_test"] = str(exc)
         finally:

@@ -63,12 +63,14 @@ def run(args: argparse.Namespace) -> int:
         vel_reg = round(vel_reg_exact(args.damping, kt=kt, gear=gear, efficiency=hardware.torque_efficiency))
     sdo = _sdo(args)
     marker = sdo if isinstance(sdo, SocketSdoClient) else None
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
     limp = DampedLimp(sdo, args.ring_position, vel_reg)
     interrupted = False
+    marked = False
     try:
         if marker is not None:
             marker.mark_limp(args.ring_position, True)  # the target follows the joint while it is limp
+            marked = True
         with limp:
             back = limp.readback
             assert back is not None
@@ -87,20 +89,21 @@ def run(args: argparse.Namespace) -> int:
         interrupted = True
     finally:
         try:
-            if marker is not None and limp.snapshot is not None:
+            if marked and not limp.unrestored:
                 marker.mark_limp(args.ring_position, False)  # restored: hold where it is now
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     snap = limp.snapshot
     if snap is None:
         print(f"{joint} (ring {args.ring_position}): interrupted before anything was changed", file=sys.stderr)
         return 130
     restored = {"gate": snap.gate, "pos_reg": snap.registers.pos_reg, "vel_reg": snap.registers.vel_reg,
                 "integral": snap.registers.integral}
+    back = limp.readback
     if args.json:
-        assert limp.readback is not None
         print_json({"joint": joint, "ring_position": args.ring_position,
-                    "limp": {"gate": limp.readback.gate, **limp.readback.registers.__dict__},
+                    "limp": None if back is None else {"gate": back.gate, **back.registers.__dict__},
                     "restored": restored, "interrupted": interrupted})
     else:
         print(f"{joint} (ring {args.ring_position}) restored: " + " ".join(f"{k}={v}" for k, v in restored.items()))

@@ -33,7 +33,14 @@ class SdoClient(Protocol):
     def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None: ...
 
 
+SOCKET_ENV = "PRIME_CONTROL_SOCKET"
+
+
 def default_socket_path() -> Path:
+    """``$PRIME_CONTROL_SOCKET``, else a per-user path (fixed before any re-exec into a user namespace, where
+    the uid reads 0)."""
+    if os.environ.get(SOCKET_ENV):
+        return Path(os.environ[SOCKET_ENV])
     base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
     return Path(base) / f"prime-{os.getuid()}" / "control.sock"
 
@@ -42,10 +49,12 @@ class ControlServer:
     """Serves mode requests (handed to ``request_mode``) and, if given an ``sdo`` client, SDO requests."""
 
     def __init__(self, request_mode: Callable[[Mode], None] | None, path: str | Path | None = None, *,
-                 sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None) -> None:
+                 sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None,
+                 on_close: Callable[[], None] | None = None) -> None:
         self.request_mode = request_mode
         self.sdo = sdo
         self.joint_limp = joint_limp
+        self.on_close = on_close  # runs once no request can arrive any more
         self.path = Path(path) if path is not None else default_socket_path()
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -115,10 +124,10 @@ class ControlServer:
                     return {"ok": True, "data": self.sdo.sdo_read(position, index, sub).hex()}
                 self.sdo.sdo_write(position, index, sub, bytes.fromhex(request["data"]))
                 return {"ok": True}
-        except PrimeError as exc:
+        except (PrimeError, ValueError) as exc:
             return {"ok": False, "error": str(exc)}
-        except ValueError as exc:
-            return {"ok": False, "error": str(exc)}
+        except Exception as exc:  # an answer, never a dead handler: the client gets one line
+            return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         return {"ok": False, "error": f"unknown op {op!r}"}
 
     def close(self) -> None:
@@ -131,6 +140,9 @@ class ControlServer:
             self._thread = None
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
+        if self.on_close is not None:
+            on_close, self.on_close = self.on_close, None
+            on_close()
 
     def __enter__(self) -> ControlServer:
         return self.start()

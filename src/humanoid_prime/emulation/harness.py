@@ -16,6 +16,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from humanoid_prime.control.operator import SOCKET_ENV, default_socket_path
 from humanoid_prime.ethercat.netns import EmulatedRing, EmulationUnavailable, ip, netns_unavailable_reason
 
 PRIVATE_NETNS_MARK = "PRIME_PRIVATE_NETNS"
@@ -37,6 +38,7 @@ def enter_private_netns(argv: Sequence[str] | None = None) -> None:
         raise EmulationUnavailable(reason)
     args = [sys.executable, *sys.orig_argv[1:]] if argv is None else list(argv)
     os.environ[PRIVATE_NETNS_MARK] = "1"
+    os.environ.setdefault(SOCKET_ENV, str(default_socket_path()))  # the user's path, not root-of-the-namespace's
     sys.stdout.flush()
     sys.stderr.flush()
     unshare = ["unshare", "-n"] if os.geteuid() == 0 else ["unshare", "-rn"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 import time
 from collections.abc import Iterator
 
@@ -27,7 +28,8 @@ REST_S = 0.3
 
 
 class ScriptedOperator:
-    def __init__(self, session: object, *, limp_kd: float = 2.0, timeout_s: float = 3.0) -> None:
+    def __init__(self, session: object, *, limp_kd: float = 2.0, timeout_s: float = 3.0,
+                 stop: threading.Event | None = None) -> None:
         self.session = session
         self.robot = session.robot
         self.manager = session.manager
@@ -36,6 +38,7 @@ class ScriptedOperator:
         self.control = session.virtual.control
         self.limp_kd = limp_kd
         self.timeout_s = timeout_s
+        self.stop = stop or threading.Event()  # set when the run ends: let go at once
 
     def _wait_at_rest(self, index: int, travel_s: float = 0.0) -> float:
         """Wait until the joint rests (at most ``travel_s`` plus the timeout); returns its reading."""
@@ -43,7 +46,7 @@ class ScriptedOperator:
         position = self.manager.resources.state.position
         deadline = time.monotonic() + travel_s + self.timeout_s
         still_since = None
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not self.stop.is_set():
             if abs(float(velocity[index])) < REST_SPEED_RAD_S:
                 still_since = still_since or time.monotonic()
                 if time.monotonic() - still_since >= REST_S:

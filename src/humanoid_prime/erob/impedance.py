@@ -79,6 +79,8 @@ class SwitchReport:
         }
 
 
+RETRY_BACKOFF_S = 0.005
+
 _NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral"}
 
 
@@ -89,6 +91,7 @@ class _Slave:
     kt: float
     gear: float
     registers: ErobRegisters | None = None  # what the drive holds now; None = unknown
+    gate_armed: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
@@ -158,6 +161,8 @@ class ImpedanceManager(SafetyFlags):
                 return
             try:
                 self.apply(mode)
+            except Exception as exc:  # keep following the mode; say what went wrong
+                self.set_flag("erob/impedance/worker", f"mode {mode.value} not applied: {type(exc).__name__}: {exc}")
             finally:
                 with self._idle:
                     self._done += taken
@@ -180,6 +185,7 @@ class ImpedanceManager(SafetyFlags):
             except Exception:
                 if attempt == self.retries:
                     raise
+                time.sleep(RETRY_BACKOFF_S * (attempt + 1))  # a recovering slave needs a moment, not a burst
         return self.retries
 
     def _read_registers(self, slave: _Slave) -> ErobRegisters:
@@ -196,21 +202,23 @@ class ImpedanceManager(SafetyFlags):
 
     def arm(self) -> None:
         """Set the gate to 1 on every slave (first), then learn what the gain registers hold."""
-        def arm_one(slave: _Slave) -> str | None:
-            with slave.lock:
-                try:
-                    self._write(slave, BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
-                    slave.registers = self._read_registers(slave)
-                except Exception as exc:
-                    slave.registers = None
-                    return f"{slave.joint} (ring {slave.position}): gate not armed: {exc}"
-            return None
-        errors = [e for e in self._each(arm_one) if e]
-        self.armed = True
+        self.armed = True  # from here on, close() resets the gate on every slave
+        errors = [e for e in self._each(self._arm_one) if e]
         for slave in self.slaves:
             key = f"erob/impedance/ring{slave.position}"
             problem = next((e for e in errors if e.startswith(f"{slave.joint} ")), None)
             self._set_flag(key, problem)
+
+    def _arm_one(self, slave: _Slave) -> str | None:
+        with slave.lock:
+            try:
+                self._write(slave, BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
+                slave.gate_armed = True
+                slave.registers = self._read_registers(slave)
+            except Exception as exc:
+                slave.registers = None
+                return f"{slave.joint} (ring {slave.position}): gate not armed: {exc}"
+        return None
 
     def apply(self, mode: Mode) -> SwitchReport:
         """Write ``mode``'s registers to every slave and report the switch."""
@@ -224,6 +232,11 @@ class ImpedanceManager(SafetyFlags):
                 new = targets[slave.position]
                 written: list[tuple[str, int]] = []
                 retries = 0
+                if not slave.gate_armed:  # gain writes are ignored until the gate is 1: arm it first
+                    problem = self._arm_one(slave)
+                    if problem is not None:
+                        return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
+                                           f"{mode.value} gains not applied: {problem}")
                 with slave.lock:
                     try:
                         for address, value in write_order(slave.registers, new):

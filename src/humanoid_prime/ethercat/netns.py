@@ -168,8 +168,10 @@ class EmulatedRing:
             command = ["unshare", "--net", "--", *command]
         log = open(self._workdir / "emulator.log", "wb")  # noqa: SIM115 - handed to the child
         with log:
+            # Its own session: a Ctrl-C at the terminal stops the master's loop, not the emulated hardware,
+            # which must stay up while the master resets gains and disables the drives.
             self._process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                                             pass_fds=(lifeline_read,))
+                                             pass_fds=(lifeline_read,), start_new_session=True)
         os.close(lifeline_read)
         deadline = time.monotonic() + self.startup_timeout_s
         if self.isolate_emulator:

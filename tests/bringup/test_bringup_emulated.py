@@ -189,3 +189,33 @@ def test_load_test_reports_realised_stiffness(tmp_path, efficiency, ratio):
     (row,) = run["load_test"]
     assert row["kp_nominal"] == 20.0
     assert row["ratio"] == pytest.approx(ratio, abs=0.05)
+
+
+def test_ctrl_c_at_a_terminal_still_resets_every_gate(tmp_path):
+    """A terminal's Ctrl-C signals the whole process group; the virtual Prime must outlive the master's
+    teardown so the gate reset reaches every drive."""
+    import os
+
+    summary, socket = tmp_path / "summary.json", tmp_path / "control.sock"
+    proc = subprocess.Popen([*PRIME, "bringup", "--emulate", "--no-live", "--summary", str(summary),
+                             "--socket", str(socket), "--mode", "DAMPING"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                request(socket, {"op": "ping"}, timeout=0.5)
+                break
+            except PrimeError:
+                assert proc.poll() is None and time.monotonic() < deadline
+                time.sleep(0.1)
+        time.sleep(1.0)
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, proc.stderr.read()
+    data = json.loads(summary.read_text())
+    assert data["gate_reset_failures"] == []
+    assert [slave["gate"] for slave in data["emulator"]["slaves"]] == [0] * 10

@@ -37,6 +37,19 @@ def bringup(tmp_path: Path, *args: str, timeout: float = 120.0) -> dict:
     return json.loads(summary.read_text())
 
 
+def wait_until_up(proc: subprocess.Popen, socket: Path) -> None:
+    """Until the running bringup answers on its control socket, then a second of steady running."""
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            request(socket, {"op": "ping"}, timeout=0.5)
+            break
+        except PrimeError:
+            assert proc.poll() is None and time.monotonic() < deadline, "bringup did not come up"
+            time.sleep(0.1)
+    time.sleep(1.0)
+
+
 @pytest.fixture(scope="module")
 def switching_run(tmp_path_factory) -> dict:
     """One run visiting DAMPING and STANDBY twice each: most tests read its summary."""
@@ -145,15 +158,7 @@ def test_gate_is_zero_on_every_slave_after_a_signal(tmp_path, sig):
                              "--socket", str(socket), "--mode", "STANDBY", "--dwell", "1000"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                request(socket, {"op": "ping"}, timeout=0.5)
-                break
-            except PrimeError:
-                assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.stderr else ""
-                time.sleep(0.1)
-        time.sleep(1.0)
+        wait_until_up(proc, socket)
         proc.send_signal(sig)
         proc.wait(timeout=60)
     finally:
@@ -201,15 +206,7 @@ def test_ctrl_c_at_a_terminal_still_resets_every_gate(tmp_path):
                              "--socket", str(socket), "--mode", "DAMPING"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                request(socket, {"op": "ping"}, timeout=0.5)
-                break
-            except PrimeError:
-                assert proc.poll() is None and time.monotonic() < deadline
-                time.sleep(0.1)
-        time.sleep(1.0)
+        wait_until_up(proc, socket)
         os.killpg(proc.pid, signal.SIGINT)
         proc.wait(timeout=60)
     finally:

@@ -19,8 +19,13 @@ from humanoid_prime.bringup import (
     run_loop,
     stop_on_signals,
 )
-from humanoid_prime.cli._common import add_json_option
-from humanoid_prime.control.operator import default_socket_path
+from humanoid_prime.cli._common import (
+    add_config_options,
+    add_emulation_options,
+    add_json_option,
+    add_socket_option,
+    ring_options,
+)
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
@@ -37,12 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--backends", choices=BACKENDS, default="all",
                    help="all: both buses and the mode controllers; ec / can: that bus alone with only the "
                         "joint-state broadcaster (calibration, diagnostics)")
-    p.add_argument("--emulate", action="store_true",
-                   help="run against the virtual Prime (eRob ring on a veth pair, Sito motors on a CAN bus, one "
-                        "MuJoCo plant) inside a private network namespace; needs root or user namespaces")
-    p.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
-    p.add_argument("--calibration", metavar="FILE", help="calibration file (default: bundled)")
-    p.add_argument("--controllers", metavar="FILE", help="controllers file (default: bundled)")
+    add_emulation_options(p, "run against the virtual Prime (eRob ring on a veth pair, Sito motors on a CAN bus, "
+                             "one MuJoCo plant) inside a private network namespace; needs root or user namespaces")
+    add_config_options(p, calibration=True, controllers=True)
     p.add_argument("--interface", metavar="NIC", help="EtherCAT interface (default: from the hardware file)")
     p.add_argument("--can-interface", metavar="NAME", help="python-can interface (default: from the hardware file)")
     p.add_argument("--can-channel", metavar="NAME", help="python-can channel (default: from the hardware file)")
@@ -59,13 +61,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--load-test", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) measure realised eRob stiffness in STANDBY: push each joint with a known "
                         "torque in the plant and read the deflection; prints nominal vs realised kp")
-    p.add_argument("--truth", metavar="FILE",
-                   help="(with --emulate) the virtual robot's wiring and factory offsets, as a calibration file")
-    p.add_argument("--dc-lock-cycles", type=int, metavar="N", help="(with --emulate) DC lock cycles per drive")
-    p.add_argument("--mailbox-latency", type=float, metavar="S",
-                   help="(with --emulate) time each emulated drive takes to answer an SDO (default 0.0005)")
     p.add_argument("--erob-config-dir", metavar="DIR", help="keep the folded per-slave eRob configs here")
-    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    add_socket_option(p)
     p.add_argument("--summary", metavar="FILE", help="write the run's figures as JSON")
     p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
     add_json_option(p)
@@ -84,21 +81,13 @@ def _modes(text: str | None) -> list[Mode]:
 def options_from_args(args: argparse.Namespace) -> BringupOptions:
     if args.duration is not None and not args.duration > 0:
         raise PrimeError(f"--duration must be > 0 seconds, got {args.duration}")
-    if not args.emulate and (args.load_test or args.truth or args.dc_lock_cycles is not None
-                             or args.mailbox_latency is not None):
-        raise PrimeError("--load-test, --truth, --dc-lock-cycles and --mailbox-latency need --emulate "
-                         "(they act on the virtual Prime)")
+    emulator = ring_options(args, **{"--load-test": args.load_test})
     sequence = _modes(args.sequence)
     initial = _modes(args.mode)
     if len(initial) > 1:
         raise PrimeError("--mode takes one mode; use --sequence for several")
     if (sequence or initial) and args.backends != "all":
         raise PrimeError(f"--backends {args.backends} runs only the joint-state broadcaster; modes need --backends all")
-    ring_options = {}
-    if args.dc_lock_cycles is not None:
-        ring_options["dc_lock_cycles"] = args.dc_lock_cycles
-    if args.mailbox_latency is not None:
-        ring_options["mailbox_latency_s"] = args.mailbox_latency
     return BringupOptions(
         backends=args.backends, emulate=args.emulate, hardware_file=args.hardware,
         calibration_file=args.calibration, controllers_file=args.controllers, interface=args.interface,
@@ -106,7 +95,7 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
         duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
         truth_file=args.truth,
-        erob_config_dir=args.erob_config_dir, control_socket=args.socket, ring_options=ring_options)
+        erob_config_dir=args.erob_config_dir, control_socket=args.socket, ring_options=emulator)
 
 
 def run(args: argparse.Namespace) -> int:

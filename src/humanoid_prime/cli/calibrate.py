@@ -29,10 +29,15 @@ from humanoid_prime.calibration.workflow import (
     tracked_joints,
     write,
 )
-from humanoid_prime.cli._common import add_json_option
+from humanoid_prime.cli._common import (
+    add_config_options,
+    add_emulation_options,
+    add_json_option,
+    add_socket_option,
+    ring_options,
+)
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.hardware import load_hardware
-from humanoid_prime.control.operator import default_socket_path
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.robot import Robot
 
@@ -53,10 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--prior", metavar="FILE",
                    help="calibration carried through for joints not swept, and the source of the directions "
                         "(default: the bundled prime_calibration.yaml)")
-    p.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
-    p.add_argument("--controllers", metavar="FILE", help="controllers file (default: bundled)")
-    p.add_argument("--emulate", action="store_true", help="calibrate the virtual Prime (private network namespace)")
-    p.add_argument("--truth", metavar="FILE", help="(with --emulate) the virtual robot's wiring and factory offsets")
+    add_config_options(p, controllers=True)
+    add_emulation_options(p, "calibrate the virtual Prime (private network namespace)")
     p.add_argument("--scripted", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) a scripted operator sweeps these joints (default: every joint of the "
                         "run) to both stops, then the run ends")
@@ -69,8 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--any-order", action="store_true",
                    help="the stops were swept in any order: skip the direction check that relies on sweeping "
                         "each joint to its lower stop first")
-    p.add_argument("--dc-lock-cycles", type=int, metavar="N", help="(with --emulate) DC lock cycles per drive")
-    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    add_socket_option(p)
     p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
     add_json_option(p)
     p.set_defaults(func=run)
@@ -81,8 +83,7 @@ def _joint_list(text: str | None) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.emulate and (args.truth or args.scripted or args.dc_lock_cycles is not None):
-        raise PrimeError("--truth, --scripted and --dc-lock-cycles need --emulate (they act on the virtual Prime)")
+    emulator = ring_options(args, **{"--scripted": args.scripted})
     if args.plot and args.verify:
         raise PrimeError("--plot draws a calibration run's sweeps; it does not go with --verify")
     hardware = load_hardware(args.hardware)
@@ -92,9 +93,8 @@ def run(args: argparse.Namespace) -> int:
         from humanoid_prime.emulation.harness import enter_private_netns
 
         enter_private_netns()
-    ring_options = {} if args.dc_lock_cycles is None else {"dc_lock_cycles": args.dc_lock_cycles}
     overrides = dict(emulate=args.emulate, hardware_file=args.hardware, controllers_file=args.controllers,
-                     truth_file=args.truth, control_socket=args.socket, ring_options=ring_options)
+                     truth_file=args.truth, control_socket=args.socket, ring_options=emulator)
     if args.verify:
         return _verify(args, checked, overrides)
     return _calibrate(args, prior, overrides)

@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                            "(probable direction flips) and compare the arms' offsets. Exits 1 "
                                            "when a joint is flagged.")
     check.add_argument("file", nargs="?", metavar="FILE", help="calibration file (default: the bundled one)")
-    check.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    add_config_options(check)
     add_json_option(check)
     check.set_defaults(func=_check)
 

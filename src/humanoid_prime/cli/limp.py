@@ -9,9 +9,9 @@ import time
 from types import FrameType
 
 from humanoid_prime.calibration.limp import DampedLimp
-from humanoid_prime.cli._common import add_json_option, print_json
+from humanoid_prime.cli._common import add_config_options, add_json_option, add_socket_option, print_json
 from humanoid_prime.config.hardware import load_hardware
-from humanoid_prime.control.operator import SdoClient, SocketSdoClient, default_socket_path
+from humanoid_prime.control.operator import SdoClient, SocketSdoClient
 from humanoid_prime.erob.gains import registers_to_gains, vel_reg_exact
 from humanoid_prime.errors import PrimeError
 
@@ -26,10 +26,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("ring_position", type=int, metavar="RING_POS", help="EtherCAT ring position of the eRob")
     p.add_argument("damping", type=float, nargs="?", metavar="DAMPING",
                    help="damping during the limp in Nm*s/rad (default: keep the drive's velocity gain)")
-    p.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    add_config_options(p)
     p.add_argument("--backend", choices=("socket", "igh"), default="socket",
                    help="socket: through the running prime process (default); igh: the `ethercat` tool")
-    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    add_socket_option(p)
     p.add_argument("--seconds", type=float, metavar="S",
                    help="stay limp for S seconds instead of waiting for Enter (scripted sweeps)")
     add_json_option(p)

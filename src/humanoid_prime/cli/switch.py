@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from humanoid_prime.cli._common import add_json_option, print_json
-from humanoid_prime.control.operator import default_socket_path, send_mode_request
+from humanoid_prime.cli._common import add_json_option, add_socket_option, print_json
+from humanoid_prime.control.operator import send_mode_request
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
@@ -15,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description="Switch the control mode of a running prime sim or prime bringup "
                                           "from another terminal. The switch lands between two ticks.")
     p.add_argument("mode", help="ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION or REMOTE")
-    p.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+    add_socket_option(p)
     add_json_option(p)
     p.set_defaults(func=run)
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -34,6 +35,7 @@ from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.operator import ControlServer
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
+from humanoid_prime.erob.objects import BUS_GAIN_GATE, BUS_GAIN_GATE_FORMAT, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.robot import Robot, load_robot
@@ -61,7 +63,6 @@ class BringupOptions:
     mode: Mode | None = None  # switch to this mode once up, and keep running
     sequence: Sequence[Mode] = ()  # modes to visit, one every ``dwell`` seconds, then stop
     dwell: float = 2.0
-    load_test: Sequence[str] = ()  # eRob joints to load-test (emulation only)
     truth_file: str | Path | None = None  # the virtual robot's wiring and factory offsets (emulation only)
     erob_config_dir: str | Path | None = None  # keep the folded per-slave configs here
     control_socket: str | Path | None = None
@@ -87,6 +88,12 @@ class Session:
     load_test: list[dict[str, Any]] = field(default_factory=list)
     gate_reset_failures: list[str] = field(default_factory=list)
     emulator: dict[str, Any] = field(default_factory=dict)  # the virtual Prime's own record, filled at teardown
+
+    def mark_limp(self, joint: str, limp: bool) -> None:
+        """In a broadcaster-only run: while ``limp``, give ``joint`` a finite target with zero stiffness, so its
+        CSP target follows the actual position (no following error while it is swept); otherwise NaN again,
+        no command, and the drive holds where it is."""
+        self.manager.resources.command.position[self.robot.index(joint)] = 0.0 if limp else np.nan
 
     def summary(self) -> dict[str, Any]:
         stats = self.manager.stats.summary()
@@ -216,7 +223,7 @@ def open_session(options: BringupOptions, stack: contextlib.ExitStack) -> Sessio
     return session
 
 
-_GAIN_OBJECTS = {0x2381: "vel", 0x2382: "pos", 0x2383: "gate"}
+_GAIN_OBJECTS = {POS_LOOP_GAIN[0], VEL_LOOP_GAIN[0], BUS_GAIN_GATE[0]}
 
 
 def _record_emulator(virtual: Any, record: dict[str, Any]) -> None:
@@ -238,9 +245,7 @@ def _note_faults(session: Session, status: SafetyStatus) -> None:
 class ModeSequence:
     """Visits ``modes`` in order, one every ``dwell`` seconds, from the control loop's tick callback."""
 
-    def __init__(self, manager: ControllerManager, modes: Sequence[Mode], dwell: float,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self.manager = manager
+    def __init__(self, modes: Sequence[Mode], dwell: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.modes = list(modes)
         self.dwell = dwell
         self.clock = clock
@@ -262,7 +267,7 @@ def run_loop(session: Session, stop: threading.Event,
     options = session.options
     if options.mode is not None:
         session.manager.request_mode(options.mode)
-    sequence = ModeSequence(session.manager, options.sequence, options.dwell) if options.sequence else None
+    sequence = ModeSequence(options.sequence, options.dwell) if options.sequence else None
     deadline = None if options.duration is None else time.monotonic() + options.duration
     settle_until: list[float] = []
 
@@ -322,7 +327,7 @@ def measure_stiffness(session: Session, joints: Sequence[str], *, torque_nm: flo
         if joint not in robot.hardware.erob_slaves:
             raise PrimeError(f"load test: {joint!r} is not an eRob joint "
                              f"(eRob joints: {', '.join(robot.hardware.erob_joints)})")
-    kp_nominal, kd_nominal = session.config.mode_gains()[Mode.STANDBY]
+    kp_nominal, _ = session.config.mode_gains()[Mode.STANDBY]
     efficiency = robot.hardware.torque_efficiency
     results = []
 
@@ -396,9 +401,7 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
             joint = ring_joints.get(position)
             if joint is None:
                 raise PrimeError(f"ring position {position} is not an eRob joint")
-            # A finite target with zero stiffness: the CSP target follows the actual position (no following
-            # error while the operator sweeps); NaN again: no command, the drive holds where it is.
-            manager.resources.command.position[session.robot.index(joint)] = 0.0 if limp else np.nan
+            session.mark_limp(joint, limp)
             (marked.add if limp else marked.discard)(position)
             return joint
 
@@ -407,7 +410,7 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
             factory gains (gate 0) rather than leave it limp in drive memory for the next bringup."""
             for position in sorted(marked):
                 with contextlib.suppress(Exception):
-                    sdo.sdo_write(position, 0x2383, 0, b"\x00")
+                    sdo.sdo_write(position, *BUS_GAIN_GATE, struct.pack(BUS_GAIN_GATE_FORMAT, 0))
                 session.faults[f"limp/ring{position}"] = (f"{ring_joints[position]} (ring {position}) was still "
                                                           "limp when the run ended; its gate was reset to 0")
 

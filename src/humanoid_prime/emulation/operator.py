@@ -15,8 +15,6 @@ import threading
 import time
 from collections.abc import Iterator
 
-import numpy as np
-
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.erob.gains import vel_reg_exact
 from humanoid_prime.errors import PrimeError
@@ -66,18 +64,16 @@ class ScriptedOperator:
         ethercat = self.session.ethercat
         if ethercat is None:
             raise PrimeError(f"{joint} is an eRob joint but this run has no EtherCAT bus")
-        i = self.robot.index(joint)
-        command = self.manager.resources.command
         vel_reg = round(vel_reg_exact(self.limp_kd, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
                                       efficiency=hw.torque_efficiency))
-        command.position[i] = 0.0  # finite with zero stiffness: the CSP target follows the joint
+        self.session.mark_limp(joint, True)
         try:
             with DampedLimp(ethercat.master, hw.erob_slaves[joint], vel_reg):
                 yield
                 self.let_go(joint)
-                self._wait_at_rest(i)
+                self._wait_at_rest(self.robot.index(joint))
         finally:
-            command.position[i] = np.nan  # no command again: the drive holds where it is
+            self.session.mark_limp(joint, False)
 
     def push_to(self, joint: str, side: int) -> float:
         """Move ``joint`` to its upper (side +1) or lower (side -1) stop and press it there; returns the reading

@@ -37,7 +37,13 @@ from humanoid_prime.erob.constants import (
     RATED_TORQUE_NM,
     VENDOR_ID,
 )
-from humanoid_prime.erob.gains import KD_PER_VEL_REG_NM_S_PER_RAD, POS_REG_PER_RATIO_S, REFERENCE_KT_GEAR_NM_PER_MA
+from humanoid_prime.erob.gains import (
+    KD_PER_VEL_REG_NM_S_PER_RAD,
+    REFERENCE_KT_GEAR_NM_PER_MA,
+    REGISTER_MAX,
+    ErobRegisters,
+    registers_to_gains,
+)
 from humanoid_prime.ethercat.emulator.od import (
     ABORT_VALUE_RANGE,
     PDO_RX,
@@ -52,7 +58,6 @@ REALISED_EFFICIENCY = 0.7  # realised / nominal stiffness of the eRob harmonic d
 FACTORY_VEL_REG = 134  # 134 * 0.1063 * 0.7 = 9.97 Nm*s/rad
 FACTORY_POS_REG = 1549  # 1549 / 51.47 * 9.97 = 300.1 Nm/rad
 FACTORY_INTEGRAL = 0
-GAIN_REGISTER_MAX = 0xFFFF
 FOLLOWING_ERROR_WINDOW_COUNTS = round(0.5 * COUNTS_PER_RAD)  # 0.5 rad
 FOLLOWING_ERROR_TIMEOUT_MS = 10
 MAX_TORQUE_PER_MILLE = 1500
@@ -95,10 +100,12 @@ STATUSWORD_FOLLOWING_ERROR = 0x2000
 
 def physical_gains(pos_reg: int, vel_reg: int, integral: int, *, kt: float = DEFAULT_KT_NM_PER_MA,
                    gear: float = DEFAULT_GEAR) -> tuple[float, float, float]:
-    """(kp Nm/rad, kd Nm*s/rad, ki Nm/rad) the drive realises from its registers."""
+    """(kp Nm/rad, kd Nm*s/rad, ki Nm/rad) the drive realises from its registers; the integral register
+    steps like the velocity gain's."""
+    kp, kd = registers_to_gains(ErobRegisters(pos_reg, vel_reg, integral), kt=kt, gear=gear,
+                                transmission_efficiency=REALISED_EFFICIENCY)
     per_step = KD_PER_VEL_REG_NM_S_PER_RAD * (kt * gear) / REFERENCE_KT_GEAR_NM_PER_MA * REALISED_EFFICIENCY
-    kd = vel_reg * per_step
-    return pos_reg / POS_REG_PER_RATIO_S * kd, kd, integral * per_step
+    return kp, kd, integral * per_step
 
 
 class ErobDrive:
@@ -179,12 +186,12 @@ class ErobDrive:
 
         add(Entry(obj.VEL_LOOP_GAIN[0], 0, "velocity loop entries", "B", 2, READ_ONLY))
         self.vel_reg = add(Entry(*obj.VEL_LOOP_GAIN, "velocity loop gain", "I", FACTORY_VEL_REG,
-                                 maximum=GAIN_REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
+                                 maximum=REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
         self.integral_reg = add(Entry(*obj.VEL_LOOP_INTEGRAL, "velocity loop integral", "I", FACTORY_INTEGRAL,
-                                      maximum=GAIN_REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
+                                      maximum=REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
         add(Entry(obj.POS_LOOP_GAIN[0], 0, "position loop entries", "B", 1, READ_ONLY))
         self.pos_reg = add(Entry(*obj.POS_LOOP_GAIN, "position loop gain", "I", FACTORY_POS_REG,
-                                 maximum=GAIN_REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
+                                 maximum=REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
         self.gate = add(Entry(*obj.BUS_GAIN_GATE, "bus regulation of PID", "B", 0, accept_sizes=(2, 4),
                               on_write=self._gate_write))
 

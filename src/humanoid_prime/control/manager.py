@@ -78,10 +78,18 @@ class LoopStats:
         self.periods[i] = period
         self.ticks += 1
 
+    def tick_us(self) -> dict[str, float | None]:
+        """Tick cost median, p99 and max over the last ``capacity`` ticks, in one pass (the live table asks
+        for these several times a second, from a thread that shares the interpreter with the loop)."""
+        k = min(self.ticks, self.capacity)
+        if not k:
+            return {"median": None, "p99": None, "max": None}
+        median, p99, top = np.percentile(self.costs[:k], (50, 99, 100)) * 1e6
+        return {"median": round(float(median), 3), "p99": round(float(p99), 3), "max": round(float(top), 3)}
+
     def summary(self) -> dict[str, Any]:
         """Figures over the last ``capacity`` ticks; None where there is nothing to measure yet."""
         k = min(self.ticks, self.capacity)
-        costs_us = self.costs[:k] * 1e6
         periods = self.periods[:k]
         periods = periods[np.isfinite(periods)]
         jitter_us = np.abs(periods - self.period) * 1e6
@@ -92,8 +100,7 @@ class LoopStats:
         return {
             "ticks": self.ticks,
             "overruns": self.overruns,
-            "tick_us": {"median": stat(costs_us, np.median), "p99": stat(costs_us, lambda v: np.percentile(v, 99)),
-                        "max": stat(costs_us, np.max)},
+            "tick_us": self.tick_us(),
             "period_ms": {"mean": stat(periods * 1e3, np.mean)},
             "jitter_us": {"p99": stat(jitter_us, lambda v: np.percentile(v, 99))},
         }

@@ -36,10 +36,10 @@ def _micros(value: float | None) -> str:
 
 def loop_line(manager: ControllerManager) -> str:
     """Tick count, tick cost, overruns and fallbacks in one line."""
-    stats = manager.stats.summary()
-    tick = stats["tick_us"]
-    return (f"ticks {stats['ticks']}  tick {_micros(tick['median'])}/{_micros(tick['p99'])}/{_micros(tick['max'])} us "
-            f"med/p99/max  overruns {stats['overruns']}  fallbacks {len(manager.fallbacks)}")
+    stats = manager.stats
+    tick = stats.tick_us()
+    return (f"ticks {stats.ticks}  tick {_micros(tick['median'])}/{_micros(tick['p99'])}/{_micros(tick['max'])} us "
+            f"med/p99/max  overruns {stats.overruns}  fallbacks {len(manager.fallbacks)}")
 
 
 class LiveTable:

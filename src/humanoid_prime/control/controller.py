@@ -54,6 +54,15 @@ class Controller(SafetyFlags, ABC):
         """Write the command for this tick into ``command`` (all five rows, every joint)."""
 
 
+def capture_position(names: tuple[str, ...], state: StateArrays, out: np.ndarray, why: str) -> None:
+    """Copy the measured position into ``out``; a joint that is not measured (non-finite) refuses the
+    activation, with ``why`` saying what could not be done."""
+    bad = np.flatnonzero(~np.isfinite(state.position))
+    if bad.size:
+        raise ControllerError(f"{why}measured position of {names[bad[0]]} is not finite")
+    np.copyto(out, state.position)
+
+
 def gain_rows(robot: Robot, erob: tuple[float, float], sito: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """Per-joint (stiffness, damping) rows from one (kp, kd) pair per actuator family."""
     is_erob = np.array([j.family == "erob" for j in robot.joints])

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from humanoid_prime.control.controller import Controller, ControllerError
+from humanoid_prime.control.controller import Controller, capture_position
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.modes import Mode
@@ -28,10 +28,7 @@ class DampingController(Controller):
         self.captured = np.zeros(robot.n)
 
     def on_activate(self, state: StateArrays, now: float) -> None:
-        bad = np.flatnonzero(~np.isfinite(state.position))
-        if bad.size:
-            raise ControllerError(f"cannot capture the pose: measured position of {self.names[bad[0]]} is not finite")
-        np.copyto(self.captured, state.position)
+        capture_position(self.names, state, self.captured, "cannot capture the pose: ")
 
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
         np.copyto(command.position, self.captured)

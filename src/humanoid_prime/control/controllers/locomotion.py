@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humanoid_prime.control.controller import Controller, ControllerError, gain_rows
+from humanoid_prime.control.controller import Controller, ControllerError, capture_position, gain_rows
 from humanoid_prime.control.controllers.standby import min_jerk
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.policy import Policy
@@ -48,10 +48,7 @@ class LocomotionController(Controller):
         self.t0 = 0.0
 
     def on_activate(self, state: StateArrays, now: float) -> None:
-        bad = np.flatnonzero(~np.isfinite(state.position))
-        if bad.size:
-            raise ControllerError(f"measured position of {self.names[bad[0]]} is not finite")
-        np.copyto(self._entry, state.position)
+        capture_position(self.names, state, self._entry, "")
         self._last_action[:] = 0.0
         self.t0 = now
 

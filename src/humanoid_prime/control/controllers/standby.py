@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from humanoid_prime.control.controller import Controller, ControllerError
+from humanoid_prime.control.controller import Controller, capture_position
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.errors import PrimeError
@@ -48,11 +48,7 @@ class StandbyController(Controller):
         self.t0 = 0.0
 
     def on_activate(self, state: StateArrays, now: float) -> None:
-        bad = np.flatnonzero(~np.isfinite(state.position))
-        if bad.size:
-            raise ControllerError(f"cannot start the trajectory: measured position of {self.names[bad[0]]} "
-                                  "is not finite")
-        np.copyto(self.start, state.position)
+        capture_position(self.names, state, self.start, "cannot start the trajectory: ")
         np.subtract(self.poses[self.pose], self.start, out=self.delta)
         self.t0 = now
 

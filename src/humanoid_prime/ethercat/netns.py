@@ -39,6 +39,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.ethercat.emulator.control import ControlError, RingControl
 from humanoid_prime.ethercat.emulator.frames import ETHERTYPE_ECAT, Command, Datagram, build_frame, parse_frame
 from humanoid_prime.ethercat.emulator.options import RingOptions
+from humanoid_prime.ethercat.emulator.server import disable_ipv6
 
 _REEXEC_MARK = "PRIME_EMULATION_USERNS"
 _counter = itertools.count()
@@ -82,11 +83,6 @@ def ip(*args: str) -> None:
     result = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
     if result.returncode != 0:
         raise EmulationUnavailable(f"`ip {' '.join(args)}` failed: {result.stderr.strip()}")
-
-
-def disable_ipv6(interface: str) -> None:
-    with contextlib.suppress(OSError), open(f"/proc/sys/net/ipv6/conf/{interface}/disable_ipv6", "w") as f:
-        f.write("1")
 
 
 class EmulatedRing:
@@ -158,10 +154,7 @@ class EmulatedRing:
         self.prepare_namespace()
         ip("link", "add", self.master_interface, "type", "veth", "peer", "name", self.emulator_interface)
         self._pair_created = True
-        disable_ipv6(self.master_interface)
-        if not self.isolate_emulator:
-            disable_ipv6(self.emulator_interface)
-            ip("link", "set", self.emulator_interface, "up")
+        disable_ipv6(self.master_interface)  # the emulator end is brought up by the emulator itself
         lifeline_read, self._lifeline = os.pipe()
         command = self.emulator_command(control_path, lifeline_read)
         if self.isolate_emulator:

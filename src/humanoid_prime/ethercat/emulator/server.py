@@ -365,10 +365,15 @@ def run_until_signalled(server: EmulatorServer) -> None:
         server.close()
 
 
-def bring_up(interface: str) -> None:
-    """Set ``interface`` up and turn IPv6 off on it so the kernel sends nothing of its own."""
+def disable_ipv6(interface: str) -> None:
+    """Turn IPv6 off on ``interface`` so the kernel sends nothing of its own on an EtherCAT link."""
     with contextlib.suppress(OSError), open(f"/proc/sys/net/ipv6/conf/{interface}/disable_ipv6", "w") as f:
         f.write("1")
+
+
+def bring_up(interface: str) -> None:
+    """Set ``interface`` up with IPv6 off."""
+    disable_ipv6(interface)
     siocgifflags, siocsifflags, iff_up = 0x8913, 0x8914, 0x1
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         request = struct.pack("16sH14x", interface.encode(), 0)

@@ -36,7 +36,6 @@ from humanoid_prime.sito.protocol import (
     INT16_MAX,
     INT16_MIN,
     INT32_MAX,
-    INT32_MIN,
     MODE_MIT,
     MOTOR_FRAME_TYPES,
     Command,
@@ -47,12 +46,17 @@ from humanoid_prime.sito.protocol import (
     InvalidFrame,
     SitoModel,
     arbitration_id,
+    counts_to_position,
+    counts_to_velocity,
     current_mA_to_torque,
     firmware_to_kd,
     firmware_to_kp,
     parse,
+    position_to_counts,
     sito_model,
     split_arbitration_id,
+    torque_to_current_mA,
+    velocity_to_counts,
 )
 
 FIRMWARE_RATE_HZ = 1000.0
@@ -130,6 +134,7 @@ class MujocoJoint:
 
 
 def _saturate(value: float, low: int, high: int) -> int:
+    """The pwm field's clamp (its units are not documented, so it is no protocol conversion)."""
     return min(max(round(value), low), high)
 
 
@@ -201,7 +206,7 @@ class SitoMotor:
                 self._tick = 0
                 if self.enabled:
                     q, _ = self.plant.state()  # hold where it is until the first command
-                    self.position_counts = _saturate(q * COUNTS_PER_RAD, INT32_MIN, INT32_MAX)
+                    self.position_counts = position_to_counts(q)
                     self.velocity_counts = 0
             case Gains(kp_fw, kd_fw):
                 self.kp_fw, self.kd_fw = kp_fw, kd_fw
@@ -213,8 +218,8 @@ class SitoMotor:
         if not self.enabled:
             return 0.0
         q, qd = self.plant.state()
-        torque = (self.kp * (self.position_counts / COUNTS_PER_RAD - q)
-                  + self.kd * (self.velocity_counts / COUNTS_PER_RAD - qd)
+        torque = (self.kp * (counts_to_position(self.position_counts) - q)
+                  + self.kd * (counts_to_velocity(self.velocity_counts) - qd)
                   + current_mA_to_torque(self.current_mA, self.model))
         return min(max(torque, -self.torque_limit), self.torque_limit)
 
@@ -238,12 +243,12 @@ class SitoMotor:
             return
         q, qd = self.plant.state()
         if frame_type == FrameType.FEEDBACK1:
-            current = _saturate(self.torque / self.model.nm_per_mA, INT16_MIN, INT16_MAX)
+            current, _ = torque_to_current_mA(self.torque, self.model)
             pwm = _saturate(1000.0 * self.torque / self.torque_limit, INT16_MIN, INT16_MAX)
-            velocity = _saturate(qd * COUNTS_PER_RAD, INT16_MIN, INT16_MAX)
+            velocity, _ = velocity_to_counts(qd)
             data = FEEDBACK1.pack(SUPPLY_VOLTAGE_RAW, pwm, current, velocity)
         else:
-            output = _saturate(q * COUNTS_PER_RAD, INT32_MIN, INT32_MAX)
+            output = position_to_counts(q)
             motor = (round(q * self.model.gear * COUNTS_PER_RAD) + 2**31) % 2**32 - 2**31  # wraps on the motor
             data = FEEDBACK2.pack(motor, output)
         send(can.Message(arbitration_id=self.ids[frame_type], is_extended_id=True, data=data))

@@ -1,7 +1,7 @@
 """One MuJoCo plant for all 14 joints, seen by the emulated drives in their own raw frames.
 
 The ring's drives take ``PrimePlant`` as their plant (one entry per ring position); the Sito motor
-emulator takes a ``SitoJointPlant`` per wrist. Each physics step the ring hands over the eRob motor
+emulator takes ``sito_plant(joint)`` per wrist. Each physics step the ring hands over the eRob motor
 torques, the Sito emulator runs one firmware tick (reading its CAN frames, applying its MIT law), and
 then the world advances once for everybody.
 
@@ -21,28 +21,27 @@ from humanoid_prime.config.calibration import Calibration, JointCalibration
 from humanoid_prime.ethercat.emulator.plant import Plant
 from humanoid_prime.robot import Robot
 from humanoid_prime.sim.mujoco_system import load_model
+from humanoid_prime.sito.emulator import MotorSidePlant
 
 HAND_GAIN_MAX = 40.0  # Nm*s/rad: a firm hand
 HAND_STABILITY = 0.5  # fraction of inertia/dt: the explicit speed loop stays well inside its stability bound
 
 
-class SitoJointPlant:
-    """A wrist joint of the shared model as the Sito emulator's plant, in the motor's raw frame."""
+class _WristJoint:
+    """A wrist joint of the shared model, in the joint frame: its torque is applied at the next world step."""
 
     def __init__(self, plant: PrimePlant, joint: str) -> None:
         self.plant = plant
         self.joint = joint
         self.dof = plant.dof[joint]
         self.qpos = plant.qpos[joint]
-        self.cal = plant.truth.joints[joint]
 
     def state(self) -> tuple[float, float]:
         data = self.plant.data
-        q = float(data.qpos[self.qpos])
-        return self.cal.direction * q + self.cal.homing_offset, self.cal.direction * float(data.qvel[self.dof])
+        return float(data.qpos[self.qpos]), float(data.qvel[self.dof])
 
     def step(self, torque: float, dt: float) -> None:
-        self.plant.wrist_torque[self.joint] = self.cal.direction * torque
+        self.plant.wrist_torque[self.joint] = torque
 
 
 class PrimePlant(Plant):
@@ -131,6 +130,11 @@ class PrimePlant(Plant):
             else:
                 held[i] = np.nan
         self._refresh()
+
+    def sito_plant(self, joint: str) -> MotorSidePlant:
+        """The Sito emulator's plant for a wrist: the joint seen through its wiring and factory offset."""
+        cal = self.truth.joints[joint]
+        return MotorSidePlant(_WristJoint(self, joint), cal.direction, cal.homing_offset)
 
     def joint_positions(self) -> dict[str, float]:
         """True joint angles (description frame) of every joint."""

@@ -17,7 +17,7 @@ from typing import Any
 import can
 
 from humanoid_prime.config.calibration import load_calibration
-from humanoid_prime.emulation.plant import PrimePlant, SitoJointPlant, truth_calibration
+from humanoid_prime.emulation.plant import PrimePlant, truth_calibration
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.ethercat.emulator.__main__ import wait_for_interface
 from humanoid_prime.ethercat.emulator.options import RingOptions
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"virtual prime: interface {args.iface} does not exist", file=sys.stderr)
         return 1
     bus = can.Bus(interface=args.can_interface, channel=args.can_channel)
-    sito = SitoEmulator.for_robot(robot, bus, {j: SitoJointPlant(plant, j) for j in robot.hardware.sito_joints},
+    sito = SitoEmulator.for_robot(robot, bus, {j: plant.sito_plant(j) for j in robot.hardware.sito_joints},
                                   rate_hz=1.0 / options.physics_dt_s, world_step=plant.world_step)
     plant.attach_sito(sito.step)
     try:

@@ -27,7 +27,7 @@ from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.robot import Robot
 from humanoid_prime.sim.mujoco_system import MujocoSystem
-from humanoid_prime.sito.emulator import MujocoJoint, Plant, SitoEmulator
+from humanoid_prime.sito.emulator import MotorSidePlant, MujocoJoint, SitoEmulator
 from humanoid_prime.sito.protocol import FrameType
 from humanoid_prime.sito.system import SitoSystem
 
@@ -48,23 +48,6 @@ class _HostBus(VirtualBus):
         msg = super().recv(timeout)
         self._in_hand = 0 if msg is None else 1
         return msg
-
-
-class MotorSidePlant:
-    """A plant seen from the motor's side of the calibration: ``raw = direction·q + homing_offset``,
-    so the host's calibration turns the emulated motor's readings back into the model's joint frame."""
-
-    def __init__(self, joint: Plant, direction: int, homing_offset: float) -> None:
-        self.joint = joint
-        self.direction = float(direction)
-        self.homing_offset = float(homing_offset)
-
-    def state(self) -> tuple[float, float]:
-        q, qd = self.joint.state()
-        return self.direction * q + self.homing_offset, self.direction * qd
-
-    def step(self, torque: float, dt: float) -> None:
-        self.joint.step(self.direction * torque, dt)
 
 
 class HilSimulation:

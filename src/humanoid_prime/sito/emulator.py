@@ -133,6 +133,23 @@ class MujocoJoint:
         self._data.qfrc_applied[self._dof] = torque
 
 
+class MotorSidePlant:
+    """A plant seen from the motor's side of the calibration: ``raw = direction·q + homing_offset``,
+    so the host's calibration turns the emulated motor's readings back into the model's joint frame."""
+
+    def __init__(self, joint: Plant, direction: int, homing_offset: float) -> None:
+        self.joint = joint
+        self.direction = float(direction)
+        self.homing_offset = float(homing_offset)
+
+    def state(self) -> tuple[float, float]:
+        q, qd = self.joint.state()
+        return self.direction * q + self.homing_offset, self.direction * qd
+
+    def step(self, torque: float, dt: float) -> None:
+        self.joint.step(self.direction * torque, dt)
+
+
 def _saturate(value: float, low: int, high: int) -> int:
     """The pwm field's clamp (its units are not documented, so it is no protocol conversion)."""
     return min(max(round(value), low), high)

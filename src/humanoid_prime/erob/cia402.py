@@ -24,15 +24,17 @@ class DriveState(Enum):
 
 
 # (mask, value) -> state, per CiA402: four states are told apart by 0x6F, four by 0x4F.
+OPERATION_ENABLED_PATTERN = (0x6F, 0x27)
+FAULT_PATTERN = (0x4F, 0x08)
 _STATE_PATTERNS: tuple[tuple[int, int, DriveState], ...] = (
     (0x4F, 0x00, DriveState.NOT_READY_TO_SWITCH_ON),
     (0x4F, 0x40, DriveState.SWITCH_ON_DISABLED),
     (0x6F, 0x21, DriveState.READY_TO_SWITCH_ON),
     (0x6F, 0x23, DriveState.SWITCHED_ON),
-    (0x6F, 0x27, DriveState.OPERATION_ENABLED),
+    (*OPERATION_ENABLED_PATTERN, DriveState.OPERATION_ENABLED),
     (0x6F, 0x07, DriveState.QUICK_STOP_ACTIVE),
     (0x4F, 0x0F, DriveState.FAULT_REACTION_ACTIVE),
-    (0x4F, 0x08, DriveState.FAULT),
+    (*FAULT_PATTERN, DriveState.FAULT),
 )
 
 # Statusword bits; 12 and 13 carry their cyclic-synchronous-position meaning (Prime runs CSP only).

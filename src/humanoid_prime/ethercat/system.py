@@ -33,7 +33,9 @@ from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.erob.cia402 import (
     DISABLE_VOLTAGE,
     ERROR_HINTS,
+    FAULT_PATTERN,
     FAULT_RESET,
+    OPERATION_ENABLED_PATTERN,
     describe_al_state,
     describe_error,
     drive_state,
@@ -50,6 +52,7 @@ from humanoid_prime.erob.objects import (
 )
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.ethercat.master import (
+    RX_DTYPE,
     TX_DTYPE,
     BringupReport,
     EthercatMaster,
@@ -59,12 +62,25 @@ from humanoid_prime.ethercat.master import (
 from humanoid_prime.ethercat.slave_config import Channel, SlaveConfig, load_slave_config
 from humanoid_prime.robot import Robot
 
-_I32 = (np.array(np.iinfo(np.int32).min, float), np.array(np.iinfo(np.int32).max, float))  # target position
-# velocity offset (i32) and torque offset (i16), one row each
-_FF_LIMITS = (np.array([[np.iinfo(np.int32).min], [np.iinfo(np.int16).min]], float),
-              np.array([[np.iinfo(np.int32).max], [np.iinfo(np.int16).max]], float))
-_OPERATION_ENABLED = 0x27  # statusword & 0x6F
-_FAULT = 0x08  # statusword & 0x4F
+
+def _pdo_limits(*fields: str) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of the mapped integer types of ``fields``, one row each, as floats for np.clip."""
+    ranges = [np.iinfo(RX_DTYPE[f]) for f in fields]
+    return (np.array([[r.min] for r in ranges], float), np.array([[r.max] for r in ranges], float))
+
+
+def _round_clamp(raw: np.ndarray, limits: tuple[np.ndarray, np.ndarray], out: np.ndarray) -> None:
+    """Round half up and clamp to the PDO type into ``out`` (as ``Channel.command_raw`` does), in place."""
+    np.add(raw, 0.5, out=raw)
+    np.floor(raw, out=raw)
+    np.clip(raw, limits[0], limits[1], out=raw)
+    np.copyto(out, raw, casting="unsafe")
+
+
+_TARGET_LIMITS = tuple(row[0] for row in _pdo_limits("target_position"))
+_FF_LIMITS = _pdo_limits("velocity_offset", "torque_offset")  # one row each
+_OPERATION_ENABLED_MASK, _OPERATION_ENABLED = OPERATION_ENABLED_PATTERN
+_FAULT_MASK, _FAULT = FAULT_PATTERN
 _MIT = ("position", "velocity", "effort")
 _STATE_OBJECTS = (POSITION_ACTUAL, VELOCITY_ACTUAL, TORQUE_ACTUAL)
 _COMMAND_OBJECTS = (TARGET_POSITION, VELOCITY_OFFSET, TORQUE_OFFSET)
@@ -253,9 +269,9 @@ class EthercatSystem(HardwareComponent):
         np.copyto(self._raw_pos, self._rec_pos)
         np.copyto(self._raw_vel, self._rec_vel)
         np.copyto(self._raw_tq, self._rec_tq)
-        np.bitwise_and(self._rec_sw, 0x6F, out=self._sw7)
+        np.bitwise_and(self._rec_sw, _OPERATION_ENABLED_MASK, out=self._sw7)
         np.equal(self._sw7, _OPERATION_ENABLED, out=self._enabled)
-        np.bitwise_and(self._rec_sw, 0x4F, out=self._sw7)
+        np.bitwise_and(self._rec_sw, _FAULT_MASK, out=self._sw7)
         np.equal(self._sw7, _FAULT, out=self._fault)
 
     def _step_controlwords(self) -> None:
@@ -307,7 +323,8 @@ class EthercatSystem(HardwareComponent):
         np.logical_not(self._enabled, out=scratch)
         np.logical_or(follow, scratch, out=follow)
         np.copyto(t, self._raw_pos, where=follow)
-        self._store(t, self._out_target, _I32)
+        _round_clamp(t, _TARGET_LIMITS, self._i32)
+        self._out_target[self.ring] = self._i32
         np.copyto(self._held, self._i32)
         # velocity offset (the damping term's feed-forward) and torque offset (effort feed-forward), zero
         # where not finite or the drive is not enabled
@@ -320,23 +337,12 @@ class EthercatSystem(HardwareComponent):
         np.logical_and(bad2, self._enabled, out=bad2)
         np.logical_not(bad2, out=bad2)
         np.copyto(x2, 0.0, where=bad2)
-        np.add(x2, 0.5, out=x2)
-        np.floor(x2, out=x2)
-        np.clip(x2, _FF_LIMITS[0], _FF_LIMITS[1], out=x2)
-        np.copyto(self._i32_2, x2, casting="unsafe")
+        _round_clamp(x2, _FF_LIMITS, self._i32_2)
         self._out_vel[self.ring] = self._ff_vel
         self._out_tq[self.ring] = self._ff_tq
         self._out_mode[:] = MODE_CSP
         self._step_controlwords()
         self.master.send()
-
-    def _store(self, raw: np.ndarray, out: np.ndarray, limits: tuple[np.ndarray, np.ndarray]) -> None:
-        """Round half up, clamp to the PDO type, scatter into ring order (as ``Channel.command_raw`` does)."""
-        np.add(raw, 0.5, out=raw)
-        np.floor(raw, out=raw)
-        np.clip(raw, limits[0], limits[1], out=raw)
-        np.copyto(self._i32, raw, casting="unsafe")
-        out[self.ring] = self._i32
 
     # ------------------------------------------------------------------------------- flags
     def _update_wkc_flag(self, wkc: int) -> None:

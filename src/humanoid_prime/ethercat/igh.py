@@ -18,6 +18,7 @@ import subprocess
 import threading
 
 from humanoid_prime.ethercat.master import AL_ERROR, AL_OP, AL_PRE_OP, RingError, SdoError, SdoRefused, SlaveInfo
+from humanoid_prime.ethercat.slave_config import PDO_TYPES
 
 # IgH data type names: (bytes, signed). The short names are what `prime ec sdo --type` accepts.
 IGH_TYPES: dict[str, tuple[int, bool]] = {
@@ -147,8 +148,7 @@ class IghSdo:
             raise SdoError(position, index, sub_index, f"`ethercat {' '.join(args)}`: {exc}") from None
 
     def download(self, position: int, index: int, sub_index: int, value: int, type_name: str) -> None:
-        size, signed = IGH_TYPES[type_name]
-        lo, hi = (-(1 << (8 * size - 1)), (1 << (8 * size - 1)) - 1) if signed else (0, (1 << (8 * size)) - 1)
+        _, lo, hi = PDO_TYPES[type_name]
         if not lo <= value <= hi:
             raise SdoError(position, index, sub_index, f"value {value} does not fit {type_name} ({lo}..{hi})")
         self._require_settled(position, index, sub_index)

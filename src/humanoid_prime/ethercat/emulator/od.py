@@ -12,6 +12,8 @@ import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+from humanoid_prime.ethercat.slave_config import PDO_TYPES
+
 ABORT_TOGGLE = 0x05030000  # toggle bit not alternated
 ABORT_COMMAND = 0x05040001  # client/server command specifier not valid or unknown
 ABORT_UNSUPPORTED_ACCESS = 0x06010000  # unsupported access to an object
@@ -35,8 +37,7 @@ READ_WRITE = "rw"
 PDO_RX = "rx"  # mappable into an RxPDO (master -> slave)
 PDO_TX = "tx"  # mappable into a TxPDO (slave -> master)
 
-_LIMITS = {"b": (-0x80, 0x7F), "B": (0, 0xFF), "h": (-0x8000, 0x7FFF), "H": (0, 0xFFFF),
-           "i": (-0x80000000, 0x7FFFFFFF), "I": (0, 0xFFFFFFFF), "q": (-(1 << 63), (1 << 63) - 1)}
+_LIMITS = {fmt: (lo, hi) for fmt, lo, hi in PDO_TYPES.values()}
 
 
 class SdoAbort(Exception):

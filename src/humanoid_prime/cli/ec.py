@@ -14,10 +14,17 @@ from typing import Any
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.erob.cia402 import describe_al_status_code, describe_error, drive_state
-from humanoid_prime.erob.objects import ERROR_CODE, ERROR_HISTORY, STATUSWORD
+from humanoid_prime.erob.objects import ERROR_CODE, STATUSWORD
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.ethercat.igh import IGH_TYPES, SHORT_TYPES
-from humanoid_prime.ethercat.master import RingError, SdoError, SlaveInfo, check_ring, expected_ring
+from humanoid_prime.ethercat.master import (
+    RingError,
+    SdoError,
+    SlaveInfo,
+    check_ring,
+    expected_ring,
+    read_error_history,
+)
 from humanoid_prime.ethercat.sdo import SDO_BACKENDS, open_sdo
 from humanoid_prime.robot import Robot, load_robot
 
@@ -154,9 +161,7 @@ def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) ->
         error_code, _ = sdo.upload(position, ERROR_CODE, 0, "uint16")
         _drive(row, statusword, error_code)
         if args.history:
-            count, _ = sdo.upload(position, ERROR_HISTORY, 0, "uint8")
-            row["error_history"] = [f"0x{sdo.upload(position, ERROR_HISTORY, sub, 'uint32')[0] & 0xFFFF:04X}"
-                                    for sub in range(1, count + 1)]
+            row["error_history"] = [f"0x{code:04X}" for code in read_error_history(sdo, position)]
 
 
 def run_scan(args: argparse.Namespace) -> int:

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from humanoid_prime.control.operator import SdoClient
 from humanoid_prime.erob.cia402 import describe_al_state, describe_al_status_code
 from humanoid_prime.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
@@ -197,6 +198,21 @@ def sync0_period_ns(update_rate_hz: float, *, sync0_period_s: float | None = Non
                 "(0x1208), and a slower one skips targets; leave sync0_period unset (it is derived from "
                 "update_rate) or change update_rate instead")
     return period_ns
+
+
+def read_live_error(sdo: SdoClient, position: int) -> int:
+    """The drive's current error code (0x603F), through any SDO client."""
+    return struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
+
+
+def read_error_history(sdo: SdoClient, position: int) -> list[int]:
+    """The drive's stored error codes (0x1003, newest first; the low 16 bits of each entry)."""
+    count = sdo.sdo_read(position, ERROR_HISTORY, 0)[0]
+    codes = []
+    for sub in range(1, count + 1):
+        raw = sdo.sdo_read(position, ERROR_HISTORY, sub)[:4].ljust(4, b"\0")
+        codes.append(struct.unpack("<I", raw)[0] & 0xFFFF)
+    return codes
 
 
 class EthercatMaster(ABC):
@@ -415,17 +431,10 @@ class EthercatMaster(ABC):
         self._sdo_write(position, index, sub_index, bytes(data))
 
     def live_error(self, position: int) -> int:
-        """The drive's current error code (0x603F)."""
-        return struct.unpack("<H", self.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
+        return read_live_error(self, position)
 
     def error_history(self, position: int) -> list[int]:
-        """The drive's stored error codes (0x1003, newest first; the low 16 bits of each entry)."""
-        count = self.sdo_read(position, ERROR_HISTORY, 0)[0]
-        codes = []
-        for sub in range(1, count + 1):
-            raw = self.sdo_read(position, ERROR_HISTORY, sub)[:4].ljust(4, b"\0")
-            codes.append(struct.unpack("<I", raw)[0] & 0xFFFF)
-        return codes
+        return read_error_history(self, position)
 
     # ----------------------------------------------------------------------------- states
     def read_states(self) -> tuple[SlaveInfo, ...]:

@@ -11,19 +11,13 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Protocol
 
+from humanoid_prime.control.operator import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.ethercat.master import RingError, expected_ring
 from humanoid_prime.robot import Robot
 
 SDO_BACKENDS = ("soem", "igh")
-
-
-class SdoClient(Protocol):
-    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes: ...
-
-    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None: ...
 
 
 def check_backend(name: str) -> str:

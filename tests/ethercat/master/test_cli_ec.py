@@ -100,3 +100,16 @@ def test_a_bad_value_is_refused_before_any_bus_access(igh, capsys):
     assert main(["ec", "sdo", "write", "1", "0x2383:0", "one", "--backend", "igh"]) == 1
     assert "VALUE 'one' is not an integer" in capsys.readouterr().err
     assert igh.calls == []
+
+
+def test_scan_reads_the_error_history_newest_first(igh, capsys):
+    for position in range(10):
+        igh.set(position, 0x1003, 0, 0, "uint8")
+    igh.set(3, 0x1003, 0, 2, "uint8")
+    igh.set(3, 0x1003, 1, 0x00018500, "uint32")
+    igh.set(3, 0x1003, 2, 0xA000, "uint32")
+    igh.save()
+    assert main(["ec", "scan", "--backend", "igh", "--history", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["slaves"][3]["error_history"] == ["0x8500", "0xA000"]
+    assert report["slaves"][0]["error_history"] == []

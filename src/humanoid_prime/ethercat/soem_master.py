@@ -210,12 +210,7 @@ class SoemMaster(EthercatMaster):
 
     def _advance(self, states: Sequence[tuple[int, int]]) -> None:
         for slave, (state, _) in zip(self._pslaves, states, strict=True):
-            if state == AL_SAFE_OP | AL_ERROR:
-                slave.state = pysoem.SAFEOP_STATE | pysoem.STATE_ACK
-                slave.write_state()
-            elif state == AL_SAFE_OP:
-                slave.state = pysoem.OP_STATE
-                slave.write_state()
+            _push_toward_op(slave, state)
 
     def _started(self) -> None:
         self._stop.clear()
@@ -270,18 +265,13 @@ class SoemMaster(EthercatMaster):
                 changed = True
             if state == AL_OP:
                 self._lost[k] = False
-            elif state == AL_SAFE_OP | AL_ERROR:
-                slave.state = pysoem.SAFEOP_STATE | pysoem.STATE_ACK
-                slave.write_state()
-            elif state == AL_SAFE_OP:
-                slave.state = pysoem.OP_STATE
-                slave.write_state()
-            elif state > pysoem.NONE_STATE:
-                self._reconfigure(k)
-            else:
-                self._lost[k] = True
-                if slave.recover(round(self.frame_timeout_us * 3)) > 0:
-                    self._lost[k] = False
+            elif not _push_toward_op(slave, state):
+                if state > pysoem.NONE_STATE:
+                    self._reconfigure(k)
+                else:
+                    self._lost[k] = True
+                    if slave.recover(round(self.frame_timeout_us * 3)) > 0:
+                        self._lost[k] = False
         if changed:
             self.health_version += 1
 
@@ -369,6 +359,18 @@ class SoemMaster(EthercatMaster):
         if self._m is None:
             raise RingError(f"EtherCAT master on {self.interface} is not open")
         return self._m
+
+
+def _push_toward_op(slave: pysoem.CdefSlave, state: int) -> bool:
+    """One step toward OP for a slave in SAFE-OP: acknowledge an error, else request OP. False otherwise."""
+    if state == AL_SAFE_OP | AL_ERROR:
+        slave.state = pysoem.SAFEOP_STATE | pysoem.STATE_ACK
+    elif state == AL_SAFE_OP:
+        slave.state = pysoem.OP_STATE
+    else:
+        return False
+    slave.write_state()
+    return True
 
 
 def _describe(exc: BaseException) -> str:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from humanoid_prime.bench import TARGET_BRINGUP_S, TARGET_SKEW_S, TARGET_SWITCH_S
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
@@ -32,9 +33,6 @@ from humanoid_prime.ethercat.soem_master import SoemMaster
 from humanoid_prime.ethercat.system import EthercatSystem
 from humanoid_prime.robot import Robot, load_robot
 
-TARGET_BRINGUP_S = 5.0
-TARGET_SWITCH_S = 0.1
-TARGET_SKEW_S = 0.02
 # Two register sets a switch alternates between (pos_reg, vel_reg): STANDBY-like and DAMPING-like.
 SWITCH_REGISTERS = ((515, 19), (0, 56))
 

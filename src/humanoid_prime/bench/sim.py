@@ -9,11 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from humanoid_prime.bench import TARGET_REALTIME_FACTOR
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.robot import load_robot
 from humanoid_prime.sim.demo import DEMO_SECONDS, SCHEDULE, START_POSE, Simulation, Step, build_simulation, demo_stream
-
-TARGET_REALTIME_FACTOR = 20.0
 
 
 def bench_sim(seconds: float = 10.0, *, hardware_file: str | Path | None = None,

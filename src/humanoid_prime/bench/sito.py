@@ -18,6 +18,7 @@ from typing import Any
 import can
 import numpy as np
 
+from humanoid_prime.bench import TARGET_LOAD_PERCENT
 from humanoid_prime.config.calibration import identity_calibration
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.robot import load_robot
@@ -27,7 +28,6 @@ from humanoid_prime.sito.protocol import HOST_FRAME_TYPES
 from humanoid_prime.sito.system import SitoSystem
 
 CONTROL_RATE = 50.0
-TARGET_LOAD_PERCENT = 5.0
 WARM_TICKS = 2000
 _HOST_TYPES = frozenset(int(t) for t in HOST_FRAME_TYPES)
 

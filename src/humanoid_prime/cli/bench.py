@@ -14,6 +14,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from humanoid_prime import bench as b
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 
@@ -30,14 +31,16 @@ _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": oper
 
 # (suite, figure path, comparison, goal, what) -- DESIGN §6
 TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
-    ("sim", "realtime_factor", ">=", 20.0, "simulation speed (x real time)"),
-    ("sito", "host_load_percent", "<=", 5.0, "Sito bus load from the host at 50 Hz (%)"),
-    ("bringup", "bringup_seconds", "<=", 5.0, "cold bring-up, 10 eRob to OP + 4 Sito, joint states flowing (s)"),
-    ("bringup", "switch_seconds.max", "<=", 0.1, "mode switch, gains on all 10 eRob (s, worst)"),
-    ("bringup", "skew_seconds.max", "<=", 0.020, "mode switch skew between slaves (s, worst)"),
-    ("bringup", "tick_us.median", "<=", 100.0, "control tick, 14 joints, read+update+write (us, median)"),
-    ("bringup", "tick_us.p99", "<=", 300.0, "control tick, 14 joints (us, p99)"),
-    ("bringup", "jitter_us.p99", "<=", 500.0, "loop period jitter at 50 Hz (us, p99)"),
+    ("sim", "realtime_factor", ">=", b.TARGET_REALTIME_FACTOR, "simulation speed (x real time)"),
+    ("sito", "host_load_percent", "<=", b.TARGET_LOAD_PERCENT, "Sito bus load from the host at 50 Hz (%)"),
+    ("bringup", "bringup_seconds", "<=", b.TARGET_BRINGUP_S,
+     "cold bring-up, 10 eRob to OP + 4 Sito, joint states flowing (s)"),
+    ("bringup", "switch_seconds.max", "<=", b.TARGET_SWITCH_S, "mode switch, gains on all 10 eRob (s, worst)"),
+    ("bringup", "skew_seconds.max", "<=", b.TARGET_SKEW_S, "mode switch skew between slaves (s, worst)"),
+    ("bringup", "tick_us.median", "<=", b.TARGET_TICK_MEDIAN_US,
+     "control tick, 14 joints, read+update+write (us, median)"),
+    ("bringup", "tick_us.p99", "<=", b.TARGET_TICK_P99_US, "control tick, 14 joints (us, p99)"),
+    ("bringup", "jitter_us.p99", "<=", b.TARGET_JITTER_P99_US, "loop period jitter at 50 Hz (us, p99)"),
 )
 
 

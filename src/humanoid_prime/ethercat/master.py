@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from humanoid_prime.control.operator import SdoClient
-from humanoid_prime.erob.cia402 import describe_al_state, describe_al_status_code
+from humanoid_prime.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
 from humanoid_prime.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
 from humanoid_prime.errors import PrimeError
@@ -41,7 +41,7 @@ AL_INIT = 0x01
 AL_PRE_OP = 0x02
 AL_SAFE_OP = 0x04
 AL_OP = 0x08
-AL_ERROR = 0x10
+AL_ERROR = AL_ERROR_FLAG
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
 

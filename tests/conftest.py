@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from humanoid_prime.robot import Robot, load_robot
+from humanoid_prime.config.robot import Robot, load_robot
 
 
 @pytest.fixture(scope="session")

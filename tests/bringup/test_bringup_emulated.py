@@ -13,12 +13,12 @@ import pytest
 import yaml
 
 from humanoid_prime.config.controllers import load_controllers
-from humanoid_prime.control.operator import request
-from humanoid_prime.erob.gains import gains_to_registers
+from humanoid_prime.drivers.erob.gains import gains_to_registers
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.ethercat.netns import netns_unavailable_reason
 from humanoid_prime.files import bundled
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.socket import request
+from humanoid_prime.virtual.netns import netns_unavailable_reason
 
 pytestmark = pytest.mark.netns
 REASON = netns_unavailable_reason()

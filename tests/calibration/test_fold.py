@@ -7,14 +7,14 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from humanoid_prime.calibration.fold import fold_slave_config, render_slave_config, write_folded_configs
 from humanoid_prime.calibration.math import calibrate_from_sweeps
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK
-from humanoid_prime.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
-from humanoid_prime.erob.objects import RXPDO, TXPDO
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
+from humanoid_prime.drivers.erob.objects import RXPDO, TXPDO
+from humanoid_prime.drivers.ethercat.fold import fold_slave_config, render_slave_config, write_folded_configs
+from humanoid_prime.drivers.ethercat.slave_config import Channel, load_slave_config
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.ethercat.slave_config import Channel, load_slave_config
 
 C = 524288 / (2 * math.pi)
 

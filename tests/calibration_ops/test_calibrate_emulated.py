@@ -15,9 +15,9 @@ import yaml
 
 from humanoid_prime.calibration.math import flip_direction
 from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration, save_calibration
-from humanoid_prime.control.operator import SocketSdoClient, request
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.ethercat.netns import netns_unavailable_reason
+from humanoid_prime.runtime.socket import SocketSdoClient, request
+from humanoid_prime.virtual.netns import netns_unavailable_reason
 
 pytestmark = pytest.mark.netns
 REASON = netns_unavailable_reason()

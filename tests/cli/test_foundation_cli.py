@@ -11,7 +11,7 @@ import yaml
 
 from humanoid_prime.cli import main
 from humanoid_prime.config.calibration import load_calibration
-from humanoid_prime.ethercat.slave_config import load_slave_config
+from humanoid_prime.drivers.ethercat.slave_config import load_slave_config
 from humanoid_prime.files import bundled
 
 

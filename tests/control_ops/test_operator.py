@@ -6,9 +6,9 @@ import sys
 import pytest
 
 from humanoid_prime.cli import main
-from humanoid_prime.control.operator import ControlServer, SocketSdoClient, send_mode_request
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.socket import ControlServer, SocketSdoClient, send_mode_request
 
 
 class RecordingSdo:

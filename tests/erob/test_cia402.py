@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from humanoid_prime.erob.cia402 import (
+from humanoid_prime.drivers.erob.cia402 import (
     AL_STATUS_CODES,
     DISABLE_VOLTAGE,
     ENABLE_OPERATION,

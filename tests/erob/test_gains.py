@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from humanoid_prime.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA, EROB80_KT_NM_PER_MA
-from humanoid_prime.erob.gains import (
+from humanoid_prime.drivers.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA, EROB80_KT_NM_PER_MA
+from humanoid_prime.drivers.erob.gains import (
     REGISTER_MAX,
     ErobRegisters,
     gains_to_registers,
@@ -17,7 +17,7 @@ from humanoid_prime.erob.gains import (
     vel_reg_exact,
     write_order,
 )
-from humanoid_prime.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.drivers.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
 
 
 def test_standby_vel_reg_before_rounding():

@@ -6,7 +6,7 @@ import struct
 import threading
 import time
 
-from humanoid_prime.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
 from humanoid_prime.errors import PrimeError
 
 NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral", BUS_GAIN_GATE: "gate"}

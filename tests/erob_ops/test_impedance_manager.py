@@ -7,9 +7,9 @@ import pytest
 
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, JointState, TopicBus
-from humanoid_prime.erob.gains import gains_to_registers
-from humanoid_prime.erob.impedance import ImpedanceManager
+from humanoid_prime.drivers.erob.gains import gains_to_registers
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.impedance import ImpedanceManager
 
 from .drives import DriveMailboxes
 
@@ -203,7 +203,7 @@ def test_per_joint_kt_scales_only_vel_reg(robot, gains, tmp_path):
     import yaml
 
     from humanoid_prime.config.hardware import load_hardware
-    from humanoid_prime.robot import build_robot
+    from humanoid_prime.config.robot import build_robot
 
     data = yaml.safe_load(robot.hardware.path.read_text())
     data["joints"]["erob_kt"] = {"left_elbow_pitch": 0.134e-3}

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from humanoid_prime.cli import main
-from humanoid_prime.control.operator import ControlServer
+from humanoid_prime.runtime.socket import ControlServer
 
 from .drives import DriveMailboxes
 

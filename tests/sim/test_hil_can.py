@@ -18,11 +18,11 @@ from humanoid_prime.control.controller import pose_array
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.control.interfaces import CommandArrays
 from humanoid_prime.control.topics import SAFETY_STATUS
+from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.sim.demo import Simulation, Step
-from humanoid_prime.sim.hil import build_hil_simulation
-from humanoid_prime.sim.mujoco_system import MujocoSystem
+from humanoid_prime.virtual.hil import build_hil_simulation
 
 DEMO_TICKS = 4000  # 20 s at 200 Hz
 # Where the wrists are when the simulated robot powers up: well away from the ready pose (all zero).

@@ -9,10 +9,10 @@ import time
 import pytest
 from rich.console import Console
 
+from humanoid_prime.cli._live import MODE_KEYS, LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.modes import Mode
 from humanoid_prime.sim.demo import Simulation, Step, build_simulation
-from humanoid_prime.sim.live import MODE_KEYS, LiveTable, ModeKeys, ProgressLines
 
 
 @pytest.fixture()

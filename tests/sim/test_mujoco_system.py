@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.drivers.mujoco.system import MODEL_FILE, MujocoSystem, load_model
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.files import bundled
-from humanoid_prime.sim.mujoco_system import MODEL_FILE, MujocoSystem, load_model
 
 
 @pytest.fixture(scope="module")

@@ -15,10 +15,10 @@ import can
 import pytest
 
 from humanoid_prime.config.calibration import Calibration, identity_calibration
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.robot import Robot
-from humanoid_prime.sito.emulator import InertiaPlant, Plant, SitoEmulator
-from humanoid_prime.sito.system import SitoSystem
+from humanoid_prime.drivers.sito.system import SitoSystem
+from humanoid_prime.virtual.sito import InertiaPlant, Plant, SitoEmulator
 
 CONTROL_RATE = 50.0
 PERIOD = 1.0 / CONTROL_RATE

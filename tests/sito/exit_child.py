@@ -11,9 +11,9 @@ import time
 import can
 
 from humanoid_prime.config.calibration import identity_calibration
+from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.interfaces import CommandArrays
-from humanoid_prime.robot import load_robot
-from humanoid_prime.sito.system import SitoSystem
+from humanoid_prime.drivers.sito.system import SitoSystem
 
 
 def main() -> None:

@@ -9,8 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from humanoid_prime.errors import PrimeError
-from humanoid_prime.sito.bus import (
+from humanoid_prime.drivers.sito.bus import (
     crc15,
     frame_bits,
     is_interface_down,
@@ -19,6 +18,7 @@ from humanoid_prime.sito.bus import (
     stuff_bit_count,
     to_bits,
 )
+from humanoid_prime.errors import PrimeError
 
 
 def test_five_equal_bits_take_one_stuff_bit():

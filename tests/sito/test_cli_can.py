@@ -12,8 +12,7 @@ import pytest
 
 from humanoid_prime.cli import main
 from humanoid_prime.cli.can import describe
-from humanoid_prime.sito.emulator import SitoEmulator
-from humanoid_prime.sito.protocol import (
+from humanoid_prime.drivers.sito.protocol import (
     SITO_MODELS,
     Command,
     Disable,
@@ -24,6 +23,7 @@ from humanoid_prime.sito.protocol import (
     Gains,
     pack_frame,
 )
+from humanoid_prime.virtual.sito import SitoEmulator
 
 from .conftest import SITO_IDS, wait_until
 

@@ -10,9 +10,8 @@ import can
 import mujoco
 import pytest
 
-from humanoid_prime.sito.bus import CAN_ERR_BUSOFF
-from humanoid_prime.sito.emulator import TX_QUEUE_LENGTH, InertiaPlant, MujocoJoint, SitoEmulator, SitoMotor
-from humanoid_prime.sito.protocol import (
+from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF
+from humanoid_prime.drivers.sito.protocol import (
     COUNTS_PER_RAD,
     SITO_MODELS,
     Command,
@@ -29,6 +28,7 @@ from humanoid_prime.sito.protocol import (
     torque_to_current_mA,
     velocity_to_counts,
 )
+from humanoid_prime.virtual.sito import TX_QUEUE_LENGTH, InertiaPlant, MujocoJoint, SitoEmulator, SitoMotor
 
 TA40_50 = SITO_MODELS["TA40-50"]
 CAN_ID = 22

@@ -17,7 +17,7 @@ from pathlib import Path
 import can
 import pytest
 
-from humanoid_prime.sito.emulator import SitoEmulator
+from humanoid_prime.virtual.sito import SitoEmulator
 
 from .conftest import SITO_IDS, wait_until
 

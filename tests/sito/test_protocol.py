@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from humanoid_prime.sito.protocol import (
+from humanoid_prime.drivers.sito.protocol import (
     COUNTS_PER_RAD,
     SITO_MODELS,
     Command,

@@ -9,9 +9,9 @@ import pytest
 
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.control.hardware import Lifecycle
+from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, position_to_counts
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.sito.emulator import InertiaPlant
-from humanoid_prime.sito.protocol import COUNTS_PER_RAD, position_to_counts
+from humanoid_prime.virtual.sito import InertiaPlant
 
 from .conftest import PERIOD, SITO_IDS
 
@@ -157,7 +157,7 @@ def test_unchanged_gains_are_refreshed_once_a_second(rig):
 
 
 def test_host_frames_at_50_hz_load_the_bus_under_5_percent(rig):
-    from humanoid_prime.sito.bus import frame_bits
+    from humanoid_prime.drivers.sito.bus import frame_bits
 
     standby(rig)
     rig.tick(50)  # one second

@@ -26,12 +26,12 @@ import numpy as np
 from humanoid_prime.bench import TARGET_BRINGUP_S, TARGET_SKEW_S, TARGET_SWITCH_S
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.erob.objects import BUS_GAIN_GATE, GAIN_REGISTER_FORMAT, POS_LOOP_GAIN, VEL_LOOP_GAIN
-from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason
-from humanoid_prime.ethercat.soem_master import SoemMaster
-from humanoid_prime.ethercat.system import EthercatSystem
-from humanoid_prime.robot import Robot, load_robot
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, GAIN_REGISTER_FORMAT, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
+from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 # Two register sets a switch alternates between (pos_reg, vel_reg): STANDBY-like and DAMPING-like.
 SWITCH_REGISTERS = ((515, 19), (0, 56))

@@ -11,7 +11,7 @@ from typing import Any
 
 from humanoid_prime.bench import TARGET_REALTIME_FACTOR
 from humanoid_prime.config.controllers import load_controllers
-from humanoid_prime.robot import load_robot
+from humanoid_prime.config.robot import load_robot
 from humanoid_prime.sim.demo import DEMO_SECONDS, SCHEDULE, START_POSE, Simulation, Step, build_simulation, demo_stream
 
 

@@ -20,12 +20,12 @@ import numpy as np
 
 from humanoid_prime.bench import TARGET_LOAD_PERCENT
 from humanoid_prime.config.calibration import identity_calibration
+from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.robot import load_robot
-from humanoid_prime.sito.bus import frame_bits
-from humanoid_prime.sito.emulator import InertiaPlant, SitoEmulator
-from humanoid_prime.sito.protocol import HOST_FRAME_TYPES
-from humanoid_prime.sito.system import SitoSystem
+from humanoid_prime.drivers.sito.bus import frame_bits
+from humanoid_prime.drivers.sito.protocol import HOST_FRAME_TYPES
+from humanoid_prime.drivers.sito.system import SitoSystem
+from humanoid_prime.virtual.sito import InertiaPlant, SitoEmulator
 
 CONTROL_RATE = 50.0
 WARM_TICKS = 2000

@@ -14,9 +14,8 @@ import struct
 import threading
 from dataclasses import dataclass
 
-from humanoid_prime.control.operator import SdoClient
-from humanoid_prime.erob.gains import ErobRegisters, write_order
-from humanoid_prime.erob.objects import (
+from humanoid_prime.drivers.erob.gains import ErobRegisters, write_order
+from humanoid_prime.drivers.erob.objects import (
     BUS_GAIN_GATE,
     BUS_GAIN_GATE_FORMAT,
     GAIN_REGISTER_FORMAT,
@@ -25,6 +24,7 @@ from humanoid_prime.erob.objects import (
     VEL_LOOP_INTEGRAL,
 )
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.socket import SdoClient
 
 REGISTER_NAMES = {POS_LOOP_GAIN: "pos_reg 0x2382:01", VEL_LOOP_GAIN: "vel_reg 0x2381:01",
                   VEL_LOOP_INTEGRAL: "integral 0x2381:02", BUS_GAIN_GATE: "gate 0x2383"}

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 from humanoid_prime.config.calibration import Calibration, JointCalibration
-from humanoid_prime.robot import Robot
+from humanoid_prime.config.robot import Robot
 
 MIN_SWEEP_RAD = 0.5  # a shorter sweep did not reach both stops; keep the prior offset (DESIGN §5)
 FULL_SWEEP_FRACTION = 0.95  # a stop-to-stop sweep spans the described range; much less means a stop was missed

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.topics import JOINT_STATES, JointState, TopicBus
-from humanoid_prime.robot import Robot
 
 STOP_BAND_FRACTION = 0.05  # a joint within 5 % of its sweep from an extreme is at that stop
 INITIAL_CAPACITY = 4096

@@ -15,13 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from humanoid_prime.bringup import BringupOptions
 from humanoid_prime.calibration.math import JointReport, MirrorRow, calibrate_from_sweeps, mirror_check
 from humanoid_prime.calibration.tracker import SweepRow, SweepTracker
 from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK, SITO_BLOCK
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.robot import Robot
+from humanoid_prime.runtime.session import BringupOptions
 
 VERIFY_TOLERANCE_RAD = 0.002
 

@@ -7,8 +7,8 @@ import json
 import sys
 from typing import Any
 
-from humanoid_prime.control.operator import default_socket_path
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.socket import default_socket_path
 
 
 def add_config_options(parser: argparse.ArgumentParser, *, calibration: bool = False,

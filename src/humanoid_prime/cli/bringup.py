@@ -10,15 +10,6 @@ import threading
 import time
 from pathlib import Path
 
-from humanoid_prime.bringup import (
-    BACKENDS,
-    BringupOptions,
-    control_server,
-    measure_stiffness,
-    open_session,
-    run_loop,
-    stop_on_signals,
-)
 from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
@@ -29,6 +20,15 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.session import (
+    BACKENDS,
+    BringupOptions,
+    control_server,
+    measure_stiffness,
+    open_session,
+    run_loop,
+    stop_on_signals,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -101,7 +101,7 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
 def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     if options.emulate:
-        from humanoid_prime.emulation.harness import enter_private_netns
+        from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()  # re-executes this command in a private network namespace (returns inside)
     stop = threading.Event()
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
                       else [j.strip() for j in args.load_test.split(",") if j.strip()])
             load_test = _start_load_test(session, joints, stop)
         if sys.stdout.isatty() and not args.no_live and not args.json:
-            from humanoid_prime.sim.live import LiveTable, ModeKeys
+            from humanoid_prime.cli._live import LiveTable, ModeKeys
 
             full = not session.manager.broadcaster_only
             if sys.stdin.isatty():

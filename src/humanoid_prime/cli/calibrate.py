@@ -15,7 +15,6 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from humanoid_prime.bringup import BACKENDS, Session, control_server, open_session, run_loop, stop_on_signals
 from humanoid_prime.calibration.tracker import SweepTracker
 from humanoid_prime.calibration.workflow import (
     VERIFY_TOLERANCE_RAD,
@@ -38,8 +37,9 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.hardware import load_hardware
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.robot import Robot
+from humanoid_prime.runtime.session import BACKENDS, Session, control_server, open_session, run_loop, stop_on_signals
 
 READOUT_HZ = 5.0
 
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     prior = load_calibration(hardware, args.prior)
     checked = load_calibration(hardware, args.calibration or args.output) if args.verify else None
     if args.emulate:
-        from humanoid_prime.emulation.harness import enter_private_netns
+        from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()
     overrides = dict(emulate=args.emulate, hardware_file=args.hardware, controllers_file=args.controllers,
@@ -147,7 +147,7 @@ def _calibrate(args: argparse.Namespace, prior: Any, overrides: dict[str, Any]) 
         if console.is_terminal and not args.no_live and not args.json:
             stack.enter_context(Live(_Readout(tracker, console), console=console, refresh_per_second=READOUT_HZ))
             if sys.stdin.isatty():
-                from humanoid_prime.sim.live import ModeKeys
+                from humanoid_prime.cli._live import ModeKeys
 
                 stack.enter_context(ModeKeys(lambda mode: None, stop.set))
         run_loop(session, stop)
@@ -165,7 +165,7 @@ def _calibrate(args: argparse.Namespace, prior: Any, overrides: dict[str, Any]) 
 
 
 def _start_scripted(session: Session, joints: tuple[str, ...], stop: threading.Event) -> threading.Thread:
-    from humanoid_prime.emulation.operator import ScriptedOperator
+    from humanoid_prime.virtual.operator import ScriptedOperator
 
     def work() -> None:
         try:
@@ -236,7 +236,7 @@ def _verify_joints(session: Session, joints: tuple[str, ...], rows: list[VerifyR
     robot: Robot = session.robot
     try:
         if emulated:
-            from humanoid_prime.emulation.operator import ScriptedOperator
+            from humanoid_prime.virtual.operator import ScriptedOperator
 
             operator = ScriptedOperator(session, stop=stop)
             for joint in joints:

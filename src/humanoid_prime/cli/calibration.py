@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from humanoid_prime.calibration.fold import write_folded_configs
 from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.calibration import load_calibration, save_calibration
+from humanoid_prime.config.robot import load_robot
+from humanoid_prime.drivers.ethercat.fold import write_folded_configs
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.robot import load_robot
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -16,11 +16,9 @@ import can
 
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
-from humanoid_prime.errors import PrimeError
-from humanoid_prime.robot import load_robot
-from humanoid_prime.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
-from humanoid_prime.sito.emulator import InertiaPlant, SitoEmulator
-from humanoid_prime.sito.protocol import (
+from humanoid_prime.config.robot import load_robot
+from humanoid_prime.drivers.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
+from humanoid_prime.drivers.sito.protocol import (
     MODE_MIT,
     MOTOR_FRAME_TYPES,
     SITO_MODELS,
@@ -43,6 +41,8 @@ from humanoid_prime.sito.protocol import (
     sito_model,
     split_arbitration_id,
 )
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.virtual.sito import InertiaPlant, SitoEmulator
 
 PROBE_FEEDBACK_MS = 10
 _ERROR_CLASSES = ((CAN_ERR_BUSOFF, "bus-off"), (CAN_ERR_ACK, "no acknowledge"),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from humanoid_prime.cli._common import add_json_option, print_json
-from humanoid_prime.erob.cia402 import (
+from humanoid_prime.drivers.erob.cia402 import (
     ERROR_HINTS,
     describe_al_state,
     describe_al_status_code,

@@ -13,11 +13,11 @@ from typing import Any
 
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.controllers import load_controllers
-from humanoid_prime.erob.cia402 import describe_al_status_code, describe_error, drive_state
-from humanoid_prime.erob.objects import ERROR_CODE, STATUSWORD
-from humanoid_prime.errors import PrimeError
-from humanoid_prime.ethercat.igh import IGH_TYPES, SHORT_TYPES
-from humanoid_prime.ethercat.master import (
+from humanoid_prime.config.robot import Robot, load_robot
+from humanoid_prime.drivers.erob.cia402 import describe_al_status_code, describe_error, drive_state
+from humanoid_prime.drivers.erob.objects import ERROR_CODE, STATUSWORD
+from humanoid_prime.drivers.ethercat.igh import IGH_TYPES, SHORT_TYPES
+from humanoid_prime.drivers.ethercat.master import (
     RingError,
     SdoError,
     SlaveInfo,
@@ -25,8 +25,8 @@ from humanoid_prime.ethercat.master import (
     expected_ring,
     read_error_history,
 )
-from humanoid_prime.ethercat.sdo import SDO_BACKENDS, open_sdo
-from humanoid_prime.robot import Robot, load_robot
+from humanoid_prime.drivers.ethercat.sdo import SDO_BACKENDS, open_sdo
+from humanoid_prime.errors import PrimeError
 
 _SCAN_CYCLES = 5  # exchanges after OP before statusword and error code are read from the process data
 
@@ -109,7 +109,7 @@ def _drive(row: dict[str, Any], statusword: int, error_code: int) -> None:
 
 
 def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -> None:
-    from humanoid_prime.ethercat.soem_master import SoemMaster
+    from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 
     hw = robot.hardware
     joints = {pos: joint for joint, pos in hw.erob_slaves.items()}
@@ -144,7 +144,7 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
 
 
 def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -> None:
-    from humanoid_prime.ethercat.igh import IghSdo
+    from humanoid_prime.drivers.ethercat.igh import IghSdo
 
     hw = robot.hardware
     joints = {pos: joint for joint, pos in hw.erob_slaves.items()}

@@ -19,9 +19,9 @@ import time
 from humanoid_prime.cli._common import add_config_options
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.ethercat.emulator import __main__ as emulator_main
-from humanoid_prime.ethercat.emulator.options import RingOptions
-from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason, reexec_in_user_netns
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason, reexec_in_user_netns
+from humanoid_prime.virtual.ring import __main__ as emulator_main
+from humanoid_prime.virtual.ring.options import RingOptions
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -6,10 +6,10 @@ import argparse
 
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.controllers import load_controllers
-from humanoid_prime.erob.gains import gains_to_registers, pos_reg_exact, registers_to_gains, vel_reg_exact
+from humanoid_prime.config.robot import load_robot
+from humanoid_prime.drivers.erob.gains import gains_to_registers, pos_reg_exact, registers_to_gains, vel_reg_exact
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import load_robot
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -9,7 +9,7 @@ from rich.table import Table
 
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.calibration import load_calibration
-from humanoid_prime.robot import load_robot
+from humanoid_prime.config.robot import load_robot
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

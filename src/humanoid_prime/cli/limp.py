@@ -11,9 +11,9 @@ from types import FrameType
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.cli._common import add_config_options, add_json_option, add_socket_option, print_json
 from humanoid_prime.config.hardware import load_hardware
-from humanoid_prime.control.operator import SdoClient, SocketSdoClient
-from humanoid_prime.erob.gains import registers_to_gains, vel_reg_exact
+from humanoid_prime.drivers.erob.gains import registers_to_gains, vel_reg_exact
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.socket import SdoClient, SocketSdoClient
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _sdo(args: argparse.Namespace) -> SdoClient:
     if args.backend == "igh":
-        from humanoid_prime.ethercat.igh import IghSdo
+        from humanoid_prime.drivers.ethercat.igh import IghSdo
 
         return IghSdo()
     return SocketSdoClient(args.socket)

@@ -1,6 +1,6 @@
 """``prime sim``: the simulated Prime (MuJoCo), brought up with the staged start and run through the
 demonstration (every mode in 20 simulated seconds), or held in one mode. ``--hil can`` puts the Sito
-wrists behind real CAN frames: SitoSystem and emulated motors on a virtual bus (``sim/hil.py``)."""
+wrists behind real CAN frames: SitoSystem and emulated motors on a virtual bus (``virtual/hil.py``)."""
 
 from __future__ import annotations
 
@@ -18,16 +18,16 @@ from collections.abc import Callable
 from typing import Any
 
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.config.controllers import load_controllers
-from humanoid_prime.control.operator import ControlServer, default_socket_path
+from humanoid_prime.config.robot import load_robot
+from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import load_robot
+from humanoid_prime.runtime.socket import ControlServer, default_socket_path
 from humanoid_prime.sim.demo import DEMO_SECONDS, SCHEDULE, START_POSE, Simulation, Step, build_simulation, demo_stream
-from humanoid_prime.sim.hil import build_hil_simulation
-from humanoid_prime.sim.live import LiveTable, ModeKeys, ProgressLines
-from humanoid_prime.sim.mujoco_system import MujocoSystem
+from humanoid_prime.virtual.hil import build_hil_simulation
 
 VIEWER_SYNC_S = 1.0 / 60.0
 VIEWER_CLOSE_S = 5.0

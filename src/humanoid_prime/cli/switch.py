@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 
 from humanoid_prime.cli._common import add_json_option, add_socket_option, print_json
-from humanoid_prime.control.operator import send_mode_request
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.socket import send_mode_request
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

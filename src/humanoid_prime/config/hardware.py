@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from humanoid_prime.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
+from humanoid_prime.drivers.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled, load_yaml
 

@@ -14,12 +14,12 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import Robot
 
 
 class ControllerError(Exception):

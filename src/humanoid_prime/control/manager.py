@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, ControllerError
 from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.flags import SafetyFlags
@@ -39,7 +40,6 @@ from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
-from humanoid_prime.robot import Robot
 
 POSITION_MARGIN = 0.005  # rad beyond a limit that is clipped rather than rejected
 SPIN_S = 0.0005  # the last part of each period is busy-waited: sleep() wakes up to ~0.1 ms late on Linux

@@ -11,10 +11,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.robot import Robot
 
 
 class ResourceManager:

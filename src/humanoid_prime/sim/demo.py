@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 
 from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import gain_rows, pose_array
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import MitCommand, TopicBus
+from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import Robot
-from humanoid_prime.sim.mujoco_system import MujocoSystem
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from humanoid_prime.cli import main
-from humanoid_prime.ethercat.netns import netns_unavailable_reason
+from humanoid_prime.virtual.netns import netns_unavailable_reason
 
 _REASON = netns_unavailable_reason()
 

@@ -7,9 +7,9 @@ import struct
 import numpy as np
 import pytest
 
-from humanoid_prime.erob.constants import COUNTS_PER_RAD
-from humanoid_prime.erob.gains import gains_to_registers
-from humanoid_prime.ethercat.emulator.drive import (
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
+from humanoid_prime.drivers.erob.gains import gains_to_registers
+from humanoid_prime.virtual.ring.drive import (
     ERROR_COMMUNICATION,
     ERROR_FOLLOWING,
     FACTORY_POS_REG,
@@ -17,7 +17,7 @@ from humanoid_prime.ethercat.emulator.drive import (
     Cia402State,
     ErobDrive,
 )
-from humanoid_prime.ethercat.emulator.plant import InertiaPlant
+from humanoid_prime.virtual.ring.plant import InertiaPlant
 
 
 def command(drive: ErobDrive, controlword: int, mode: int = 8) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from humanoid_prime.ethercat.emulator.frames import (
+from humanoid_prime.virtual.ring.frames import (
     Command,
     Datagram,
     FrameError,

@@ -6,9 +6,9 @@ import struct
 
 import pytest
 
-from humanoid_prime.ethercat.emulator.drive import FACTORY_POS_REG, ErobDrive
-from humanoid_prime.ethercat.emulator.mailbox import CoeServer, mailbox_message, sdo_abort_code
-from humanoid_prime.ethercat.emulator.od import (
+from humanoid_prime.virtual.ring.drive import FACTORY_POS_REG, ErobDrive
+from humanoid_prime.virtual.ring.mailbox import CoeServer, mailbox_message, sdo_abort_code
+from humanoid_prime.virtual.ring.od import (
     ABORT_LENGTH,
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,

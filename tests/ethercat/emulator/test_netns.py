@@ -10,10 +10,10 @@ import time
 
 import pytest
 
-from humanoid_prime.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.erob.objects import RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
-from humanoid_prime.ethercat.emulator.control import ControlError
-from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, VENDOR_ID
+from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
+from humanoid_prime.virtual.ring.control import ControlError
 
 pysoem = pytest.importorskip("pysoem")
 _REASON = netns_unavailable_reason()

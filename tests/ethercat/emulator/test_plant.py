@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
-from humanoid_prime.ethercat.emulator.plant import InertiaPlant, MujocoPlant
+from humanoid_prime.virtual.ring.plant import InertiaPlant, MujocoPlant
 
 DT = 0.001
 

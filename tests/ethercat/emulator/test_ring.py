@@ -7,12 +7,12 @@ import struct
 
 import pytest
 
-from humanoid_prime.erob.constants import COUNTS_PER_RAD
-from humanoid_prime.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
-from humanoid_prime.ethercat.emulator.frames import Command, Datagram
-from humanoid_prime.ethercat.emulator.mailbox import sdo_abort_code
-from humanoid_prime.ethercat.emulator.options import RingOptions
-from humanoid_prime.ethercat.emulator.ring import Ring
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
+from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
+from humanoid_prime.virtual.ring.frames import Command, Datagram
+from humanoid_prime.virtual.ring.mailbox import sdo_abort_code
+from humanoid_prime.virtual.ring.options import RingOptions
+from humanoid_prime.virtual.ring.ring import Ring
 
 from .wire import STATION_BASE, WireMaster
 

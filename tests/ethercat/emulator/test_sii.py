@@ -6,11 +6,11 @@ import struct
 
 import pytest
 
-from humanoid_prime.erob.constants import PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.erob.objects import RXPDO, RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
-from humanoid_prime.ethercat.emulator import sii
-from humanoid_prime.ethercat.emulator.firmware import sii_content
-from humanoid_prime.ethercat.emulator.options import RingOptions
+from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
+from humanoid_prime.drivers.erob.objects import RXPDO, RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
+from humanoid_prime.virtual.ring import sii
+from humanoid_prime.virtual.ring.firmware import sii_content
+from humanoid_prime.virtual.ring.options import RingOptions
 
 
 @pytest.fixture(scope="module")

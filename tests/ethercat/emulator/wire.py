@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import struct
 
-from humanoid_prime.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
-from humanoid_prime.ethercat.emulator.frames import Command, Datagram, build_frame, parse_frame
-from humanoid_prime.ethercat.emulator.mailbox import mailbox_message
-from humanoid_prime.ethercat.emulator.ring import Ring
+from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
+from humanoid_prime.virtual.ring.frames import Command, Datagram, build_frame, parse_frame
+from humanoid_prime.virtual.ring.mailbox import mailbox_message
+from humanoid_prime.virtual.ring.ring import Ring
 
 STATION_BASE = 0x1001
 MAILBOX_OUT = 0x1000

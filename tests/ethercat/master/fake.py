@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from humanoid_prime.erob.constants import PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.ethercat.master import (
+from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
+from humanoid_prime.drivers.ethercat.master import (
     AL_OP,
     AL_PRE_OP,
     AL_SAFE_OP,

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from humanoid_prime.cli import main
-from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 REASON = netns_unavailable_reason()
 pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"no emulated ring: {REASON}")]

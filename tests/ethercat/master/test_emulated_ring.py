@@ -12,12 +12,12 @@ import pytest
 
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.erob.constants import COUNTS_PER_RAD
-from humanoid_prime.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
-from humanoid_prime.ethercat.master import SdoRefused, expected_ring
-from humanoid_prime.ethercat.netns import EmulatedRing, netns_unavailable_reason
-from humanoid_prime.ethercat.soem_master import SoemMaster
-from humanoid_prime.ethercat.system import EthercatSystem
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
+from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
+from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 REASON = netns_unavailable_reason()
 pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"no emulated ring: {REASON}")]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from humanoid_prime.ethercat.igh import IghSdo, parse_upload
-from humanoid_prime.ethercat.master import RingError, SdoError, SdoRefused
+from humanoid_prime.drivers.ethercat.igh import IghSdo, parse_upload
+from humanoid_prime.drivers.ethercat.master import RingError, SdoError, SdoRefused
 
 from .fake_igh import FakeIgh
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import struct
 
-from humanoid_prime.erob.objects import RXPDO, RXPDO_ASSIGN, RXPDO_MAP, TXPDO
-from humanoid_prime.ethercat.soem_master import MAPPING_WRITES, pdo_mapping_writes
+from humanoid_prime.drivers.erob.objects import RXPDO, RXPDO_ASSIGN, RXPDO_MAP, TXPDO
+from humanoid_prime.drivers.ethercat.soem_master import MAPPING_WRITES, pdo_mapping_writes
 
 
 def u32(value: int) -> bytes:

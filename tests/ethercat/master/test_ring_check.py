@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from humanoid_prime.ethercat.master import RingError, SlaveInfo, check_ring, expected_ring
+from humanoid_prime.drivers.ethercat.master import RingError, SlaveInfo, check_ring, expected_ring
 
 from .fake import FakeMaster, erob_ring
 

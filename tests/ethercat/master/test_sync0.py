@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from humanoid_prime.drivers.ethercat.master import sync0_period_ns
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.ethercat.master import sync0_period_ns
 
 from .fake import FakeMaster
 

@@ -11,9 +11,9 @@ import pytest
 
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
-from humanoid_prime.ethercat.master import AL_ERROR, AL_SAFE_OP, SdoRefused
-from humanoid_prime.ethercat.system import EthercatSystem
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
+from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_SAFE_OP, SdoRefused
+from humanoid_prime.drivers.ethercat.system import EthercatSystem
 
 from .fake import FAULT, OPERATION_ENABLED, FakeMaster, erob_ring
 
@@ -283,7 +283,7 @@ def test_a_deactivated_system_enables_again_without_a_second_bringup(rig):
 
 
 def test_a_ring_that_does_not_match_fails_configure_and_releases_the_master(robot, tmp_path):
-    from humanoid_prime.ethercat.master import RingError
+    from humanoid_prime.drivers.ethercat.master import RingError
 
     r = Rig(robot, tmp_path, master=FakeMaster(erob_ring(9)))
     with pytest.raises(RingError, match="found 9 slaves, expected 10"):

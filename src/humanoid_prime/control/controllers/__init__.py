@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, pose_array
 from humanoid_prime.control.controllers.broadcaster import JointStateBroadcaster
 from humanoid_prime.control.controllers.damping import DampingController
@@ -14,7 +15,6 @@ from humanoid_prime.control.controllers.standby import StandbyController
 from humanoid_prime.control.controllers.zero_torque import ZeroTorqueController
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled
-from humanoid_prime.robot import Robot
 
 __all__ = [
     "DampingController", "JointStateBroadcaster", "LocomotionController", "RemotePolicyController",

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import JOINT_STATES, JointState, TopicBus
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER
-from humanoid_prime.robot import Robot
 
 
 class JointStateBroadcaster(Controller):

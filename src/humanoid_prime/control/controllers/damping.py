@@ -7,11 +7,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, capture_position
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import Robot
 
 
 class DampingController(Controller):

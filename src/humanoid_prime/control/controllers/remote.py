@@ -6,11 +6,11 @@ import threading
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, gain_rows
 from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays, StateArrays
 from humanoid_prime.control.topics import REMOTE_COMMAND, MitCommand, TopicBus
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import Robot
 
 
 class RemotePolicyController(Controller):

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, capture_position
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import Robot
 
 
 def min_jerk(s: float) -> tuple[float, float]:

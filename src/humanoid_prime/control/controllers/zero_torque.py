@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.modes import Mode
-from humanoid_prime.robot import Robot
 
 
 class ZeroTorqueController(Controller):

@@ -1,0 +1,508 @@
+"""The EtherCAT master interface: one ring, its process image, its states and SDO access by ring position.
+
+``EthercatSystem`` depends on this interface only. ``SoemMaster`` (pysoem on a raw NIC) implements it,
+and so does any test double. The base class owns what must be the same for every implementation:
+
+- the ring check (identity and ring position of every slave against the hardware file);
+- the SYNC0 period, derived from the loop period and never set apart from it (DESIGN §3);
+- the fast bring-up loop that keeps every output fed while slaves reach OP, and after it a keeper that
+  sends the current outputs whenever the owner of the cycle goes quiet;
+- the SDO gate: no SDO touches the bus before every slave is in OP and process data flows, because
+  mailbox traffic during DC activation faults a drive with 0xA000. The PDO mapping in PRE-OP is the
+  only exception and goes through the implementation's own configuration hook, not through this gate.
+
+Process data is exchanged through two structured NumPy arrays in ring order, ``outputs`` (RxPDO,
+master -> drive) and ``inputs`` (TxPDO, drive -> master), laid out exactly as ``drivers/erob/objects.py`` maps them.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
+from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
+from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.socket import SdoClient
+
+RX_DTYPE = np.dtype([(e.name, "<" + e.fmt) for e in RXPDO])  # 13 bytes per slave, packed
+TX_DTYPE = np.dtype([(e.name, "<" + e.fmt) for e in TXPDO])  # 15 bytes per slave, packed
+
+# AL states (register 0x0130, low nibble) and the error indication / acknowledge bit.
+AL_INIT = 0x01
+AL_PRE_OP = 0x02
+AL_SAFE_OP = 0x04
+AL_OP = 0x08
+AL_ERROR = AL_ERROR_FLAG
+
+HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
+
+
+class RingError(PrimeError):
+    """The ring cannot be opened, does not match the hardware file, or does not reach OP."""
+
+
+class SdoError(PrimeError):
+    """An SDO transfer failed; names the slave, the object and the reason."""
+
+    def __init__(self, position: int, index: int, sub_index: int, problem: str,
+                 abort_code: int | None = None) -> None:
+        self.position = position
+        self.index = index
+        self.sub_index = sub_index
+        self.abort_code = abort_code
+        self.problem = problem
+        super().__init__(f"SDO 0x{index:04X}:{sub_index:02X} on ring {position}: {problem}")
+
+
+class SdoRefused(SdoError):
+    """An SDO was asked for before every slave is in OP with process data flowing."""
+
+
+@dataclass(frozen=True)
+class ExpectedSlave:
+    """What the hardware file says sits at one ring position."""
+
+    position: int
+    joint: str
+    vendor_id: int = VENDOR_ID
+    product_code: int = PRODUCT_CODE
+
+    @property
+    def identity(self) -> str:
+        return _identity(self.vendor_id, self.product_code)
+
+
+@dataclass(frozen=True)
+class SlaveInfo:
+    """One slave as found on the ring: identity from its SII, AL state and AL status code."""
+
+    position: int
+    name: str
+    vendor_id: int
+    product_code: int
+    revision: int = 0
+    al_state: int = 0
+    al_status_code: int = 0
+
+    @property
+    def identity(self) -> str:
+        return _identity(self.vendor_id, self.product_code)
+
+    @property
+    def is_erob(self) -> bool:
+        return self.vendor_id == VENDOR_ID and self.product_code == PRODUCT_CODE
+
+    @property
+    def state_text(self) -> str:
+        return describe_al_state(self.al_state)
+
+    def describe(self) -> str:
+        text = f"'{self.name}' ({self.identity})" if self.name else self.identity
+        return text
+
+
+@dataclass(frozen=True)
+class BringupReport:
+    """How the ring reached OP: wall time, bring-up cycles, and the rates used."""
+
+    seconds: float
+    cycles: int
+    bringup_rate_hz: float
+    sync0_period_ns: int
+
+    def as_dict(self) -> dict:
+        return {"seconds": self.seconds, "cycles": self.cycles, "bringup_rate_hz": self.bringup_rate_hz,
+                "sync0_period_ns": self.sync0_period_ns}
+
+
+def _identity(vendor_id: int, product_code: int) -> str:
+    kind = "eRob " if (vendor_id, product_code) == (VENDOR_ID, PRODUCT_CODE) else ""
+    return f"{kind}vendor 0x{vendor_id:08X} product 0x{product_code:08X}"
+
+
+def describe_states(slaves: Sequence[SlaveInfo], want: int) -> str:
+    """The slaves not in AL state ``want``, with their state and AL status code, for an error message."""
+    parts = []
+    for slave in slaves:
+        if slave.al_state != want:
+            text = f"ring {slave.position} {slave.state_text}"
+            if slave.al_status_code:
+                code = slave.al_status_code
+                text += f" (AL status 0x{code:04X} {describe_al_status_code(code)})"
+            parts.append(text)
+    return "; ".join(parts) or f"every slave reports {describe_al_state(want)}"
+
+
+def expected_ring(erob_slaves: Mapping[str, int]) -> tuple[ExpectedSlave, ...]:
+    """The expected ring of a hardware file's ``joints.erob_slaves`` (joint -> ring position), by position."""
+    return tuple(sorted((ExpectedSlave(pos, joint) for joint, pos in erob_slaves.items()), key=lambda e: e.position))
+
+
+def check_ring(found: Sequence[SlaveInfo], expected: Sequence[ExpectedSlave], interface: str) -> None:
+    """Raise one RingError listing found versus expected unless every ring position holds the expected slave."""
+    by_position = {e.position: e for e in expected}
+    problems = []
+    if len(found) != len(expected):
+        problems.append(f"found {len(found)} slaves, expected {len(expected)}")
+    for position in sorted(set(by_position) | {s.position for s in found}):
+        want = by_position.get(position)
+        have = found[position] if position < len(found) else None
+        if want is None and have is not None:
+            problems.append(f"ring {position}: found {have.describe()}, expected no slave")
+        elif want is not None and have is None:
+            problems.append(f"ring {position}: expected {want.joint} ({want.identity}), found nothing")
+        elif want is not None and have is not None and (have.vendor_id, have.product_code) != (
+                want.vendor_id, want.product_code):
+            problems.append(f"ring {position}: expected {want.joint} ({want.identity}), found {have.describe()}")
+    if problems:
+        runs: list[list] = []  # consecutive positions holding the same device, e.g. "0-8 'eRob' (...)"
+        for slave in found:
+            if runs and runs[-1][2] == slave.describe():
+                runs[-1][1] = slave.position
+            else:
+                runs.append([slave.position, slave.position, slave.describe()])
+        seen = ", ".join(f"{a}-{b} {what}" if b > a else f"{a} {what}" for a, b, what in runs) or "none"
+        raise RingError(f"EtherCAT ring on {interface} does not match {HARDWARE_KEY}: " + "; ".join(problems)
+                        + f" (found ring: {seen}); fix the cabling order or the ring positions in the hardware file")
+
+
+def sync0_period_ns(update_rate_hz: float, *, sync0_period_s: float | None = None) -> int:
+    """The SYNC0 cycle in ns: the loop period, 1/update_rate; an override must equal it.
+
+    The distributed clock is driven by the loop's frames, so SYNC0 and the loop period are one number.
+    A SYNC0 faster than the frame rate never locks and the drives fault (statusword 4616, DESIGN §3).
+    """
+    if isinstance(update_rate_hz, bool) or not isinstance(update_rate_hz, (int, float)) \
+            or not math.isfinite(update_rate_hz) or update_rate_hz <= 0:
+        raise PrimeError(f"update_rate must be a positive number of Hz, got {update_rate_hz!r}")
+    period_ns = round(1e9 / update_rate_hz)
+    if period_ns < round(MIN_CYCLE_S * 1e9):
+        raise PrimeError(f"update_rate {update_rate_hz:g} Hz gives a {period_ns / 1e3:g} us cycle, below the eRob "
+                         f"minimum of {MIN_CYCLE_S * 1e6:g} us; use at most {1 / MIN_CYCLE_S:g} Hz")
+    if sync0_period_s is not None:
+        requested_ns = round(sync0_period_s * 1e9) if math.isfinite(sync0_period_s) else -1
+        if requested_ns != period_ns:
+            raise PrimeError(
+                f"sync0_period {sync0_period_s * 1e3:g} ms differs from the loop period {period_ns / 1e6:g} ms "
+                f"(1/update_rate, {update_rate_hz:g} Hz): the distributed clock is driven by the loop's frames, so "
+                "a SYNC0 faster than the frame rate never locks and the drives fault with statusword 4616 "
+                "(0x1208), and a slower one skips targets; leave sync0_period unset (it is derived from "
+                "update_rate) or change update_rate instead")
+    return period_ns
+
+
+def read_live_error(sdo: SdoClient, position: int) -> int:
+    """The drive's current error code (0x603F), through any SDO client."""
+    return struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
+
+
+def read_error_history(sdo: SdoClient, position: int) -> list[int]:
+    """The drive's stored error codes (0x1003, newest first; the low 16 bits of each entry)."""
+    count = sdo.sdo_read(position, ERROR_HISTORY, 0)[0]
+    codes = []
+    for sub in range(1, count + 1):
+        raw = sdo.sdo_read(position, ERROR_HISTORY, sub)[:4].ljust(4, b"\0")
+        codes.append(struct.unpack("<I", raw)[0] & 0xFFFF)
+    return codes
+
+
+class EthercatMaster(ABC):
+    """One EtherCAT ring of eRob drives in CSP, addressed by ring position (0 = first after the master)."""
+
+    def __init__(self, interface: str, *, update_rate_hz: float, bringup_rate_hz: float = 1000.0,
+                 sync0_period_s: float | None = None, unsafe_sync0_period_s: float | None = None,
+                 bringup_timeout_s: float = 30.0) -> None:
+        self.interface = interface
+        self.cycle_ns = sync0_period_ns(update_rate_hz, sync0_period_s=sync0_period_s)
+        # Test-only escape hatch: a SYNC0 that differs from the loop period, to reproduce fault 4616.
+        self.sync0_ns = self.cycle_ns if unsafe_sync0_period_s is None else round(unsafe_sync0_period_s * 1e9)
+        if not (math.isfinite(bringup_rate_hz) and bringup_rate_hz > 0):
+            raise PrimeError(f"bringup_rate must be a positive number of Hz, got {bringup_rate_hz!r}")
+        self.bringup_rate_hz = float(bringup_rate_hz)
+        self.bringup_timeout_s = bringup_timeout_s
+        self.slaves: tuple[SlaveInfo, ...] = ()
+        self.outputs = np.zeros(0, RX_DTYPE)
+        self.inputs = np.zeros(0, TX_DTYPE)
+        self.wkc = 0
+        self.expected_wkc = 0
+        self.operational = False  # every slave reached OP at the end of start()
+        self.flowing = False  # a full-working-counter exchange happened since then
+        # Ring health kept by the implementation's supervision, in ring order.
+        self.slave_ok = np.zeros(0, dtype=bool)
+        self.al_state = np.zeros(0, dtype=np.uint16)
+        self.al_status_code = np.zeros(0, dtype=np.uint16)
+        self.health_version = 0
+        self.kept_cycles = 0  # frames the keeper sent while the owner of the cycle was quiet
+        self._io = threading.Lock()  # one send or receive at a time: the owner's and the keeper's
+        self._in_flight = False
+        self._last_send = 0.0
+        self._kept_last = False  # the keeper, not the owner, sent the last frame
+        self._keeper: threading.Thread | None = None
+        self._stop_keeping = threading.Event()
+
+    # ------------------------------------------------------------------------------- lifecycle
+    def open(self) -> tuple[SlaveInfo, ...]:
+        """Open the interface and discover the ring (slaves end in PRE-OP); returns what was found."""
+        if not self.slaves:
+            self.slaves = tuple(self._discover())
+            n = len(self.slaves)
+            self.slave_ok = np.zeros(n, dtype=bool)
+            self.al_state = np.array([s.al_state for s in self.slaves], dtype=np.uint16)
+            self.al_status_code = np.array([s.al_status_code for s in self.slaves], dtype=np.uint16)
+        return self.slaves
+
+    def start(self, expected: Sequence[ExpectedSlave], *,
+              on_cycle: Callable[[EthercatMaster], None] | None = None) -> BringupReport:
+        """Check the ring, map the PDOs, configure DC/SYNC0 and bring every slave to OP.
+
+        The bring-up loop runs at ``bringup_rate_hz`` (independent of the control rate) and keeps every
+        slave's outputs fed while the others join: each cycle the CSP target follows the actual position
+        and the controlword keeps the drive disabled. ``on_cycle`` may adjust ``outputs`` before each send.
+        """
+        if self.operational:
+            raise RingError(f"EtherCAT ring on {self.interface} is already in OP; close the master to start again")
+        self.open()
+        check_ring(self.slaves, expected, self.interface)
+        t0 = time.monotonic()
+        self._configure()
+        n = len(self.slaves)
+        if self.outputs.shape != (n,) or self.inputs.shape != (n,):
+            raise RingError(f"{type(self).__name__} configured {self.outputs.shape} outputs for {n} slaves")
+        self.outputs[:] = 0
+        self.outputs["mode_of_operation"] = MODE_CSP
+        period = 1.0 / self.bringup_rate_hz
+        deadline = t0 + self.bringup_timeout_s
+        check_every = max(1, round(self.bringup_rate_hz * 0.01))  # read AL states about every 10 ms
+        cycles = 0
+        next_tick = time.monotonic()
+        op_requested = False
+        while True:
+            np.copyto(self.outputs["target_position"], self.inputs["position_actual"])
+            self.outputs["controlword"] = 0
+            if on_cycle is not None:
+                on_cycle(self)
+            wkc = self.exchange()
+            cycles += 1
+            if not op_requested:  # one valid frame first, so the outputs are defined when OP is asked for
+                self._request_op()
+                op_requested = True
+            if wkc == self.expected_wkc or cycles % check_every == 0:
+                states = self._read_states()
+                self._store_states(states)
+                if all(state == AL_OP for state, _ in states):
+                    break
+                self._advance(states)
+            now = time.monotonic()
+            if now > deadline:
+                raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
+            next_tick += period
+            if next_tick > now:
+                time.sleep(next_tick - now)
+            else:
+                next_tick = now
+        self.operational = True
+        self.slave_ok[:] = True
+        self.health_version += 1
+        self._started()
+        self._stop_keeping.clear()
+        self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
+        self._keeper.start()
+        return BringupReport(time.monotonic() - t0, cycles, self.bringup_rate_hz, self.sync0_ns)
+
+    def close(self) -> None:
+        """Stop every thread, leave the slaves in INIT and release the interface."""
+        self._stop_keeping.set()
+        if self._keeper is not None:
+            self._keeper.join()
+            self._keeper = None
+        self.operational = False
+        self.flowing = False
+        self._close()
+
+    def __enter__(self) -> EthercatMaster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------ cyclic
+    def exchange(self) -> int:
+        """Send ``outputs`` and receive ``inputs`` in one round trip; returns the working counter."""
+        with self._io:
+            self._send_now()
+            return self._receive_now()
+
+    def send(self) -> None:
+        """Send ``outputs`` (non-blocking; the next ``receive`` collects the frame)."""
+        with self._io:
+            if self._in_flight:  # a frame nobody collected: collect it first, one frame in flight at a time
+                self._receive_now()
+            self._send_now()
+
+    def receive(self) -> int:
+        """Collect the frame in flight into ``inputs`` (sending one first if there is none); returns the WKC."""
+        with self._io:
+            if not self._in_flight:
+                self._send_now()
+            return self._receive_now()
+
+    def _send_now(self) -> None:
+        self._send()
+        self._in_flight = True
+        self._last_send = time.monotonic()
+        self._kept_last = False
+
+    def _receive_now(self) -> int:
+        wkc = self._receive()
+        self._in_flight = False
+        self.wkc = wkc
+        if wkc == self.expected_wkc:
+            self.flowing = self.operational
+        elif self.operational:
+            self._wkc_mismatch()
+        return wkc
+
+    def _keep(self) -> None:
+        """Once in OP: when the owner of the cycle has been quiet for two periods, send the current outputs
+        every period until it ticks again, so no slave's output watchdog runs out and SYNC0 keeps its frames
+        while controllers load, a tick stalls, or the component is inactive."""
+        period = self.cycle_ns / 1e9
+        while True:
+            due = self._last_send + (period if self._kept_last else 2 * period)
+            if self._stop_keeping.wait(max(0.0, due - time.monotonic())):
+                return
+            with self._io:
+                if time.monotonic() - self._last_send < (period if self._kept_last else 2 * period):
+                    continue  # the owner sent meanwhile
+                self._send_now()
+                self._receive_now()
+                self._kept_last = True
+                self.kept_cycles += 1
+
+    # ----------------------------------------------------------------------------------- SDO
+    # ----------------------------------------------------------------------------------- SDO
+    @property
+    def sdo_ready(self) -> bool:
+        """True once every slave is in OP and process data flows; SDOs are refused before."""
+        return self.operational and self.flowing and bool(self.slave_ok.all())
+
+    def _gate(self, position: int, index: int, sub_index: int, unsafe_before_op: bool) -> None:
+        if not 0 <= position < len(self.slaves):
+            raise SdoError(position, index, sub_index,
+                           f"no slave at that ring position (the ring has {len(self.slaves)} slaves)")
+        if self.sdo_ready or unsafe_before_op:
+            return
+        if not self.operational:
+            why = "the ring is still being brought up"
+        elif not self.slave_ok[position]:
+            why = f"ring {position} is not in OP ({describe_al_state(int(self.al_state[position]))})"
+        elif not self.slave_ok.all():
+            lost = ", ".join(str(p) for p in np.flatnonzero(~self.slave_ok))
+            why = f"the ring is recovering (ring {lost} not in OP)"
+        else:
+            why = "no process data has flowed yet"
+        raise SdoRefused(position, index, sub_index,
+                         f"refused: {why}; mailbox traffic before every slave is in OP with joint states flowing "
+                         "faults a drive with 0xA000 (DESIGN §3); retry once bring-up has finished")
+
+    def sdo_read(self, position: int, index: int, sub_index: int, *, unsafe_before_op: bool = False) -> bytes:
+        """Upload one object entry from the slave at ``position``.
+
+        Safe to call from several threads at once for different slaves while the cycle runs. Before the
+        ring is in OP with process data flowing it raises SdoRefused; ``unsafe_before_op`` skips that check
+        and exists only to reproduce the 0xA000 fault in tests.
+        """
+        self._gate(position, index, sub_index, unsafe_before_op)
+        return self._sdo_read(position, index, sub_index)
+
+    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes, *,
+                  unsafe_before_op: bool = False) -> None:
+        """Download ``data`` (little-endian bytes) to one object entry; same rules as ``sdo_read``."""
+        self._gate(position, index, sub_index, unsafe_before_op)
+        self._sdo_write(position, index, sub_index, bytes(data))
+
+    def live_error(self, position: int) -> int:
+        return read_live_error(self, position)
+
+    def error_history(self, position: int) -> list[int]:
+        return read_error_history(self, position)
+
+    # ----------------------------------------------------------------------------- states
+    def read_states(self) -> tuple[SlaveInfo, ...]:
+        """Fresh AL state and AL status code of every slave (a frame round trip; not for the hot path)."""
+        states = self._read_states()
+        self._store_states(states)
+        self.slaves = tuple(
+            SlaveInfo(s.position, s.name, s.vendor_id, s.product_code, s.revision, state, code)
+            for s, (state, code) in zip(self.slaves, states, strict=True))
+        return self.slaves
+
+    def _store_states(self, states: Sequence[tuple[int, int]]) -> None:
+        for k, (state, code) in enumerate(states):
+            self.al_state[k] = state
+            self.al_status_code[k] = code
+
+    def _not_op_message(self, what: str, want: int = AL_OP) -> str:
+        current = [SlaveInfo(s.position, s.name, s.vendor_id, s.product_code, s.revision, int(self.al_state[k]),
+                             int(self.al_status_code[k])) for k, s in enumerate(self.slaves)]
+        return (f"EtherCAT ring on {self.interface} {what}: {describe_states(current, want)}; "
+                f"SYNC0 {self.sync0_ns / 1e6:g} ms, bring-up loop {self.bringup_rate_hz:g} Hz")
+
+    # ------------------------------------------------------------------ implementation hooks
+    @abstractmethod
+    def _discover(self) -> Sequence[SlaveInfo]:
+        """Open the interface and enumerate the slaves (ring order)."""
+
+    @abstractmethod
+    def _configure(self) -> None:
+        """Map the PDOs in PRE-OP, configure DC and SYNC0 (``sync0_ns``), reach SAFE-OP.
+
+        Sizes ``outputs``/``inputs`` to one entry per slave and sets ``expected_wkc``.
+        """
+
+    @abstractmethod
+    def _request_op(self) -> None:
+        """Ask every slave for OP (non-blocking)."""
+
+    @abstractmethod
+    def _read_states(self) -> list[tuple[int, int]]:
+        """(AL state, AL status code) of every slave, ring order."""
+
+    @abstractmethod
+    def _advance(self, states: Sequence[tuple[int, int]]) -> None:
+        """Push slaves that are not in OP toward it (acknowledge errors, request OP again)."""
+
+    def _started(self) -> None:
+        """Called once every slave is in OP (e.g. to start ring supervision)."""
+
+    @abstractmethod
+    def _send(self) -> None:
+        """Put ``outputs`` on the wire (non-blocking)."""
+
+    @abstractmethod
+    def _receive(self) -> int:
+        """Collect the frame sent last into ``inputs``; the working counter (<= 0 when it did not return)."""
+
+    def _wkc_mismatch(self) -> None:
+        """Called from the cycle on a working-counter mismatch in OP (e.g. to wake ring supervision)."""
+
+    @abstractmethod
+    def _sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
+        """Blocking upload; raise SdoError on failure."""
+
+    @abstractmethod
+    def _sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
+        """Blocking download; raise SdoError on failure."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Leave the slaves in INIT and release the interface."""

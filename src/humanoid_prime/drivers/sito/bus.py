@@ -1,0 +1,106 @@
+"""The CAN transport under the Sito wrists: opening a python-can bus from the hardware file, telling a
+dead interface from a full transmit queue, and the exact on-wire length of a frame (for bus load)."""
+
+from __future__ import annotations
+
+import errno
+from typing import Any
+
+import can
+
+from humanoid_prime.config.hardware import HardwareConfig
+from humanoid_prime.drivers.sito.protocol import ID_PREFIX, ID_PREFIX_MASK
+from humanoid_prime.errors import PrimeError
+
+SITO_FILTERS = [{"can_id": ID_PREFIX, "can_mask": ID_PREFIX_MASK, "extended": True}]
+
+# SocketCAN error-frame classes (linux/can/error.h), found in the arbitration id of an error frame.
+CAN_ERR_CRTL = 0x004
+CAN_ERR_ACK = 0x020
+CAN_ERR_BUSOFF = 0x040
+CAN_ERR_RESTARTED = 0x100
+
+# errno values that mean the interface itself is gone or down, as opposed to a full queue.
+_INTERFACE_DOWN_ERRNOS = frozenset({errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.EBADF, errno.ENETUNREACH})
+
+
+def open_bus(hardware: HardwareConfig, *, interface: str | None = None, channel: str | None = None,
+             **options: Any) -> can.BusABC:
+    """Open the Sito bus: interface and channel from ``buses.can`` unless overridden.
+
+    On SocketCAN the Sito id filter runs in the kernel; error frames still arrive (separate filter).
+    """
+    interface = interface or hardware.can.interface
+    channel = channel or hardware.can.channel
+    if interface == "socketcan":
+        options.setdefault("can_filters", SITO_FILTERS)
+    try:
+        return can.Bus(interface=interface, channel=channel, bitrate=hardware.can.bitrate, **options)
+    except (OSError, can.CanError, ImportError, ValueError) as exc:
+        if interface == "socketcan":
+            fix = f"bring it up with: sudo ip link set {channel} up type can bitrate {hardware.can.bitrate}"
+        else:
+            fix = f"check buses.can in {hardware.path.name} or the --interface/--channel options"
+        raise PrimeError(f"cannot open CAN channel {channel!r} ({interface}): {exc}; {fix}") from None
+
+
+def is_interface_down(exc: BaseException) -> bool:
+    """True when a send/receive failure means the interface is down or gone (not merely a full queue)."""
+    code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+    if code in _INTERFACE_DOWN_ERRNOS:
+        return True
+    return "closed bus" in str(exc)
+
+
+def is_queue_full(exc: BaseException) -> bool:
+    """True when a send failed because the transmit queue is full (ENOBUFS on SocketCAN)."""
+    code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+    return code == errno.ENOBUFS or (code is None and not is_interface_down(exc))
+
+
+def crc15(bits: list[int]) -> int:
+    crc = 0
+    for bit in bits:
+        feedback = bit ^ (crc >> 14)
+        crc = (crc << 1) & 0x7FFF
+        if feedback:
+            crc ^= 0x4599
+    return crc
+
+
+def to_bits(value: int, width: int) -> list[int]:
+    return [(value >> i) & 1 for i in range(width - 1, -1, -1)]
+
+
+def stuff_bit_count(bits: list[int]) -> int:
+    """Stuff bits a transmitter inserts: one after every five equal bits (stuff bits count in the next run)."""
+    count = 0
+    run_bit, run = -1, 0
+    for bit in bits:
+        if bit == run_bit:
+            run += 1
+        else:
+            run_bit, run = bit, 1
+        if run == 5:
+            count += 1
+            run_bit, run = 1 - bit, 1
+    return count
+
+
+def frame_bits(message: can.Message) -> int:
+    """Exact bit times of a classic CAN data or remote frame on the wire, including stuff bits,
+    CRC, delimiters, ACK, end of frame and the 3-bit intermission."""
+    dlc = min(message.dlc, 8)
+    data = bytes(message.data[:dlc]) if not message.is_remote_frame else b""
+    rtr = 1 if message.is_remote_frame else 0
+    if message.is_extended_id:
+        ident = message.arbitration_id & 0x1FFFFFFF
+        head = [0] + to_bits(ident >> 18, 11) + [1, 1] + to_bits(ident & 0x3FFFF, 18) + [rtr, 0, 0]
+    else:
+        head = [0] + to_bits(message.arbitration_id & 0x7FF, 11) + [rtr, 0, 0]
+    bits = head + to_bits(dlc, 4)
+    for byte in data:
+        bits += to_bits(byte, 8)
+    bits += to_bits(crc15(bits), 15)
+    # CRC delimiter, ACK slot, ACK delimiter, 7 EOF bits, 3 intermission bits: never stuffed.
+    return len(bits) + stuff_bit_count(bits) + 13

@@ -1,5 +1,0 @@
-import sys
-
-from humanoid_prime.emulation.virtual_prime import main
-
-sys.exit(main())

@@ -1,0 +1,304 @@
+"""The eRob impedance manager: on each mode change, write that mode's loop gains over SDO.
+
+eRob impedance is the drive's own position/velocity loop gains, reachable only by SDO, so it is
+per mode, not per tick (DESIGN §2, §3). The manager:
+
+- stays off the bus until every slave is in OP and joint states flow (mailbox traffic during DC
+  activation faults a slave with 0xA000);
+- arms the bus-gain gate (0x2383 = 1) once, first, then reads back what the registers hold;
+- on each mode change converts (kp, kd) with each joint's Kt, gear and the torque efficiency, and
+  writes only the registers whose value changes, in the order that never leaves an intermediate
+  pair stiffer than both modes;
+- writes all slaves concurrently (one worker per slave) unless ``parallel`` is off;
+- retries a failed write a bounded number of times, then raises a safety flag for that slave;
+- on close resets the gate to 0 on every reachable slave, so the next bringup starts on factory gains.
+
+Mode changes arrive on ``/control_mode`` in the control loop's thread; they are queued and applied
+by a worker thread, newest first (an intermediate mode nobody is in any more is skipped).
+"""
+
+from __future__ import annotations
+
+import queue
+import struct
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+
+from humanoid_prime.config.robot import Robot
+from humanoid_prime.control.flags import SafetyFlags
+from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, TopicBus
+from humanoid_prime.drivers.erob.gains import ErobRegisters, gains_to_registers, write_order
+from humanoid_prime.drivers.erob.objects import (
+    BUS_GAIN_GATE,
+    BUS_GAIN_GATE_FORMAT,
+    GAIN_REGISTER_FORMAT,
+    POS_LOOP_GAIN,
+    VEL_LOOP_GAIN,
+    VEL_LOOP_INTEGRAL,
+)
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.socket import SdoClient
+
+
+@dataclass(frozen=True)
+class SlaveSwitch:
+    """One slave's part of a mode switch: what was written, when it finished, and how it ended."""
+
+    position: int
+    joint: str
+    writes: tuple[tuple[str, int], ...]
+    retries: int
+    finished_s: float  # seconds after the switch started
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class SwitchReport:
+    mode: str
+    wall_seconds: float
+    skew_seconds: float
+    retries: int
+    slaves: tuple[SlaveSwitch, ...]
+
+    @property
+    def ok(self) -> bool:
+        return all(s.error is None for s in self.slaves)
+
+    def as_dict(self) -> dict:
+        return {
+            "mode": self.mode,
+            "wall_seconds": self.wall_seconds,
+            "skew_seconds": self.skew_seconds,
+            "retries": self.retries,
+            "ok": self.ok,
+            "failed": {s.joint: s.error for s in self.slaves if s.error},
+        }
+
+
+RETRY_BACKOFF_S = 0.005
+
+_NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral"}
+
+
+@dataclass
+class _Slave:
+    joint: str
+    position: int
+    kt: float
+    gear: float
+    registers: ErobRegisters | None = None  # what the drive holds now; None = unknown
+    gate_armed: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class ImpedanceManager(SafetyFlags):
+    def __init__(self, robot: Robot, sdo: SdoClient, mode_gains: Mapping[Mode, tuple[float, float]], *,
+                 parallel: bool = True, retries: int = 3, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__("erob_impedance_manager")
+        hw = robot.hardware
+        self.sdo = sdo
+        self.parallel = parallel
+        self.retries = retries
+        self.clock = clock
+        self.efficiency = hw.torque_efficiency
+        self.mode_gains = dict(mode_gains)
+        self.slaves = [_Slave(j, hw.erob_slaves[j], hw.erob_kt[j], hw.erob_gear[j]) for j in hw.erob_joints]
+        self.targets = {
+            mode: {s.position: gains_to_registers(kp, kd, kt=s.kt, gear=s.gear, efficiency=self.efficiency)
+                   for s in self.slaves}
+            for mode, (kp, kd) in self.mode_gains.items()
+        }
+        self.reports: list[SwitchReport] = []
+        self.armed = False
+        self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
+        self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
+            if parallel and self.slaves else None
+        self._queue: queue.Queue[Mode | None] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self._joint_states_seen = threading.Event()
+        self._topics: TopicBus | None = None
+        self._busy = threading.Lock()
+        self._idle = threading.Condition()
+        self._submitted = 0
+        self._done = 0
+
+    # ----------------------------------------------------------------------------------- running
+    def start(self, topics: TopicBus, bus_ready: Callable[[], bool], *, timeout: float = 30.0) -> None:
+        """Wait for OP and flowing joint states, arm the gate, then follow ``/control_mode``."""
+        self._topics = topics
+        topics.subscribe(JOINT_STATES, self._on_joint_states, latched=True)
+        deadline = self.clock() + timeout
+        while not (bus_ready() and self._joint_states_seen.is_set()):
+            if self.clock() > deadline:
+                raise PrimeError("eRob impedance manager: the ring did not reach OP with joint states flowing "
+                                 f"within {timeout:.0f} s; no gains were written")
+            time.sleep(0.005)
+        self.arm()
+        topics.subscribe(CONTROL_MODE, self._on_control_mode, latched=True)
+        self._worker = threading.Thread(target=self._run, name="erob-impedance", daemon=True)
+        self._worker.start()
+
+    def _on_joint_states(self, _msg: object) -> None:
+        self._joint_states_seen.set()
+
+    def _on_control_mode(self, msg: ControlMode) -> None:
+        with self._idle:
+            self._submitted += 1
+        self._queue.put(Mode(msg.mode))
+
+    def _run(self) -> None:
+        while True:
+            mode = self._queue.get()
+            taken = 1
+            while not self._queue.empty():  # coalesce: only the newest request matters
+                mode = self._queue.get_nowait()
+                taken += 1
+            if mode is None:
+                return
+            try:
+                self.apply(mode)
+            except Exception as exc:  # keep following the mode; say what went wrong
+                self.set_flag("erob/impedance/worker", f"mode {mode.value} not applied: {type(exc).__name__}: {exc}")
+            finally:
+                with self._idle:
+                    self._done += taken
+                    self._idle.notify_all()
+
+    def wait_idle(self, timeout: float = 5.0) -> bool:
+        """Block until every mode change received so far has been applied (for reports and tests)."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._done >= self._submitted, timeout)
+
+    # ------------------------------------------------------------------------------------- bus
+    def _write(self, slave: _Slave, address: tuple[int, int], value: int, fmt: str) -> int:
+        """Write one object with bounded retries; returns the retries used, raises the last error."""
+        data = struct.pack(fmt, value)
+        for attempt in range(self.retries + 1):
+            try:
+                self.sdo.sdo_write(slave.position, address[0], address[1], data)
+                self.sdo_log.append((self.clock(), slave.position, _NAMES.get(address, "gate"), value))
+                return attempt
+            except Exception:
+                if attempt == self.retries:
+                    raise
+                time.sleep(RETRY_BACKOFF_S * (attempt + 1))  # a recovering slave needs a moment, not a burst
+        return self.retries
+
+    def _read_registers(self, slave: _Slave) -> ErobRegisters:
+        def read(address: tuple[int, int]) -> int:
+            raw = self.sdo.sdo_read(slave.position, address[0], address[1])
+            return int.from_bytes(raw[:4].ljust(4, b"\0"), "little")
+        return ErobRegisters(pos_reg=read(POS_LOOP_GAIN), vel_reg=read(VEL_LOOP_GAIN),
+                             integral=read(VEL_LOOP_INTEGRAL))
+
+    def _each(self, fn: Callable[[_Slave], object]) -> list[object]:
+        if self._pool is not None:
+            return list(self._pool.map(fn, self.slaves))
+        return [fn(s) for s in self.slaves]
+
+    def arm(self) -> None:
+        """Set the gate to 1 on every slave (first), then learn what the gain registers hold."""
+        self.armed = True  # from here on, close() resets the gate on every slave
+        errors = [e for e in self._each(self._arm_one) if e]
+        for slave in self.slaves:
+            key = f"erob/impedance/ring{slave.position}"
+            problem = next((e for e in errors if e.startswith(f"{slave.joint} ")), None)
+            self._set_flag(key, problem)
+
+    def _arm_one(self, slave: _Slave) -> str | None:
+        with slave.lock:
+            try:
+                self._write(slave, BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
+                slave.gate_armed = True
+                slave.registers = self._read_registers(slave)
+            except Exception as exc:
+                slave.registers = None
+                return f"{slave.joint} (ring {slave.position}): gate not armed: {exc}"
+        return None
+
+    def apply(self, mode: Mode) -> SwitchReport:
+        """Write ``mode``'s registers to every slave and report the switch."""
+        if not self.armed:
+            raise PrimeError("eRob impedance manager: gains written before the gate was armed")
+        with self._busy:
+            start = self.clock()
+            targets = self.targets[mode]
+
+            def switch_one(slave: _Slave) -> SlaveSwitch:
+                new = targets[slave.position]
+                written: list[tuple[str, int]] = []
+                retries = 0
+                if not slave.gate_armed:  # gain writes are ignored until the gate is 1: arm it first
+                    problem = self._arm_one(slave)
+                    if problem is not None:
+                        return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
+                                           f"{mode.value} gains not applied: {problem}")
+                with slave.lock:
+                    try:
+                        for address, value in write_order(slave.registers, new):
+                            retries += self._write(slave, address, value, GAIN_REGISTER_FORMAT)
+                            written.append((_NAMES[address], value))
+                            slave.registers = _updated(slave.registers, address, value)
+                        slave.registers = new
+                        error = None
+                    except Exception as exc:
+                        done = ", ".join(name for name, _ in written) or "nothing"
+                        error = f"{mode.value} gains not fully applied ({done} written): {exc}"
+                return SlaveSwitch(slave.position, slave.joint, tuple(written), retries,
+                                   self.clock() - start, error)
+
+            results = [r for r in self._each(switch_one) if isinstance(r, SlaveSwitch)]
+            finished = [r.finished_s for r in results]
+            report = SwitchReport(
+                mode=mode.value,
+                wall_seconds=max(finished, default=0.0),
+                skew_seconds=(max(finished) - min(finished)) if finished else 0.0,
+                retries=sum(r.retries for r in results),
+                slaves=tuple(results),
+            )
+            self.reports.append(report)
+            for r in results:
+                self._set_flag(f"erob/impedance/ring{r.position}",
+                               f"{r.joint} (ring {r.position}): {r.error}" if r.error else None)
+            return report
+
+    def close(self) -> list[str]:
+        """Stop following modes and reset the gate to 0 on every reachable slave; returns failures."""
+        if self._worker is not None:
+            self._queue.put(None)
+            self._worker.join(timeout=5.0)
+            self._worker = None
+        if self._topics is not None:
+            self._topics.unsubscribe(CONTROL_MODE, self._on_control_mode)
+            self._topics.unsubscribe(JOINT_STATES, self._on_joint_states)
+        failures: list[str] = []
+        if self.armed:
+            def reset(slave: _Slave) -> str | None:
+                with slave.lock:
+                    try:
+                        self._write(slave, BUS_GAIN_GATE, 0, BUS_GAIN_GATE_FORMAT)
+                    except Exception as exc:
+                        return f"{slave.joint} (ring {slave.position}): gate not reset: {exc}"
+                return None
+            failures = [e for e in self._each(reset) if e]
+            self.armed = False
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        return failures
+
+    def _set_flag(self, key: str, text: str | None) -> None:
+        if text is None:
+            self.clear_flag(key)
+        else:
+            self.set_flag(key, text)
+
+
+def _updated(regs: ErobRegisters | None, address: tuple[int, int], value: int) -> ErobRegisters | None:
+    if regs is None:
+        return None
+    return replace(regs, **{_NAMES[address]: value})

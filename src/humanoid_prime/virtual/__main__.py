@@ -1,0 +1,5 @@
+import sys
+
+from humanoid_prime.virtual.prime import main
+
+sys.exit(main())

@@ -1,0 +1,95 @@
+"""Run the virtual Prime beside this process, inside a private network namespace.
+
+``enter_private_netns()`` re-executes the current command inside a fresh network namespace (``unshare -n``
+as root, ``unshare -rn`` otherwise), so nothing the emulation creates — a veth pair, a multicast route,
+CAN traffic — is visible on the host, and all of it disappears with the process. Inside,
+``VirtualPrime`` creates the veth pair (the master end stays here), gives the loopback interface a
+multicast route for the CAN bus, and starts the virtual Prime process on the other end.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from humanoid_prime.runtime.socket import SOCKET_ENV, default_socket_path
+from humanoid_prime.virtual.netns import EmulatedRing, EmulationUnavailable, ip, netns_unavailable_reason
+
+PRIVATE_NETNS_MARK = "PRIME_PRIVATE_NETNS"
+CAN_INTERFACE = "udp_multicast"
+CAN_CHANNEL = "239.74.163.2"  # python-can's default IPv4 group; private to the namespace
+
+
+def in_private_netns() -> bool:
+    return os.environ.get(PRIVATE_NETNS_MARK) == "1"
+
+
+def enter_private_netns(argv: Sequence[str] | None = None) -> None:
+    """Return at once when already inside; otherwise replace this process by the same command (or ``argv``)
+    run in a fresh network namespace. Raises EmulationUnavailable with the reason when that cannot work."""
+    if in_private_netns():
+        return
+    reason = netns_unavailable_reason()
+    if reason is not None and os.geteuid() == 0:
+        raise EmulationUnavailable(reason)
+    args = [sys.executable, *sys.orig_argv[1:]] if argv is None else list(argv)
+    os.environ[PRIVATE_NETNS_MARK] = "1"
+    os.environ.setdefault(SOCKET_ENV, str(default_socket_path()))  # the user's path, not root-of-the-namespace's
+    sys.stdout.flush()
+    sys.stderr.flush()
+    unshare = ["unshare", "-n"] if os.geteuid() == 0 else ["unshare", "-rn"]
+    try:
+        os.execvp(unshare[0], [*unshare, "--", *args])
+    except OSError as exc:
+        raise EmulationUnavailable(f"cannot run `{' '.join(unshare)}`: {exc.strerror}") from None
+
+
+class VirtualPrime(EmulatedRing):
+    """The virtual Prime process on one end of a veth pair, both ends in this (private) namespace; a
+    context manager.
+
+    ``master_interface`` is the EtherCAT interface to open; ``can_interface``/``can_channel`` the python-can
+    bus of the Sito motors; ``control`` a RingControl with the whole-robot operations (``joints``,
+    ``push``, ``gravity``, ``sito``, ``truth``) besides the ring's own.
+    """
+
+    isolate_emulator = False  # the CAN bus is multicast on this namespace's loopback: share the namespace
+
+    def __init__(self, *, slaves: int = 10, hardware_file: str | Path | None = None,
+                 truth_file: str | Path | None = None, pose: Mapping[str, float] | None = None,
+                 startup_timeout_s: float = 20.0, **options: Any) -> None:
+        super().__init__(slaves, startup_timeout_s=startup_timeout_s, **options)
+        self.hardware_file = hardware_file
+        self.truth_file = truth_file
+        self.pose = dict(pose or {})
+        self.can_interface = CAN_INTERFACE
+        self.can_channel = CAN_CHANNEL
+
+    def start(self) -> None:
+        if not in_private_netns():
+            raise EmulationUnavailable("the virtual Prime runs only inside a private network namespace "
+                                       "(call enter_private_netns() first)")
+        super().start()
+
+    def prepare_namespace(self) -> None:
+        ip("link", "set", "lo", "up")
+        ip("link", "set", "lo", "multicast", "on")
+        result = subprocess.run(["ip", "route", "add", "224.0.0.0/4", "dev", "lo"], capture_output=True, text=True)
+        if result.returncode != 0 and "File exists" not in result.stderr:
+            raise EmulationUnavailable(f"cannot route multicast on lo: {result.stderr.strip()}")
+
+    def emulator_command(self, control_path: str, parent_fd: int) -> list[str]:
+        command = [sys.executable, "-m", "humanoid_prime.virtual", "--iface", self.emulator_interface,
+                   "--control", control_path, "--parent-fd", str(parent_fd), "--can-interface", self.can_interface,
+                   "--can-channel", self.can_channel, *self.options.to_args()]
+        if self.hardware_file is not None:
+            command += ["--hardware", str(self.hardware_file)]
+        if self.truth_file is not None:
+            command += ["--truth", str(self.truth_file)]
+        if self.pose:
+            command += ["--pose", ",".join(f"{j}={v!r}" for j, v in self.pose.items())]
+        return command

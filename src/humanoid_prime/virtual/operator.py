@@ -1,0 +1,96 @@
+"""A scripted operator for the virtual Prime: backdrives joints to their mechanical stops through the plant,
+as a person's hand does during calibration, so the whole workflow runs unattended.
+
+An eRob joint is made damped-limp first (the same procedure as ``prime limp``: gate, position gain 0,
+integral 0, damping kept, restored afterwards) with its CSP target following the joint; a Sito wrist is
+limp already. The hand moves the joint slowly toward the lower stop and presses it there (at most a fraction of the
+joint's effort limit), waits until it rests, does the same at the upper stop, then lets go.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Iterator
+
+from humanoid_prime.calibration.limp import DampedLimp
+from humanoid_prime.drivers.erob.gains import vel_reg_exact
+from humanoid_prime.errors import PrimeError
+
+PUSH_FRACTION = 0.5  # of the joint's effort limit: the most the hand pushes; overcomes gravity on every joint
+HAND_SPEED_RAD_S = 1.0  # how fast the hand moves a joint toward a stop, as a person does
+REST_SPEED_RAD_S = 0.005  # a joint slower than this for REST_S is resting against its stop
+REST_S = 0.3
+
+
+class ScriptedOperator:
+    def __init__(self, session: object, *, limp_kd: float = 2.0, timeout_s: float = 3.0,
+                 stop: threading.Event | None = None) -> None:
+        self.session = session
+        self.robot = session.robot
+        self.manager = session.manager
+        if session.virtual is None:
+            raise PrimeError("the scripted operator needs the virtual Prime (--emulate)")
+        self.control = session.virtual.control
+        self.limp_kd = limp_kd
+        self.timeout_s = timeout_s
+        self.stop = stop or threading.Event()  # set when the run ends: let go at once
+
+    def _wait_at_rest(self, index: int, travel_s: float = 0.0) -> float:
+        """Wait until the joint rests (at most ``travel_s`` plus the timeout); returns its reading."""
+        velocity = self.manager.resources.state.velocity
+        position = self.manager.resources.state.position
+        deadline = time.monotonic() + travel_s + self.timeout_s
+        still_since = None
+        while time.monotonic() < deadline and not self.stop.is_set():
+            if abs(float(velocity[index])) < REST_SPEED_RAD_S:
+                still_since = still_since or time.monotonic()
+                if time.monotonic() - still_since >= REST_S:
+                    break
+            else:
+                still_since = None
+            time.sleep(0.01)
+        return float(position[index])
+
+    @contextlib.contextmanager
+    def limp(self, joint: str) -> Iterator[None]:
+        """Damped limp of an eRob joint for the duration (no-op for a Sito wrist, limp by default)."""
+        hw = self.robot.hardware
+        if joint not in hw.erob_slaves:
+            yield
+            return
+        ethercat = self.session.ethercat
+        if ethercat is None:
+            raise PrimeError(f"{joint} is an eRob joint but this run has no EtherCAT bus")
+        vel_reg = round(vel_reg_exact(self.limp_kd, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
+                                      efficiency=hw.torque_efficiency))
+        self.session.mark_limp(joint, True)
+        try:
+            with DampedLimp(ethercat.master, hw.erob_slaves[joint], vel_reg):
+                yield
+                self.let_go(joint)
+                self._wait_at_rest(self.robot.index(joint))
+        finally:
+            self.session.mark_limp(joint, False)
+
+    def push_to(self, joint: str, side: int) -> float:
+        """Move ``joint`` to its upper (side +1) or lower (side -1) stop and press it there; returns the reading
+        once it rests."""
+        spec = self.robot.joints[self.robot.index(joint)]
+        self.control.call("hand", joint=joint, speed_rad_s=math.copysign(HAND_SPEED_RAD_S, side),
+                          force_nm=PUSH_FRACTION * spec.effort_limit)
+        return self._wait_at_rest(spec.index, (spec.upper - spec.lower) / HAND_SPEED_RAD_S)
+
+    def let_go(self, joint: str) -> None:
+        self.control.call("hand", joint=joint, speed_rad_s=0.0, force_nm=0.0)
+
+    def sweep(self, joint: str) -> None:
+        """Both stops, then let go."""
+        with self.limp(joint):
+            try:
+                self.push_to(joint, -1)
+                self.push_to(joint, +1)
+            finally:
+                self.let_go(joint)

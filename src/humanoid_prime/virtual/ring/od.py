@@ -1,0 +1,160 @@
+"""A CoE object dictionary: typed entries with access rules, value ranges and write hooks, plus the SDO
+abort codes an access can fail with (ETG.1000.6 / CiA 301).
+
+Values are Python ints (or str for visible strings); ``encode``/``decode`` convert to and from the
+little-endian wire bytes. An entry may accept a narrower or wider write than its own size
+(``accept_sizes``): some masters write a u16 register as u32 and drives commonly accept that.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+from humanoid_prime.drivers.ethercat.slave_config import PDO_TYPES
+
+ABORT_TOGGLE = 0x05030000  # toggle bit not alternated
+ABORT_COMMAND = 0x05040001  # client/server command specifier not valid or unknown
+ABORT_UNSUPPORTED_ACCESS = 0x06010000  # unsupported access to an object
+ABORT_WRITE_ONLY = 0x06010001  # attempt to read a write-only object
+ABORT_READ_ONLY = 0x06010002  # attempt to write a read-only object
+ABORT_SUBINDEX_ZERO_FIRST = 0x06010003  # subindex cannot be written, SI0 must be 0 for write access
+ABORT_NO_OBJECT = 0x06020000  # object does not exist in the object dictionary
+ABORT_NOT_MAPPABLE = 0x06040041  # object cannot be mapped to the PDO
+ABORT_PDO_LENGTH = 0x06040042  # number and length of mapped objects would exceed the PDO length
+ABORT_LENGTH = 0x06070010  # data type does not match, length of service parameter does not match
+ABORT_NO_SUBINDEX = 0x06090011  # subindex does not exist
+ABORT_VALUE_RANGE = 0x06090030  # value range of parameter exceeded
+ABORT_VALUE_HIGH = 0x06090031  # value of parameter written too high
+ABORT_VALUE_LOW = 0x06090032  # value of parameter written too low
+ABORT_GENERAL = 0x08000000  # general error
+ABORT_DEVICE_STATE = 0x08000022  # data cannot be transferred or stored because of the present device state
+
+READ_ONLY = "ro"
+READ_WRITE = "rw"
+
+PDO_RX = "rx"  # mappable into an RxPDO (master -> slave)
+PDO_TX = "tx"  # mappable into a TxPDO (slave -> master)
+
+_LIMITS = {fmt: (lo, hi) for fmt, lo, hi in PDO_TYPES.values()}
+
+
+class SdoAbort(Exception):
+    """An SDO access the slave refuses; ``code`` is the abort code it answers with."""
+
+    def __init__(self, code: int, text: str = "") -> None:
+        super().__init__(f"SDO abort 0x{code:08X}" + (f": {text}" if text else ""))
+        self.code = code
+
+
+@dataclass(eq=False)
+class Entry:
+    """One subindex. ``fmt`` is a struct code (b B h H i I q) or "s" for a visible string."""
+
+    index: int
+    sub: int
+    name: str
+    fmt: str
+    value: int | str
+    access: str = READ_WRITE
+    pdo: str | None = None
+    minimum: int | None = None
+    maximum: int | None = None
+    accept_sizes: tuple[int, ...] = ()
+    # Called with the decoded value before it is stored; may raise SdoAbort, may return a replacement.
+    on_write: Callable[[Entry, int | str], int | str | None] | None = None
+    # Called before a read so a live value (position, time) can be refreshed.
+    on_read: Callable[[Entry], None] | None = None
+    _struct: struct.Struct | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.fmt != "s":
+            self._struct = struct.Struct("<" + self.fmt)
+
+    @property
+    def size(self) -> int:
+        return len(str(self.value).encode("ascii")) if self._struct is None else self._struct.size
+
+    @property
+    def bits(self) -> int:
+        return self.size * 8
+
+    def encode(self) -> bytes:
+        if self.on_read is not None:
+            self.on_read(self)
+        if self._struct is None:
+            return str(self.value).encode("ascii")
+        return self._struct.pack(self.value)
+
+    def decode(self, data: bytes) -> int | str:
+        """The value ``data`` carries, checked against the type and range; raises SdoAbort."""
+        if self._struct is None:
+            return data.decode("ascii", errors="replace")
+        if len(data) != self._struct.size and len(data) not in self.accept_sizes:
+            raise SdoAbort(ABORT_LENGTH, f"0x{self.index:04X}:{self.sub:02X} is {self._struct.size} bytes, "
+                                         f"got {len(data)}")
+        signed = self.fmt.islower()
+        value = int.from_bytes(data, "little", signed=signed)
+        low, high = _LIMITS[self.fmt]
+        if self.minimum is not None:
+            low = max(low, self.minimum)
+        if self.maximum is not None:
+            high = min(high, self.maximum)
+        if value > high:
+            raise SdoAbort(ABORT_VALUE_HIGH, f"{value} > {high}")
+        if value < low:
+            raise SdoAbort(ABORT_VALUE_LOW, f"{value} < {low}")
+        return value
+
+
+class ObjectDictionary:
+    """Entries by (index, subindex). Reads and writes go through ``upload``/``download`` so access rules
+    and hooks apply exactly as for an SDO."""
+
+    def __init__(self, entries: Iterable[Entry] = ()) -> None:
+        self._entries: dict[tuple[int, int], Entry] = {}
+        self._indices: set[int] = set()
+        for entry in entries:
+            self.add(entry)
+
+    def add(self, entry: Entry) -> Entry:
+        self._entries[(entry.index, entry.sub)] = entry
+        self._indices.add(entry.index)
+        return entry
+
+    def __contains__(self, key: tuple[int, int]) -> bool:
+        return key in self._entries
+
+    def entry(self, index: int, sub: int) -> Entry:
+        """The entry at index:sub; SdoAbort 0x06020000 / 0x06090011 when it does not exist."""
+        entry = self._entries.get((index, sub))
+        if entry is None:
+            if index not in self._indices:
+                raise SdoAbort(ABORT_NO_OBJECT, f"0x{index:04X}")
+            raise SdoAbort(ABORT_NO_SUBINDEX, f"0x{index:04X}:{sub:02X}")
+        return entry
+
+    def upload(self, index: int, sub: int) -> bytes:
+        entry = self.entry(index, sub)
+        if entry.access == "wo":
+            raise SdoAbort(ABORT_WRITE_ONLY)
+        return entry.encode()
+
+    def download(self, index: int, sub: int, data: bytes) -> None:
+        entry = self.entry(index, sub)
+        if entry.access == READ_ONLY:
+            raise SdoAbort(ABORT_READ_ONLY, f"0x{index:04X}:{sub:02X} {entry.name}")
+        value = entry.decode(data)
+        if entry.on_write is not None:
+            replaced = entry.on_write(entry, value)
+            if replaced is not None:
+                value = replaced
+        entry.value = value
+
+    def value(self, index: int, sub: int = 0) -> int | str:
+        return self.entry(index, sub).value
+
+    def set(self, index: int, sub: int, value: int | str) -> None:
+        """Set a value from the device side (no access check, no hook)."""
+        self.entry(index, sub).value = value

@@ -1,0 +1,381 @@
+"""The emulator process: a raw AF_PACKET socket on one interface (EtherType 0x88A4 only), each frame
+passed through the ring and sent back at once, the plant advanced between frames, and the control
+channel served in the same loop.
+
+SOEM waits 2 ms for a frame before it gives up on it (EC_TIMEOUTRET), so the loop keeps pauses short:
+the garbage collector is frozen after start-up and disabled while serving (generation-0 collections run
+only when the ring has been idle for a while), and the reply is sent before the plant is advanced.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import gc
+import json
+import os
+import random
+import select
+import signal
+import socket
+import struct
+import time
+from array import array
+from collections.abc import Callable
+from typing import Any
+
+from humanoid_prime.virtual.ring.drive import Cia402State
+from humanoid_prime.virtual.ring.firmware import AlState
+from humanoid_prime.virtual.ring.frames import (
+    ETHERTYPE_ECAT,
+    Command,
+    Datagram,
+    build_frame,
+)
+from humanoid_prime.virtual.ring.ring import Ring
+
+_TURNAROUND_SAMPLES = 65536
+_IDLE_GC_NS = 200_000_000  # collect generation 0 only after this long without a frame
+
+
+class EmulatorServer:
+    """Serves ``ring`` on ``interface`` and the control channel on the UNIX socket ``control_path``."""
+
+    def __init__(self, ring: Ring, interface: str, control_path: str,
+                 clock: Callable[[], int] = time.monotonic_ns, parent_fd: int | None = None) -> None:
+        self.ring = ring
+        self.parent_fd = parent_fd
+        self.interface = interface
+        self.control_path = control_path
+        self.clock = clock
+        self.running = False
+        self._drop_requests = 0
+        self._drop_replies = 0
+        self._delay_ns = 0
+        self._delay_count = 0
+        self._garbage = 0
+        self._delayed: list[tuple[int, bytes]] = []
+        self._turnaround_ns = array("q", bytes(8 * _TURNAROUND_SAMPLES))
+        self._turnaround_count = 0
+        self._last_frame_ns = 0
+        self._last_gc_ns = 0
+        self._random = random.Random(0x88A4)
+        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
+        self._raw.bind((interface, ETHERTYPE_ECAT))
+        self._raw.setblocking(False)
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(control_path)
+        self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._listener.bind(control_path)
+        self._listener.listen(8)
+        self._listener.setblocking(False)
+        self._clients: dict[int, tuple[socket.socket, bytearray]] = {}
+
+    def close(self) -> None:
+        for client, _buffer in self._clients.values():
+            client.close()
+        self._clients.clear()
+        self._listener.close()
+        self._raw.close()
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.control_path)
+
+    # ---- main loop ---------------------------------------------------------------------------------------
+    def serve_forever(self) -> None:
+        poller = select.poll()
+        poller.register(self._raw.fileno(), select.POLLIN)
+        poller.register(self._listener.fileno(), select.POLLIN)
+        raw_fd = self._raw.fileno()
+        listener_fd = self._listener.fileno()
+        if self.parent_fd is not None:
+            poller.register(self.parent_fd, select.POLLIN)
+        buffer = bytearray(2048)
+        view = memoryview(buffer)
+        ring = self.ring
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self.running = True
+        try:
+            while self.running:
+                timeout_ms = 1
+                if self._delayed and min(t for t, _frame in self._delayed) <= self.clock():
+                    timeout_ms = 0
+                for fd, _event in poller.poll(timeout_ms):
+                    if fd == raw_fd:
+                        self._serve_frames(buffer, view)
+                    elif fd == listener_fd:
+                        self._accept(poller)
+                    elif fd == self.parent_fd:
+                        self.running = bool(os.read(fd, 64))  # end of file: the parent process is gone
+                    else:
+                        self._serve_client(fd, poller)
+                now = self.clock()
+                if self._delayed:
+                    self._send_due(now)
+                ring.advance(now)
+                if now - self._last_frame_ns > _IDLE_GC_NS and now - self._last_gc_ns > _IDLE_GC_NS:
+                    gc.collect(0)
+                    self._last_gc_ns = now
+        finally:
+            gc.enable()
+            gc.unfreeze()
+
+    def _serve_frames(self, buffer: bytearray, view: memoryview) -> None:
+        raw = self._raw
+        ring = self.ring
+        clock = self.clock
+        while True:
+            try:
+                size = raw.recv_into(buffer)
+            except BlockingIOError:
+                return
+            start = clock()
+            self._last_frame_ns = start
+            if self._drop_requests:
+                self._drop_requests -= 1
+                continue
+            frame = bytearray(view[:size])
+            if not ring.process(frame, start):
+                continue
+            frame[6] |= 0x02  # the first ESC marks the source MAC as locally administered
+            if self._drop_replies:
+                self._drop_replies -= 1
+                continue
+            if self._garbage:
+                self._garbage -= 1
+                self._send_garbage()
+            if self._delay_count:
+                self._delay_count -= 1
+                self._delayed.append((start + self._delay_ns, bytes(frame)))
+                continue
+            raw.send(frame)
+            self._turnaround_ns[self._turnaround_count % _TURNAROUND_SAMPLES] = clock() - start
+            self._turnaround_count += 1
+
+    def _send_due(self, now: int) -> None:
+        due = [f for t, f in self._delayed if t <= now]
+        self._delayed = [(t, f) for t, f in self._delayed if t > now]
+        for frame in due:
+            self._raw.send(frame)
+
+    def _send_garbage(self) -> None:
+        payload = bytes(self._random.getrandbits(8) for _ in range(self._random.randrange(2, 40)))
+        # indices 0x80-0xFF: outside the 16 frame buffers SOEM cycles through, so a correct master drops them
+        datagram = Datagram(Command(self._random.randrange(1, 15)), payload, index=self._random.randrange(0x80, 0x100),
+                            adp=self._random.getrandbits(16), ado=self._random.getrandbits(16))
+        self._raw.send(build_frame([datagram], source=b"\x03\x01\x01\x01\x01\x01"))
+
+    # ---- control channel ----------------------------------------------------------------------------------
+    def _accept(self, poller: select.poll) -> None:
+        try:
+            client, _address = self._listener.accept()
+        except BlockingIOError:
+            return
+        client.setblocking(False)
+        self._clients[client.fileno()] = (client, bytearray())
+        poller.register(client.fileno(), select.POLLIN)
+
+    def _serve_client(self, fd: int, poller: select.poll) -> None:
+        client, pending = self._clients[fd]
+        try:
+            data = client.recv(65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            poller.unregister(fd)
+            client.close()
+            del self._clients[fd]
+            return
+        pending += data
+        while b"\n" in pending:
+            line, _, rest = pending.partition(b"\n")
+            pending[:] = rest
+            reply = self._dispatch(line)
+            client.setblocking(True)
+            try:
+                client.sendall(json.dumps(reply).encode() + b"\n")
+            except OSError:
+                pass
+            finally:
+                client.setblocking(False)
+
+    def _dispatch(self, line: bytes) -> dict[str, Any]:
+        try:
+            request = json.loads(line)
+            op = request.pop("op")
+            handler = getattr(self, f"_op_{op}", None)
+            if handler is None:
+                return {"ok": False, "error": f"unknown operation {op!r}"}
+            return {"ok": True, "result": handler(**request)}
+        except (TypeError, ValueError, KeyError, IndexError) as exc:
+            return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+
+    def _slave(self, position: int) -> Any:
+        if not 0 <= position < len(self.ring.slaves):
+            raise IndexError(f"no slave at ring position {position} (ring has {len(self.ring.slaves)})")
+        return self.ring.slaves[position]
+
+    def _op_ping(self) -> str:
+        return "pong"
+
+    def _op_status(self, position: int | None = None) -> list[dict[str, Any]]:
+        positions = range(len(self.ring.slaves)) if position is None else [self._slave(position).position]
+        return [self._describe(p) for p in positions]
+
+    def _describe(self, position: int) -> dict[str, Any]:
+        ring = self.ring
+        slave = ring.slaves[position]
+        esc = slave.esc
+        drive = slave.drive
+        kp, kd, ki = drive.gains
+        now = self.clock()
+        return {
+            "position": position,
+            "powered": ring.powered[position],
+            "reachable": slave in ring.reachable,
+            "silent": slave.silent,
+            "station_address": esc.station_address,
+            "al_state": AlState(slave.state).name,
+            "al_status": esc.al_status,
+            "al_status_code": esc.al_status_code,
+            "al_pending_op": slave.pending_op,
+            "dc": {
+                "activation": esc.sync_activation,
+                "sync0_cycle_ns": esc.sync0_cycle_ns,
+                "sync0_running": esc.sync0_running(now),
+                "locked": slave.locked,
+                "lock_count": slave.lock_count,
+                "time_samples": esc.dc_samples,
+            },
+            "mailbox_faults": slave.mailbox_faults,
+            "drive": {
+                "state": Cia402State(drive.state).name,
+                "statusword": int(drive.statusword.value),
+                "controlword": int(drive.controlword.value),
+                "error_code": int(drive.error_code.value),
+                "error_history": drive.error_history,
+                "mode_display": int(drive.mode_display.value),
+                "target_position": int(drive.target_position.value),
+                "position_actual": int(drive.position_actual.value),
+                "velocity_actual": int(drive.velocity_actual.value),
+                "torque_actual": int(drive.torque_actual.value),
+                "gate": int(drive.gate.value),
+                "pos_reg": int(drive.pos_reg.value),
+                "vel_reg": int(drive.vel_reg.value),
+                "integral": int(drive.integral_reg.value),
+                "kp": kp,
+                "kd": kd,
+                "ki": ki,
+                "torque_nm": drive.torque_nm,
+            },
+            "joint": {
+                "q_rad": float(ring.plant.q[position]),
+                "qd_rad_s": float(ring.plant.qd[position]),
+                "external_nm": float(ring.plant.external[position]),
+            },
+        }
+
+    def _op_sdo_log(self, since: int = 0) -> list[dict[str, Any]]:
+        return [{"seq": since + i, "time": t, "position": p, "index": index, "sub": sub, "value": value,
+                 "applied": applied}
+                for i, (t, p, index, sub, value, applied) in enumerate(self.ring.sdo_log[since:])]
+
+    def _op_stats(self) -> dict[str, Any]:
+        count = min(self._turnaround_count, _TURNAROUND_SAMPLES)
+        samples = sorted(self._turnaround_ns[:count])
+        def percentile(p: float) -> float | None:
+            return samples[min(count - 1, int(p * count))] / 1000.0 if count else None
+        return {"frames": self.ring.frames, "malformed": self.ring.dropped_malformed,
+                "replies_timed": self._turnaround_count, "turnaround_median_us": percentile(0.5),
+                "turnaround_p99_us": percentile(0.99), "turnaround_max_us": samples[-1] / 1000.0 if count else None}
+
+    def _op_set_external_torque(self, position: int, torque_nm: float) -> None:
+        self.ring.plant.external[self._slave(position).position] = float(torque_nm)
+
+    def _op_set_joint(self, position: int, q_rad: float, qd_rad_s: float = 0.0) -> None:
+        position = self._slave(position).position
+        self.ring.plant.q[position] = float(q_rad)
+        self.ring.plant.qd[position] = float(qd_rad_s)
+
+    def _op_drop(self, count: int, where: str = "request") -> None:
+        if where == "request":
+            self._drop_requests = int(count)
+        elif where == "reply":
+            self._drop_replies = int(count)
+        else:
+            raise ValueError(f"where must be 'request' or 'reply', got {where!r}")
+
+    def _op_delay(self, seconds: float, count: int = 1) -> None:
+        self._delay_ns = round(float(seconds) * 1e9)
+        self._delay_count = int(count)
+
+    def _op_garbage(self, count: int) -> None:
+        self._garbage = int(count)
+
+    def _op_lose(self, position: int) -> None:
+        self.ring.lose(self._slave(position).position)
+
+    def _op_restore(self, position: int) -> None:
+        self.ring.restore(self._slave(position).position)
+
+    def _op_silence(self, position: int, silent: bool = True) -> None:
+        self._slave(position).set_silent(bool(silent))
+
+    def _op_fault(self, position: int, code: int, latched: bool = False) -> None:
+        self._slave(position).drive.fault(int(code), latched=bool(latched))
+
+    def _op_clear_latched(self, position: int) -> None:
+        self._slave(position).drive.clear_latched()
+
+    def _op_set_options(self, **options: Any) -> None:
+        allowed = {"dc_lock_cycles", "sync_tolerance", "sync_fault_cycles", "mailbox_latency_s"}
+        unknown = set(options) - allowed
+        if unknown:
+            raise ValueError(f"cannot change {sorted(unknown)} at run time; changeable: {sorted(allowed)}")
+        for name, value in options.items():
+            setattr(self.ring.options, name, type(getattr(self.ring.options, name))(value))
+        self.ring.options.check()
+
+    def _op_stop(self) -> None:
+        self.running = False
+
+
+REALTIME_PRIORITY = 20
+
+
+def run_until_signalled(server: EmulatorServer) -> None:
+    """Serve until SIGTERM, SIGINT, a ``stop`` request or the parent's death, then close the server.
+
+    Hardware answers at once, so the emulator asks for real-time scheduling (ignored where not permitted):
+    an ordinary process that stalls it would look like lost frames to the master."""
+
+    def stop(_signum: int, _frame: object) -> None:
+        server.running = False
+
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        server.serve_forever()
+    finally:
+        server.close()
+
+
+def disable_ipv6(interface: str) -> None:
+    """Turn IPv6 off on ``interface`` so the kernel sends nothing of its own on an EtherCAT link."""
+    with contextlib.suppress(OSError), open(f"/proc/sys/net/ipv6/conf/{interface}/disable_ipv6", "w") as f:
+        f.write("1")
+
+
+def bring_up(interface: str) -> None:
+    """Set ``interface`` up with IPv6 off."""
+    disable_ipv6(interface)
+    siocgifflags, siocsifflags, iff_up = 0x8913, 0x8914, 0x1
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        request = struct.pack("16sH14x", interface.encode(), 0)
+        flags = struct.unpack("16sH14x", fcntl.ioctl(s.fileno(), siocgifflags, request))[1]
+        fcntl.ioctl(s.fileno(), siocsifflags, struct.pack("16sH14x", interface.encode(), flags | iff_up))

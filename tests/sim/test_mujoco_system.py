@@ -54,7 +54,7 @@ def test_joints_have_armature_damping_and_friction(system, sim_robot):
 def test_physics_runs_at_1khz_with_5_substeps_per_200hz_tick(system):
     assert system.model.opt.timestep == 0.001
     assert system.substeps == 5
-    assert system.control_period == pytest.approx(0.005)
+    assert system.period == pytest.approx(0.005)
 
 
 def test_one_write_advances_exactly_one_control_period(sim_robot):
@@ -67,7 +67,7 @@ def test_one_write_advances_exactly_one_control_period(sim_robot):
 
 def test_rates_that_are_not_a_whole_multiple_are_refused(sim_robot):
     with pytest.raises(PrimeError, match="whole multiple"):
-        MujocoSystem(sim_robot, physics_rate=1000.0, control_rate=300.0)
+        MujocoSystem(sim_robot, physics_rate=1000.0, update_rate=300.0)
 
 
 def test_description_limits_override_a_range_written_in_the_model(tmp_path, sim_robot):

@@ -37,7 +37,7 @@ def test_the_summary_counts_20_simulated_seconds_at_200_hz(demo):
     summary = demo[1]
     assert summary["sim_seconds"] == 20.0
     assert summary["ticks"] == 4000
-    assert (summary["control_rate_hz"], summary["physics_rate_hz"]) == (200.0, 1000.0)
+    assert (summary["update_rate"], summary["physics_rate"]) == (200.0, 1000.0)
 
 
 def test_the_summary_reports_timing(demo):

@@ -20,8 +20,8 @@ from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.sito.system import SitoSystem
 from humanoid_prime.virtual.sito import InertiaPlant, Plant, SitoEmulator
 
-CONTROL_RATE = 50.0
-PERIOD = 1.0 / CONTROL_RATE
+UPDATE_RATE = 50.0
+PERIOD = 1.0 / UPDATE_RATE
 SITO_IDS = (22, 23, 38, 39)
 
 
@@ -44,7 +44,7 @@ class Rig:
         self.plants = plants or {name: InertiaPlant() for name in robot.hardware.sito_joints}
         self.emulator = SitoEmulator.for_robot(robot, self.emulator_bus, self.plants)
         self.system = SitoSystem(robot, calibration or identity_calibration(robot.hardware),
-                                 control_rate=CONTROL_RATE, bus=self.host_bus, clock=lambda: self.emulator.time,
+                                 update_rate=UPDATE_RATE, bus=self.host_bus, clock=lambda: self.emulator.time,
                                  **system_options)
         self.command = CommandArrays(robot.n)
         self.state = StateArrays(robot.n)

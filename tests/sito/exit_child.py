@@ -20,7 +20,7 @@ def main() -> None:
     group, port, how = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     robot = load_robot()
     bus = can.Bus(interface="udp_multicast", channel=group, port=port)
-    system = SitoSystem(robot, identity_calibration(robot.hardware), control_rate=50.0, bus=bus,
+    system = SitoSystem(robot, identity_calibration(robot.hardware), update_rate=50.0, bus=bus,
                         rx_timeout_ms=2000.0)
     system.configure()
     system.activate()

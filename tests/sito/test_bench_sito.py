@@ -5,7 +5,7 @@ from humanoid_prime.bench.sito import TARGET_LOAD_PERCENT, bench_sito
 
 def test_bench_sito_reports_cost_and_load_at_50_hz():
     result = bench_sito(seconds=0.5)
-    assert (result["motors"], result["control_rate_hz"], result["ticks"]) == (4, 50.0, 25)
+    assert (result["motors"], result["update_rate"], result["ticks"]) == (4, 50.0, 25)
     assert 0 < result["read_write_us"]["median"] <= result["read_write_us"]["p99"]
     assert 0 < result["read_write_warm_us"]["median"] <= result["read_write_warm_us"]["p99"]
     assert result["flags"] == {}

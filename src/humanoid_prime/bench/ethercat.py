@@ -113,12 +113,12 @@ def bench_ethercat(*, bringup_rates_hz: tuple[float, ...] = (50.0, 1000.0), cycl
     calibration = load_calibration(robot.hardware)
     update_rate = controllers.update_rate
     positions = sorted(robot.hardware.erob_slaves.values())
-    report: dict[str, Any] = {"update_rate_hz": update_rate, "slaves": len(positions),
+    report: dict[str, Any] = {"update_rate": update_rate, "slaves": len(positions),
                               "target_bringup_s": TARGET_BRINGUP_S, "bringup": {}}
     for rate in bringup_rates_hz:
         with EmulatedRing(slaves=len(positions)) as ring:
-            master = SoemMaster(ring.master_interface, update_rate_hz=update_rate, bringup_rate_hz=rate)
-            system = EthercatSystem(robot, calibration, update_rate_hz=update_rate, bringup_rate_hz=rate,
+            master = SoemMaster(ring.master_interface, update_rate=update_rate, bringup_rate=rate)
+            system = EthercatSystem(robot, calibration, update_rate=update_rate, bringup_rate=rate,
                                     master=master)
             system.indices = robot.indices("erob")
             try:

@@ -27,7 +27,7 @@ from humanoid_prime.drivers.sito.protocol import HOST_FRAME_TYPES
 from humanoid_prime.drivers.sito.system import SitoSystem
 from humanoid_prime.virtual.sito import InertiaPlant, SitoEmulator
 
-CONTROL_RATE = 50.0
+UPDATE_RATE = 50.0
 WARM_TICKS = 2000
 _HOST_TYPES = frozenset(int(t) for t in HOST_FRAME_TYPES)
 
@@ -46,12 +46,12 @@ def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
     emulator_bus, host_bus, sniffer = buses
     plants = {name: InertiaPlant(gravity_torque=0.3, coulomb_friction=0.02) for name in robot.hardware.sito_joints}
     emulator = SitoEmulator.for_robot(robot, emulator_bus, plants)
-    system = SitoSystem(robot, identity_calibration(robot.hardware), control_rate=CONTROL_RATE, bus=host_bus)
+    system = SitoSystem(robot, identity_calibration(robot.hardware), update_rate=UPDATE_RATE, bus=host_bus)
     command, state = CommandArrays(robot.n), StateArrays(robot.n)
     idx = system.indices
     command.stiffness[idx] = 20.0
     command.damping[idx] = 2.0
-    period = 1.0 / CONTROL_RATE
+    period = 1.0 / UPDATE_RATE
     paced: list[int] = []
     warm: list[int] = []
     try:
@@ -61,7 +61,7 @@ def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
         while sniffer.recv(0.0) is not None:  # activation traffic is not steady state
             pass
         start = time.monotonic()
-        ticks = round(seconds * CONTROL_RATE)
+        ticks = round(seconds * UPDATE_RATE)
         for k in range(ticks):
             t = k * period
             command.position[idx] = 0.2 * math.sin(math.pi * t)
@@ -95,12 +95,12 @@ def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
         for bus in buses:
             bus.shutdown()
 
-    host_seconds = ticks / CONTROL_RATE  # host traffic is per tick: normalise to exactly 50 Hz
+    host_seconds = ticks / UPDATE_RATE  # host traffic is per tick: normalise to exactly 50 Hz
     host_load = 100.0 * host_bits / host_seconds / bitrate
     feedback_load = 100.0 * feedback_bits / wall / bitrate
     return {
         "motors": len(system.can_ids),
-        "control_rate_hz": CONTROL_RATE,
+        "update_rate": UPDATE_RATE,
         "ticks": ticks,
         "read_write_us": _percentiles(paced),
         "read_write_warm_us": _percentiles(warm),

@@ -23,8 +23,8 @@ from humanoid_prime.drivers.erob.objects import (
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
+from humanoid_prime.drivers.ethercat.sdo import SdoClient
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.runtime.socket import SdoClient
 
 REGISTER_NAMES = {POS_LOOP_GAIN: "pos_reg 0x2382:01", VEL_LOOP_GAIN: "vel_reg 0x2381:01",
                   VEL_LOOP_INTEGRAL: "integral 0x2381:02", BUS_GAIN_GATE: "gate 0x2383"}

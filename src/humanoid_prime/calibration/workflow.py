@@ -18,28 +18,22 @@ from typing import Any
 from humanoid_prime.calibration.math import JointReport, MirrorRow, calibrate_from_sweeps, mirror_check
 from humanoid_prime.calibration.tracker import SweepRow, SweepTracker
 from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
-from humanoid_prime.config.description import ETHERCAT_BLOCK, SITO_BLOCK
+from humanoid_prime.config.description import BACKEND_BLOCKS
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.runtime.session import BringupOptions
 
 VERIFY_TOLERANCE_RAD = 0.002
 
 
 def tracked_joints(robot: Robot, backends: str) -> tuple[str, ...]:
     """The joints a run on ``backends`` sees: the description's EtherCAT block, its CAN block, or both."""
-    blocks = {"ec": (ETHERCAT_BLOCK,), "can": (SITO_BLOCK,), "all": (ETHERCAT_BLOCK, SITO_BLOCK)}[backends]
-    joints = {j for name in blocks for j in robot.description.block(name).joints}
+    joints = {j for name in BACKEND_BLOCKS[backends] for j in robot.description.block(name).joints}
     return tuple(j for j in robot.names if j in joints)
 
 
 def identity_from(prior: Calibration) -> Calibration:
     """Directions of ``prior`` (a wiring fact), offsets 0: the frame the sweep is sampled in."""
     return Calibration({j: JointCalibration(c.direction, 0.0) for j, c in prior.joints.items()})
-
-
-def bringup_options(backends: str, calibration: Calibration, **overrides: Any) -> BringupOptions:
-    return BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True, **overrides)
 
 
 def check_joint_names(robot: Robot, joints: Sequence[str], allowed: Sequence[str], what: str) -> None:

@@ -20,15 +20,9 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.session import (
-    BACKENDS,
-    BringupOptions,
-    control_server,
-    measure_stiffness,
-    open_session,
-    run_loop,
-    stop_on_signals,
-)
+from humanoid_prime.runtime.run import run_loop
+from humanoid_prime.runtime.session import BACKENDS, BringupOptions, Session, control_server, open_session, plan_session
+from humanoid_prime.runtime.signals import stop_on_signals
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -81,7 +75,6 @@ def _modes(text: str | None) -> list[Mode]:
 def options_from_args(args: argparse.Namespace) -> BringupOptions:
     if args.duration is not None and not args.duration > 0:
         raise PrimeError(f"--duration must be > 0 seconds, got {args.duration}")
-    emulator = ring_options(args, **{"--load-test": args.load_test})
     sequence = _modes(args.sequence)
     initial = _modes(args.mode)
     if len(initial) > 1:
@@ -89,27 +82,40 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
     if (sequence or initial) and args.backends != "all":
         raise PrimeError(f"--backends {args.backends} runs only the joint-state broadcaster; modes need --backends all")
     return BringupOptions(
-        backends=args.backends, emulate=args.emulate, hardware_file=args.hardware,
+        backends=args.backends, emulated=args.emulate, hardware_file=args.hardware,
         calibration_file=args.calibration, controllers_file=args.controllers, interface=args.interface,
         can_interface=args.can_interface, can_channel=args.can_channel, sync0_period_s=args.sync0_period,
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
         duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
-        truth_file=args.truth,
-        erob_config_dir=args.erob_config_dir, control_socket=args.socket, ring_options=emulator)
+        erob_config_dir=args.erob_config_dir, control_socket=args.socket)
 
 
 def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
-    if options.emulate:
+    ring = ring_options(args, **{"--load-test": args.load_test})
+    if options.emulated:
         from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()  # re-executes this command in a private network namespace (returns inside)
     stop = threading.Event()
     report = print if not args.json else (lambda *a, **k: None)
+    emulator: dict = {}
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
-        session = open_session(options, stack)
+        plan = plan_session(options)
+        virtual = None
+        if options.emulated:
+            from humanoid_prime.virtual.harness import attach_virtual_prime
+
+            t = time.monotonic()
+            virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth,
+                                           ring_options=ring, record=emulator)
+            options.interface = virtual.master_interface
+            options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+            plan.stage("virtual prime", t)
+        session = open_session(plan, stack)
+        session.reports.update(load_test=[], emulator=emulator)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
-               f"{', emulated' if options.emulate else ''}):")
+               f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
             report(f"  {name:<28} {seconds * 1e3:9.1f} ms")
         stack.enter_context(control_server(session, options.control_socket))
@@ -117,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         if args.load_test:
             joints = (session.robot.hardware.erob_joints if args.load_test == "all"
                       else [j.strip() for j in args.load_test.split(",") if j.strip()])
-            load_test = _start_load_test(session, joints, stop)
+            load_test = _start_load_test(session, virtual, joints, stop)
         if sys.stdout.isatty() and not args.no_live and not args.json:
             from humanoid_prime.cli._live import LiveTable, ModeKeys
 
@@ -145,12 +151,14 @@ def _refuse(mode: Mode) -> None:
     """Mode keys in a broadcaster-only run: nothing to switch."""
 
 
-def _start_load_test(session, joints: list[str], stop: threading.Event) -> threading.Thread:
+def _start_load_test(session: Session, virtual, joints: list[str], stop: threading.Event) -> threading.Thread:
+    from humanoid_prime.virtual.load_test import measure_stiffness
+
     def work() -> None:
         try:
             session.manager.request_mode(Mode.STANDBY)
             time.sleep(session.config.standby.duration + 1.0)
-            session.load_test.extend(measure_stiffness(session, joints, stop=stop))
+            session.reports["load_test"].extend(measure_stiffness(session, virtual.control, joints, stop=stop))
         except PrimeError as exc:
             session.faults["load_test"] = str(exc)
         finally:
@@ -168,7 +176,7 @@ def _print_report(summary: dict) -> None:
               f"skew {switch['skew_seconds'] * 1e3:5.1f} ms, retries {switch['retries']}: {state}")
     tick, jitter = summary["tick_us"], summary["jitter_us"]
     if summary["ticks"]:
-        print(f"loop: {summary['ticks']} ticks at {summary['update_rate_hz']:g} Hz, "
+        print(f"loop: {summary['ticks']} ticks at {summary['update_rate']:g} Hz, "
               f"tick median {tick['median']:.0f} us p99 {tick['p99']:.0f} us, "
               f"period jitter p99 {jitter['p99']:.0f} us, overruns {summary['overruns']}")
     for row in summary["load_test"]:

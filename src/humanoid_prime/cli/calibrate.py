@@ -20,7 +20,6 @@ from humanoid_prime.calibration.workflow import (
     VERIFY_TOLERANCE_RAD,
     CalibrationResult,
     VerifyRow,
-    bringup_options,
     check_joint_names,
     compute,
     identity_from,
@@ -39,7 +38,16 @@ from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.runtime.session import BACKENDS, Session, control_server, open_session, run_loop, stop_on_signals
+from humanoid_prime.runtime.run import run_loop
+from humanoid_prime.runtime.session import (
+    BACKENDS,
+    BringupOptions,
+    Session,
+    control_server,
+    open_session,
+    plan_session,
+)
+from humanoid_prime.runtime.signals import stop_on_signals
 
 READOUT_HZ = 5.0
 
@@ -93,11 +101,29 @@ def run(args: argparse.Namespace) -> int:
         from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()
-    overrides = dict(emulate=args.emulate, hardware_file=args.hardware, controllers_file=args.controllers,
-                     truth_file=args.truth, control_socket=args.socket, ring_options=emulator)
     if args.verify:
-        return _verify(args, checked, overrides)
-    return _calibrate(args, prior, overrides)
+        return _verify(args, checked, emulator)
+    return _calibrate(args, prior, emulator)
+
+
+def _open(args: argparse.Namespace, calibration: Any, ring: dict[str, Any],
+          stack: contextlib.ExitStack) -> tuple[Session, Any]:
+    """A broadcaster-only session on the chosen buses with ``calibration``, on the virtual Prime with
+    --emulate; returns the session and the virtual Prime (None on the robot)."""
+    options = BringupOptions(backends=args.backends, calibration=calibration, broadcaster_only=True,
+                             emulated=args.emulate, hardware_file=args.hardware,
+                             controllers_file=args.controllers, control_socket=args.socket)
+    plan = plan_session(options)
+    virtual = None
+    if args.emulate:
+        from humanoid_prime.virtual.harness import attach_virtual_prime
+
+        t = time.monotonic()
+        virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring)
+        options.interface = virtual.master_interface
+        options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+        plan.stage("virtual prime", t)
+    return open_session(plan, stack), virtual
 
 
 class _Readout:
@@ -124,13 +150,13 @@ class _Readout:
         return table
 
 
-def _calibrate(args: argparse.Namespace, prior: Any, overrides: dict[str, Any]) -> int:
+def _calibrate(args: argparse.Namespace, prior: Any, ring: dict[str, Any]) -> int:
     hardware = load_hardware(args.hardware)
     stop = threading.Event()
     console = Console()
     result: CalibrationResult | None = None
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
-        session = open_session(bringup_options(args.backends, identity_from(prior), **overrides), stack)
+        session, virtual = _open(args, identity_from(prior), ring, stack)
         robot = session.robot
         joints = tracked_joints(robot, args.backends)
         scripted = None
@@ -143,7 +169,7 @@ def _calibrate(args: argparse.Namespace, prior: Any, overrides: dict[str, Any]) 
         if not args.json:
             console.print(f"Prime up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
                           f"{len(joints)} joints ({args.backends}).")
-        worker = _start_scripted(session, scripted, stop) if scripted is not None else None
+        worker = _start_scripted(session, virtual, scripted, stop) if scripted is not None else None
         if console.is_terminal and not args.no_live and not args.json:
             stack.enter_context(Live(_Readout(tracker, console), console=console, refresh_per_second=READOUT_HZ))
             if sys.stdin.isatty():
@@ -164,12 +190,12 @@ def _calibrate(args: argparse.Namespace, prior: Any, overrides: dict[str, Any]) 
     return 0
 
 
-def _start_scripted(session: Session, joints: tuple[str, ...], stop: threading.Event) -> threading.Thread:
+def _start_scripted(session: Session, virtual: Any, joints: tuple[str, ...], stop: threading.Event) -> threading.Thread:
     from humanoid_prime.virtual.operator import ScriptedOperator
 
     def work() -> None:
         try:
-            operator = ScriptedOperator(session, stop=stop)
+            operator = ScriptedOperator(session, virtual.control, stop=stop)
             for joint in joints:
                 if stop.is_set():
                     return
@@ -198,18 +224,18 @@ def _report(console: Console, result: CalibrationResult, output: str, hardware_n
                       f"{m.relation:<8} residual {m.residual:+.4f}  {mark}")
 
 
-def _verify(args: argparse.Namespace, calibration: Any, overrides: dict[str, Any]) -> int:
+def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) -> int:
     stop = threading.Event()
     rows: list[VerifyRow] = []
     errors: list[str] = []
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
-        session = open_session(bringup_options(args.backends, calibration, **overrides), stack)
+        session, virtual = _open(args, calibration, ring, stack)
         robot = session.robot
         joints = tracked_joints(robot, args.backends)
         chosen = tuple(_joint_list(args.joints)) or joints
         check_joint_names(robot, chosen, joints, "--joints")
         stack.enter_context(control_server(session, args.socket))
-        worker = threading.Thread(target=_verify_joints, args=(session, chosen, rows, errors, stop, args.emulate),
+        worker = threading.Thread(target=_verify_joints, args=(session, virtual, chosen, rows, errors, stop),
                                   name="verify", daemon=True)
         worker.start()
         run_loop(session, stop)
@@ -231,14 +257,14 @@ def _verify(args: argparse.Namespace, calibration: Any, overrides: dict[str, Any
     return 0 if ok else 1
 
 
-def _verify_joints(session: Session, joints: tuple[str, ...], rows: list[VerifyRow], errors: list[str],
-                   stop: threading.Event, emulated: bool) -> None:
+def _verify_joints(session: Session, virtual: Any, joints: tuple[str, ...], rows: list[VerifyRow],
+                   errors: list[str], stop: threading.Event) -> None:
     robot: Robot = session.robot
     try:
-        if emulated:
+        if virtual is not None:
             from humanoid_prime.virtual.operator import ScriptedOperator
 
-            operator = ScriptedOperator(session, stop=stop)
+            operator = ScriptedOperator(session, virtual.control, stop=stop)
             for joint in joints:
                 spec = robot.joints[robot.index(joint)]
                 with operator.limp(joint):

@@ -114,8 +114,8 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
     hw = robot.hardware
     joints = {pos: joint for joint, pos in hw.erob_slaves.items()}
     update_rate, bringup_rate = _rates(args, robot)
-    master = SoemMaster(args.interface or hw.ethercat.interface, update_rate_hz=update_rate,
-                        bringup_rate_hz=bringup_rate)
+    master = SoemMaster(args.interface or hw.ethercat.interface, update_rate=update_rate,
+                        bringup_rate=bringup_rate)
     report["interface"] = master.interface
     with master:
         found = master.open()
@@ -240,8 +240,8 @@ def _session(args: argparse.Namespace):
     if not 0 <= args.ring < len(robot.hardware.erob_slaves):
         raise PrimeError(f"ring position {args.ring} is not on the ring of {robot.hardware.path.name} "
                          f"(0..{len(robot.hardware.erob_slaves) - 1})")
-    return open_sdo(args.backend, robot, interface=args.interface, update_rate_hz=update_rate,
-                    bringup_rate_hz=bringup_rate)
+    return open_sdo(args.backend, robot, interface=args.interface, update_rate=update_rate,
+                    bringup_rate=bringup_rate)
 
 
 def run_sdo_read(args: argparse.Namespace) -> int:

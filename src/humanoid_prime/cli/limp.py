@@ -12,8 +12,9 @@ from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.cli._common import add_config_options, add_json_option, add_socket_option, print_json
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.drivers.erob.gains import registers_to_gains, vel_reg_exact
+from humanoid_prime.drivers.ethercat.sdo import SdoClient
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.runtime.socket import SdoClient, SocketSdoClient
+from humanoid_prime.runtime.socket import SocketSdoClient
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

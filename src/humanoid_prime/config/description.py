@@ -17,6 +17,12 @@ STATE_INTERFACES = ("position", "velocity", "effort")
 ETHERCAT_BLOCK = "PrimeEtherCATSide"
 SITO_BLOCK = "PrimeSitoCAN"
 MUJOCO_BLOCK = "MujocoSystem"
+# The buses a run brings up, by the --backends name, as the description's hardware blocks.
+BACKEND_BLOCKS: dict[str, tuple[str, ...]] = {
+    "all": (ETHERCAT_BLOCK, SITO_BLOCK),
+    "ec": (ETHERCAT_BLOCK,),
+    "can": (SITO_BLOCK,),
+}
 
 
 @dataclass(frozen=True)

@@ -39,9 +39,9 @@ from humanoid_prime.drivers.erob.objects import (
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
+from humanoid_prime.drivers.ethercat.sdo import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.socket import SdoClient
 
 
 @dataclass(frozen=True)

@@ -19,19 +19,11 @@ import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
+from humanoid_prime.drivers.ethercat.sdo import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-
-
-class SdoClient(Protocol):
-    """Blocking SDO access by ring position (a master, the IgH adapter, or this socket's client)."""
-
-    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes: ...
-
-    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None: ...
-
 
 SOCKET_ENV = "PRIME_CONTROL_SOCKET"
 

@@ -18,13 +18,16 @@ from typing import Any
 
 import numpy as np
 
+from humanoid_prime.config.calibration import identity_calibration
 from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.config.description import MUJOCO_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import gain_rows, pose_array
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import MitCommand, TopicBus
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.registry import ComponentSettings, build_components
 
 
 @dataclass(frozen=True)
@@ -95,9 +98,11 @@ class RemoteStream:
 
 def build_simulation(robot: Robot, config: ControllersConfig, *, initial_pose: Mapping[str, float] | None = None,
                      model_path: str | Path | None = None) -> tuple[MujocoSystem, ControllerManager]:
-    """A ``MujocoSystem`` at the simulation rates of ``config`` and a controller manager over it (not started)."""
-    system = MujocoSystem(robot, physics_rate=config.physics_rate, control_rate=config.sim_update_rate,
-                          model_path=model_path, initial_pose=initial_pose)
+    """The description's ``MujocoSystem`` block at the simulation rates of ``config`` and a controller manager
+    over it (not started)."""
+    settings = ComponentSettings(robot, identity_calibration(robot.hardware), update_rate=config.sim_update_rate,
+                                 physics_rate=config.physics_rate, model_path=model_path, initial_pose=initial_pose)
+    (system,) = build_components((MUJOCO_BLOCK,), settings)
     manager = ControllerManager(robot, [system], config, update_rate=config.sim_update_rate, clock=time.perf_counter)
     return system, manager
 
@@ -142,7 +147,7 @@ class Simulation:
         self.following_schedule = False
 
     def _follow_schedule(self, now: float) -> None:
-        half_period = 0.5 * self.system.control_period
+        half_period = 0.5 * self.system.period
         while self._next < len(self.schedule) and self.schedule[self._next].at <= now + half_period:
             mode = self.schedule[self._next].mode
             self._next += 1
@@ -153,7 +158,7 @@ class Simulation:
             on_tick: Callable[[], None] | None = None) -> None:
         """Tick for ``duration`` simulated seconds (None: until ``stop`` is set or Ctrl-C)."""
         system, manager, stream, lock = self.system, self.manager, self.stream, self.lock
-        period = system.control_period
+        period = system.period
         total = None if duration is None else max(1, round(duration / period))
         began = self._running_since = time.perf_counter()
         origin = began
@@ -206,8 +211,8 @@ class Simulation:
             "tick_us": stats["tick_us"],
             "overruns": stats["overruns"],
             "fallbacks": list(manager.fallbacks),
-            "control_rate_hz": system.control_rate,
-            "physics_rate_hz": system.physics_rate,
+            "update_rate": system.update_rate,
+            "physics_rate": system.physics_rate,
             "stages": [{"stage": name, "seconds": round(seconds, 6)} for name, seconds in manager.stages],
             "stopped_by": self.stopped_by,
         }

@@ -9,6 +9,7 @@ multicast route for the CAN bus, and starts the virtual Prime process on the oth
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -16,6 +17,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SOCKET_ENV, default_socket_path
 from humanoid_prime.virtual.netns import EmulatedRing, EmulationUnavailable, ip, netns_unavailable_reason
 
@@ -93,3 +96,32 @@ class VirtualPrime(EmulatedRing):
         if self.pose:
             command += ["--pose", ",".join(f"{j}={v!r}" for j, v in self.pose.items())]
         return command
+
+
+def attach_virtual_prime(stack: contextlib.ExitStack, *, hardware_file: str | Path | None = None,
+                         truth_file: str | Path | None = None, ring_options: Mapping[str, Any] | None = None,
+                         record: dict[str, Any] | None = None) -> VirtualPrime:
+    """Start the virtual Prime (robot at the demonstration's start pose) on ``stack``. With ``record``, what
+    the drives themselves recorded (final state, gain-register writes) is put there at teardown, after
+    everything entered on ``stack`` later has been closed (gate reset, drives disabled)."""
+    from humanoid_prime.sim.demo import START_POSE
+
+    virtual = stack.enter_context(VirtualPrime(hardware_file=hardware_file, truth_file=truth_file, pose=START_POSE,
+                                               **dict(ring_options or {})))
+    if record is not None:
+        stack.callback(_record_emulator, virtual, record)
+    return virtual
+
+
+_GAIN_OBJECTS = {POS_LOOP_GAIN[0], VEL_LOOP_GAIN[0], BUS_GAIN_GATE[0]}
+
+
+def _record_emulator(virtual: VirtualPrime, record: dict[str, Any]) -> None:
+    """The drives' final state and their log of gain-register writes, as the emulator saw them."""
+    with contextlib.suppress(PrimeError):
+        slaves = virtual.control.call("status")
+        record["slaves"] = [{"position": s["position"], "al_state": s["al_state"],
+                             "mailbox_faults": s["mailbox_faults"], "error_history": s["drive"]["error_history"],
+                             **{k: s["drive"][k] for k in ("gate", "pos_reg", "vel_reg", "integral")}}
+                            for s in slaves]
+        record["sdo_log"] = [e for e in virtual.control.call("sdo_log") if e["index"] in _GAIN_OBJECTS]

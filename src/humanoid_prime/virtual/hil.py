@@ -65,7 +65,7 @@ class HilSimulation:
             self.buses.append(emulator_bus)
             self._host_bus = _HostBus(self.channel)
             self.buses.append(self._host_bus)
-            self.system = MujocoSystem(robot, physics_rate=config.physics_rate, control_rate=config.sim_update_rate,
+            self.system = MujocoSystem(robot, physics_rate=config.physics_rate, update_rate=config.sim_update_rate,
                                        model_path=model_path, initial_pose=initial_pose,
                                        joints=robot.hardware.erob_joints, advance=self._advance)
             model, data = self.system.model, self.system.data
@@ -75,7 +75,7 @@ class HilSimulation:
             # The world stands still until the loop runs: start() attaches world_step.
             self.emulator = SitoEmulator.for_robot(robot, emulator_bus, plants, rate_hz=self.system.physics_rate)
             self._world_step = lambda dt: mujoco.mj_step(model, data)
-            self.sito = SitoSystem(robot, calibration, control_rate=config.sim_update_rate, bus=self._host_bus,
+            self.sito = SitoSystem(robot, calibration, update_rate=config.sim_update_rate, bus=self._host_bus,
                                    clock=self._firmware_time)
             self.manager = ControllerManager(robot, [self.sito, self.system], config,
                                              update_rate=config.sim_update_rate, clock=time.perf_counter)

@@ -18,6 +18,8 @@ from collections.abc import Iterator
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.drivers.erob.gains import vel_reg_exact
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.session import Session
+from humanoid_prime.virtual.ring.control import RingControl
 
 PUSH_FRACTION = 0.5  # of the joint's effort limit: the most the hand pushes; overcomes gravity on every joint
 HAND_SPEED_RAD_S = 1.0  # how fast the hand moves a joint toward a stop, as a person does
@@ -26,14 +28,14 @@ REST_S = 0.3
 
 
 class ScriptedOperator:
-    def __init__(self, session: object, *, limp_kd: float = 2.0, timeout_s: float = 3.0,
+    """Moves joints of the running ``session`` by hand through the virtual Prime's ``control`` channel."""
+
+    def __init__(self, session: Session, control: RingControl, *, limp_kd: float = 2.0, timeout_s: float = 3.0,
                  stop: threading.Event | None = None) -> None:
         self.session = session
         self.robot = session.robot
         self.manager = session.manager
-        if session.virtual is None:
-            raise PrimeError("the scripted operator needs the virtual Prime (--emulate)")
-        self.control = session.virtual.control
+        self.control = control
         self.limp_kd = limp_kd
         self.timeout_s = timeout_s
         self.stop = stop or threading.Event()  # set when the run ends: let go at once

@@ -36,9 +36,9 @@ def erob_ring(n: int = 10) -> list[SlaveInfo]:
 
 
 class FakeMaster(EthercatMaster):
-    def __init__(self, slaves: Sequence[SlaveInfo] | None = None, *, update_rate_hz: float = 50.0,
-                 bringup_rate_hz: float = 1000.0, op_after_frames: int = 3, **options) -> None:
-        super().__init__("fake0", update_rate_hz=update_rate_hz, bringup_rate_hz=bringup_rate_hz, **options)
+    def __init__(self, slaves: Sequence[SlaveInfo] | None = None, *, update_rate: float = 50.0,
+                 bringup_rate: float = 1000.0, op_after_frames: int = 3, **options) -> None:
+        super().__init__("fake0", update_rate=update_rate, bringup_rate=bringup_rate, **options)
         self.found = list(slaves) if slaves is not None else erob_ring()
         n = len(self.found)
         self.op_after_frames = op_after_frames

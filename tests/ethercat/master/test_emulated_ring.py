@@ -22,7 +22,7 @@ from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 REASON = netns_unavailable_reason()
 pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"no emulated ring: {REASON}")]
 
-UPDATE_RATE_HZ = 50.0
+UPDATE_RATE = 50.0
 
 
 def wait_for(condition, timeout_s: float = 5.0, what: str = "condition") -> None:
@@ -50,7 +50,7 @@ class Loop:
             self.system.read(0.0, self.state)
             self.system.write(0.0, self.command)
             self.ticks += 1
-            next_tick += 1.0 / UPDATE_RATE_HZ
+            next_tick += 1.0 / UPDATE_RATE
             self._stop.wait(max(0.0, next_tick - time.monotonic()))
 
     def __enter__(self) -> Loop:
@@ -69,9 +69,9 @@ def ring():
 
 
 def make_system(robot, ring, calibration=None, **master_options) -> EthercatSystem:
-    master = SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ, bringup_rate_hz=1000.0,
+    master = SoemMaster(ring.master_interface, update_rate=UPDATE_RATE, bringup_rate=1000.0,
                         **master_options)
-    system = EthercatSystem(robot, calibration or load_calibration(robot.hardware), update_rate_hz=UPDATE_RATE_HZ,
+    system = EthercatSystem(robot, calibration or load_calibration(robot.hardware), update_rate=UPDATE_RATE,
                             master=master)
     system.indices = robot.indices("erob")
     return system
@@ -153,7 +153,7 @@ def test_the_products_bringup_never_faults_a_drive_with_0xa000(system, ring):
 
 
 def test_an_sdo_before_op_is_refused_by_the_master(robot, ring):
-    master = SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ)
+    master = SoemMaster(ring.master_interface, update_rate=UPDATE_RATE)
     with master:
         master.open()
         with pytest.raises(SdoRefused, match="0xA000"):
@@ -162,7 +162,7 @@ def test_an_sdo_before_op_is_refused_by_the_master(robot, ring):
 
 
 def test_an_sdo_forced_during_activation_faults_the_drive_with_0xa000(robot, ring):
-    master = SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ, bringup_rate_hz=1000.0)
+    master = SoemMaster(ring.master_interface, update_rate=UPDATE_RATE, bringup_rate=1000.0)
     cycles = []
 
     def sdo_during_activation(m: SoemMaster) -> None:
@@ -184,7 +184,7 @@ def test_an_sdo_forced_during_activation_faults_the_drive_with_0xa000(robot, rin
 
 def test_a_sync0_that_differs_from_the_loop_is_refused_before_the_ring_is_touched(ring):
     with pytest.raises(Exception, match="never locks.*4616"):
-        SoemMaster(ring.master_interface, update_rate_hz=UPDATE_RATE_HZ, sync0_period_s=0.005)
+        SoemMaster(ring.master_interface, update_rate=UPDATE_RATE, sync0_period_s=0.005)
     assert [s["al_state"] for s in ring.control.status()] == ["INIT"] * 10
 
 

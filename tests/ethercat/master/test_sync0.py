@@ -37,13 +37,13 @@ def test_a_cycle_below_the_erob_minimum_of_500_us_is_refused():
 
 def test_the_master_refuses_a_mismatched_sync0_when_constructed():
     with pytest.raises(PrimeError, match="4616"):
-        FakeMaster(update_rate_hz=50.0, sync0_period_s=0.001)
+        FakeMaster(update_rate=50.0, sync0_period_s=0.001)
 
 
 def test_the_master_derives_sync0_from_the_update_rate():
-    assert FakeMaster(update_rate_hz=50.0).sync0_ns == 20_000_000
+    assert FakeMaster(update_rate=50.0).sync0_ns == 20_000_000
 
 
 def test_the_unsafe_override_is_used_as_given():
-    master = FakeMaster(update_rate_hz=50.0, unsafe_sync0_period_s=0.001)
+    master = FakeMaster(update_rate=50.0, unsafe_sync0_period_s=0.001)
     assert (master.cycle_ns, master.sync0_ns) == (20_000_000, 1_000_000)

@@ -25,7 +25,7 @@ class Rig:
         self.robot = robot
         self.master = master or FakeMaster()
         calibration = calibration or load_calibration(robot.hardware)
-        self.system = EthercatSystem(robot, calibration, update_rate_hz=50.0, master=self.master,
+        self.system = EthercatSystem(robot, calibration, update_rate=50.0, master=self.master,
                                      config_dir=tmp_path)
         self.system.indices = robot.indices("erob")
         self.command = CommandArrays(robot.n)

@@ -24,6 +24,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,7 +32,9 @@ from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state,
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.runtime.socket import SdoClient
+
+if TYPE_CHECKING:
+    from humanoid_prime.drivers.ethercat.sdo import SdoClient
 
 RX_DTYPE = np.dtype([(e.name, "<" + e.fmt) for e in RXPDO])  # 13 bytes per slave, packed
 TX_DTYPE = np.dtype([(e.name, "<" + e.fmt) for e in TXPDO])  # 15 bytes per slave, packed
@@ -116,11 +119,11 @@ class BringupReport:
 
     seconds: float
     cycles: int
-    bringup_rate_hz: float
+    bringup_rate: float
     sync0_period_ns: int
 
     def as_dict(self) -> dict:
-        return {"seconds": self.seconds, "cycles": self.cycles, "bringup_rate_hz": self.bringup_rate_hz,
+        return {"seconds": self.seconds, "cycles": self.cycles, "bringup_rate": self.bringup_rate,
                 "sync0_period_ns": self.sync0_period_ns}
 
 
@@ -175,25 +178,25 @@ def check_ring(found: Sequence[SlaveInfo], expected: Sequence[ExpectedSlave], in
                         + f" (found ring: {seen}); fix the cabling order or the ring positions in the hardware file")
 
 
-def sync0_period_ns(update_rate_hz: float, *, sync0_period_s: float | None = None) -> int:
+def sync0_period_ns(update_rate: float, *, sync0_period_s: float | None = None) -> int:
     """The SYNC0 cycle in ns: the loop period, 1/update_rate; an override must equal it.
 
     The distributed clock is driven by the loop's frames, so SYNC0 and the loop period are one number.
     A SYNC0 faster than the frame rate never locks and the drives fault (statusword 4616, DESIGN §3).
     """
-    if isinstance(update_rate_hz, bool) or not isinstance(update_rate_hz, (int, float)) \
-            or not math.isfinite(update_rate_hz) or update_rate_hz <= 0:
-        raise PrimeError(f"update_rate must be a positive number of Hz, got {update_rate_hz!r}")
-    period_ns = round(1e9 / update_rate_hz)
+    if isinstance(update_rate, bool) or not isinstance(update_rate, (int, float)) \
+            or not math.isfinite(update_rate) or update_rate <= 0:
+        raise PrimeError(f"update_rate must be a positive number of Hz, got {update_rate!r}")
+    period_ns = round(1e9 / update_rate)
     if period_ns < round(MIN_CYCLE_S * 1e9):
-        raise PrimeError(f"update_rate {update_rate_hz:g} Hz gives a {period_ns / 1e3:g} us cycle, below the eRob "
+        raise PrimeError(f"update_rate {update_rate:g} Hz gives a {period_ns / 1e3:g} us cycle, below the eRob "
                          f"minimum of {MIN_CYCLE_S * 1e6:g} us; use at most {1 / MIN_CYCLE_S:g} Hz")
     if sync0_period_s is not None:
         requested_ns = round(sync0_period_s * 1e9) if math.isfinite(sync0_period_s) else -1
         if requested_ns != period_ns:
             raise PrimeError(
                 f"sync0_period {sync0_period_s * 1e3:g} ms differs from the loop period {period_ns / 1e6:g} ms "
-                f"(1/update_rate, {update_rate_hz:g} Hz): the distributed clock is driven by the loop's frames, so "
+                f"(1/update_rate, {update_rate:g} Hz): the distributed clock is driven by the loop's frames, so "
                 "a SYNC0 faster than the frame rate never locks and the drives fault with statusword 4616 "
                 "(0x1208), and a slower one skips targets; leave sync0_period unset (it is derived from "
                 "update_rate) or change update_rate instead")
@@ -218,16 +221,16 @@ def read_error_history(sdo: SdoClient, position: int) -> list[int]:
 class EthercatMaster(ABC):
     """One EtherCAT ring of eRob drives in CSP, addressed by ring position (0 = first after the master)."""
 
-    def __init__(self, interface: str, *, update_rate_hz: float, bringup_rate_hz: float = 1000.0,
+    def __init__(self, interface: str, *, update_rate: float, bringup_rate: float = 1000.0,
                  sync0_period_s: float | None = None, unsafe_sync0_period_s: float | None = None,
                  bringup_timeout_s: float = 30.0) -> None:
         self.interface = interface
-        self.cycle_ns = sync0_period_ns(update_rate_hz, sync0_period_s=sync0_period_s)
+        self.cycle_ns = sync0_period_ns(update_rate, sync0_period_s=sync0_period_s)
         # Test-only escape hatch: a SYNC0 that differs from the loop period, to reproduce fault 4616.
         self.sync0_ns = self.cycle_ns if unsafe_sync0_period_s is None else round(unsafe_sync0_period_s * 1e9)
-        if not (math.isfinite(bringup_rate_hz) and bringup_rate_hz > 0):
-            raise PrimeError(f"bringup_rate must be a positive number of Hz, got {bringup_rate_hz!r}")
-        self.bringup_rate_hz = float(bringup_rate_hz)
+        if not (math.isfinite(bringup_rate) and bringup_rate > 0):
+            raise PrimeError(f"bringup_rate must be a positive number of Hz, got {bringup_rate!r}")
+        self.bringup_rate = float(bringup_rate)
         self.bringup_timeout_s = bringup_timeout_s
         self.slaves: tuple[SlaveInfo, ...] = ()
         self.outputs = np.zeros(0, RX_DTYPE)
@@ -264,7 +267,7 @@ class EthercatMaster(ABC):
               on_cycle: Callable[[EthercatMaster], None] | None = None) -> BringupReport:
         """Check the ring, map the PDOs, configure DC/SYNC0 and bring every slave to OP.
 
-        The bring-up loop runs at ``bringup_rate_hz`` (independent of the control rate) and keeps every
+        The bring-up loop runs at ``bringup_rate`` (independent of the control rate) and keeps every
         slave's outputs fed while the others join: each cycle the CSP target follows the actual position
         and the controlword keeps the drive disabled. ``on_cycle`` may adjust ``outputs`` before each send.
         """
@@ -279,9 +282,9 @@ class EthercatMaster(ABC):
             raise RingError(f"{type(self).__name__} configured {self.outputs.shape} outputs for {n} slaves")
         self.outputs[:] = 0
         self.outputs["mode_of_operation"] = MODE_CSP
-        period = 1.0 / self.bringup_rate_hz
+        period = 1.0 / self.bringup_rate
         deadline = t0 + self.bringup_timeout_s
-        check_every = max(1, round(self.bringup_rate_hz * 0.01))  # read AL states about every 10 ms
+        check_every = max(1, round(self.bringup_rate * 0.01))  # read AL states about every 10 ms
         cycles = 0
         next_tick = time.monotonic()
         op_requested = False
@@ -316,7 +319,7 @@ class EthercatMaster(ABC):
         self._stop_keeping.clear()
         self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
         self._keeper.start()
-        return BringupReport(time.monotonic() - t0, cycles, self.bringup_rate_hz, self.sync0_ns)
+        return BringupReport(time.monotonic() - t0, cycles, self.bringup_rate, self.sync0_ns)
 
     def close(self) -> None:
         """Stop every thread, leave the slaves in INIT and release the interface."""
@@ -455,7 +458,7 @@ class EthercatMaster(ABC):
         current = [SlaveInfo(s.position, s.name, s.vendor_id, s.product_code, s.revision, int(self.al_state[k]),
                              int(self.al_status_code[k])) for k, s in enumerate(self.slaves)]
         return (f"EtherCAT ring on {self.interface} {what}: {describe_states(current, want)}; "
-                f"SYNC0 {self.sync0_ns / 1e6:g} ms, bring-up loop {self.bringup_rate_hz:g} Hz")
+                f"SYNC0 {self.sync0_ns / 1e6:g} ms, bring-up loop {self.bringup_rate:g} Hz")
 
     # ------------------------------------------------------------------ implementation hooks
     @abstractmethod

@@ -11,13 +11,21 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Protocol
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.ethercat.master import RingError, expected_ring
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.runtime.socket import SdoClient
 
 SDO_BACKENDS = ("soem", "igh")
+
+
+class SdoClient(Protocol):
+    """Blocking SDO access by ring position (a master, the IgH adapter, or a running prime's control socket)."""
+
+    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes: ...
+
+    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None: ...
 
 
 def check_backend(name: str) -> str:
@@ -27,8 +35,8 @@ def check_backend(name: str) -> str:
 
 
 @contextmanager
-def open_sdo(backend: str, robot: Robot, *, interface: str | None = None, update_rate_hz: float = 50.0,
-             bringup_rate_hz: float = 1000.0, ready_timeout_s: float = 2.0) -> Iterator[SdoClient]:
+def open_sdo(backend: str, robot: Robot, *, interface: str | None = None, update_rate: float = 50.0,
+             bringup_rate: float = 1000.0, ready_timeout_s: float = 2.0) -> Iterator[SdoClient]:
     """An SDO client for ``robot``'s ring on ``backend``; the ring must match the hardware file."""
     hw = robot.hardware
     if check_backend(backend) == "igh":
@@ -38,8 +46,8 @@ def open_sdo(backend: str, robot: Robot, *, interface: str | None = None, update
         return
     from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 
-    master = SoemMaster(interface or hw.ethercat.interface, update_rate_hz=update_rate_hz,
-                        bringup_rate_hz=bringup_rate_hz)
+    master = SoemMaster(interface or hw.ethercat.interface, update_rate=update_rate,
+                        bringup_rate=bringup_rate)
     with master:
         master.start(expected_ring(hw.erob_slaves))
         master.exchange()  # process data flows; from here the master's keeper sends it every period

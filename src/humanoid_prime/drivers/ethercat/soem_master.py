@@ -81,11 +81,11 @@ class SoemMaster(EthercatMaster):
 
     supervise_period_s = 0.1  # how often a ring with a slave out of OP is checked again
 
-    def __init__(self, interface: str, *, update_rate_hz: float, bringup_rate_hz: float = 1000.0,
+    def __init__(self, interface: str, *, update_rate: float, bringup_rate: float = 1000.0,
                  sync0_period_s: float | None = None, unsafe_sync0_period_s: float | None = None,
                  bringup_timeout_s: float = 30.0, parallel_sdo: bool = True, sdo_in_flight: int | None = None,
                  sdo_timeout_s: float = 0.7, frame_timeout_us: int = 2000) -> None:
-        super().__init__(interface, update_rate_hz=update_rate_hz, bringup_rate_hz=bringup_rate_hz,
+        super().__init__(interface, update_rate=update_rate, bringup_rate=bringup_rate,
                          sync0_period_s=sync0_period_s, unsafe_sync0_period_s=unsafe_sync0_period_s,
                          bringup_timeout_s=bringup_timeout_s)
         self.parallel_sdo = parallel_sdo

@@ -97,8 +97,8 @@ def _controlword_table(auto_fault_reset: bool) -> np.ndarray:
 class EthercatSystem(HardwareComponent):
     """The eRob joints of ``robot`` (canonical order), each bound to its ring position."""
 
-    def __init__(self, robot: Robot, calibration: Calibration, *, update_rate_hz: float,
-                 bringup_rate_hz: float = 1000.0, master: EthercatMaster | None = None,
+    def __init__(self, robot: Robot, calibration: Calibration, *, update_rate: float,
+                 bringup_rate: float = 1000.0, master: EthercatMaster | None = None,
                  interface: str | None = None, config_dir: str | Path | None = None,
                  enable_timeout_s: float = 5.0, wkc_tolerance_cycles: int = 3,
                  name: str = ETHERCAT_BLOCK) -> None:
@@ -106,8 +106,8 @@ class EthercatSystem(HardwareComponent):
         super().__init__(name, hw.erob_joints)
         self.robot = robot
         self.calibration = calibration
-        self.update_rate_hz = update_rate_hz
-        self.bringup_rate_hz = bringup_rate_hz
+        self.update_rate = update_rate
+        self.bringup_rate = bringup_rate
         self.master = master
         self.interface = interface or hw.ethercat.interface
         self.config_dir = Path(config_dir) if config_dir is not None else None
@@ -183,8 +183,8 @@ class EthercatSystem(HardwareComponent):
         if self.master is None:
             from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 
-            self.master = SoemMaster(self.interface, update_rate_hz=self.update_rate_hz,
-                                     bringup_rate_hz=self.bringup_rate_hz)
+            self.master = SoemMaster(self.interface, update_rate=self.update_rate,
+                                     bringup_rate=self.bringup_rate)
         try:
             check_ring(self.master.open(), self.expected, self.master.interface)
         except BaseException:
@@ -239,7 +239,7 @@ class EthercatSystem(HardwareComponent):
     def _enable(self) -> None:
         """CiA402 enable at the bring-up rate: target on the actual position first, then step to enabled."""
         master = self._master()
-        period = 1.0 / self.bringup_rate_hz
+        period = 1.0 / self.bringup_rate
         deadline = time.monotonic() + self.enable_timeout_s
         next_tick = time.monotonic()
         while True:

@@ -4,7 +4,7 @@ The MIT law ``tau = kp(q_cmd - q) + kd(qd_cmd - qd) + tau_ff``, saturated to eac
 is applied by MuJoCo itself at every physics step with the live q and qd: each joint has one affine
 actuator whose bias terms are ``-kp*q - kd*qd`` and whose control is ``kp*q_cmd + kd*qd_cmd + tau_ff``.
 ``write`` sets those per tick and advances physics by one control period, so simulated time moves
-exactly ``physics_rate / control_rate`` steps per tick.
+exactly ``physics_rate / update_rate`` steps per tick.
 
 The system may own a subset of the joints (``joints``); the actuators of the others stay at zero gain
 and zero control, so another component (e.g. emulated motors applying their own torque) drives them.
@@ -171,7 +171,7 @@ class MujocoSystem(HardwareComponent):
     ``mujoco.mj_step``; it must step the world exactly once.
     """
 
-    def __init__(self, robot: Robot, *, physics_rate: float = 1000.0, control_rate: float = 200.0,
+    def __init__(self, robot: Robot, *, physics_rate: float = 1000.0, update_rate: float = 200.0,
                  model_path: str | Path | None = None, initial_pose: Mapping[str, float] | None = None,
                  name: str = "MujocoSystem", joints: tuple[str, ...] | None = None,
                  advance: Callable[[float], None] | None = None) -> None:
@@ -182,14 +182,14 @@ class MujocoSystem(HardwareComponent):
                              f"; known joints: {', '.join(robot.names)}")
         owned = tuple(j for j in robot.names if j in owned)  # canonical order
         super().__init__(name, owned)
-        ratio = physics_rate / control_rate if control_rate > 0 else 0.0
+        ratio = physics_rate / update_rate if update_rate > 0 else 0.0
         if not (physics_rate > 0 and ratio >= 1 and abs(ratio - round(ratio)) < 1e-9):
             raise PrimeError(f"simulation rates: physics_rate {physics_rate:g} Hz must be a whole multiple of the "
-                             f"control rate {control_rate:g} Hz (set mujoco_simulation.update_rate and "
+                             f"control rate {update_rate:g} Hz (set mujoco_simulation.update_rate and "
                              "physics_rate in prime_controllers.yaml)")
         self.robot = robot
         self.physics_rate = float(physics_rate)
-        self.control_rate = float(control_rate)
+        self.update_rate = float(update_rate)
         self.substeps = round(ratio)
         self.advance = advance
         self.model = load_model(robot, model_path, physics_rate=physics_rate)
@@ -223,7 +223,7 @@ class MujocoSystem(HardwareComponent):
         return float(self.data.time)
 
     @property
-    def control_period(self) -> float:
+    def period(self) -> float:
         return self.substeps / self.physics_rate
 
     def set_pose(self, pose: Mapping[str, float]) -> None:

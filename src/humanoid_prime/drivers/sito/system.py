@@ -146,7 +146,7 @@ class _FeedbackReceiver(can.Listener):
 class SitoSystem(HardwareComponent):
     """The Sito wrists (``robot.hardware.sito_joints``) on one CAN bus."""
 
-    def __init__(self, robot: Robot, calibration: Calibration, *, control_rate: float,
+    def __init__(self, robot: Robot, calibration: Calibration, *, update_rate: float,
                  bus: can.BusABC | None = None, interface: str | None = None, channel: str | None = None,
                  rx_timeout_ms: float = 200.0, gain_refresh_s: float = 1.0, model: str = "TA40-50",
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -157,12 +157,12 @@ class SitoSystem(HardwareComponent):
         self.can_ids = tuple(robot.hardware.mit_joints[j] for j in joints)
         try:
             self.model = sito_model(model)
-            self.feedback_ms = feedback_interval_ms(control_rate)
+            self.feedback_ms = feedback_interval_ms(update_rate)
         except ValueError as exc:
             raise PrimeError(f"{SITO_BLOCK}: {exc}") from None
         if not rx_timeout_ms > self.feedback_ms:
             raise PrimeError(f"{SITO_BLOCK}: rx_timeout_ms {rx_timeout_ms} must exceed the "
-                             f"{self.feedback_ms} ms feedback interval at {control_rate} Hz")
+                             f"{self.feedback_ms} ms feedback interval at {update_rate} Hz")
         if not gain_refresh_s > 0:
             raise PrimeError(f"{SITO_BLOCK}: gain_refresh_s must be positive, got {gain_refresh_s}")
         self.channel = channel or robot.hardware.can.channel

@@ -1,0 +1,82 @@
+"""The run policy of a session: the control-rate loop until the duration, the end of a mode sequence or a
+stop; and on the way out the eRob gate reset while the loop still ticks."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.session import Session
+
+
+class ModeSequence:
+    """Visits ``modes`` in order, one every ``dwell`` seconds, from the control loop's tick callback."""
+
+    def __init__(self, modes: Sequence[Mode], dwell: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.modes = list(modes)
+        self.dwell = dwell
+        self.clock = clock
+        self._next = clock()
+
+    def __call__(self, manager: ControllerManager) -> None:
+        if self.modes and self.clock() >= self._next:
+            manager.request_mode(self.modes.pop(0))
+            self._next = self.clock() + self.dwell
+
+    @property
+    def done(self) -> bool:
+        return not self.modes
+
+
+def run_loop(session: Session, stop: threading.Event,
+             on_tick: Callable[[ControllerManager], None] | None = None) -> None:
+    """The control-rate loop until ``stop``, the duration, or the end of the mode sequence plus one dwell."""
+    options = session.options
+    if options.mode is not None:
+        session.manager.request_mode(options.mode)
+    sequence = ModeSequence(options.sequence, options.dwell) if options.sequence else None
+    deadline = None if options.duration is None else time.monotonic() + options.duration
+    settle_until: list[float] = []
+
+    def tick(manager: ControllerManager) -> None:
+        if sequence is not None:
+            sequence(manager)
+            if sequence.done and not settle_until:
+                settle_until.append(time.monotonic() + options.dwell)
+        if on_tick is not None:
+            on_tick(manager)
+        now = time.monotonic()
+        if (deadline is not None and now >= deadline) or (settle_until and now >= settle_until[0]
+                                                          and options.duration is None):
+            stop.set()
+
+    session.manager.run(stop=stop, on_tick=tick)
+    if session.impedance is not None:
+        session.impedance.wait_idle(5.0)
+        close_impedance_while_ticking(session)
+
+
+def close_impedance_while_ticking(session: Session, timeout: float = 10.0) -> None:
+    """Reset the eRob gain gate with the loop still running, so every drive keeps a live target (the
+    active mode's, or the actual position while limp) at the moment its factory gains take over; a
+    stopped loop would leave a stale target that the stiff factory gains snap to."""
+    impedance = session.impedance
+    done = threading.Event()
+
+    def close() -> None:
+        try:
+            session.gate_reset_failures.extend(impedance.close())
+        finally:
+            done.set()
+
+    threading.Thread(target=close, name="erob-gate-reset", daemon=True).start()
+    deadline = time.monotonic() + timeout
+
+    def until_done(manager: ControllerManager) -> None:
+        if time.monotonic() > deadline:
+            done.set()
+
+    session.manager.run(stop=done, on_tick=until_done)

@@ -1,0 +1,69 @@
+"""Load test on the virtual Prime: realised eRob stiffness in STANDBY, by pushing the plant.
+
+With gravity off in the plant, each eRob joint is pushed with +torque and -torque and the deflection read;
+realised kp = 2*torque / (q(+) - q(-)). Runs in its own thread while the control loop runs; friction
+biases the figure low by about friction/torque (0.1/5 = 2 % on the eRob joints).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.session import Session
+from humanoid_prime.virtual.ring.control import RingControl
+
+
+def measure_stiffness(session: Session, control: RingControl, joints: Sequence[str], *, torque_nm: float = 5.0,
+                      settle_s: float = 3.0, average_s: float = 1.0,
+                      stop: threading.Event | None = None) -> list[dict[str, Any]]:
+    """Nominal against realised kp per joint of ``joints`` (eRob joints of the running ``session``)."""
+    robot, manager = session.robot, session.manager
+    for joint in joints:
+        if joint not in robot.hardware.erob_slaves:
+            raise PrimeError(f"load test: {joint!r} is not an eRob joint "
+                             f"(eRob joints: {', '.join(robot.hardware.erob_joints)})")
+    kp_nominal, _ = session.config.mode_gains()[Mode.STANDBY]
+    efficiency = robot.hardware.torque_efficiency
+    results = []
+
+    stop = stop or threading.Event()
+
+    def settle_and_average(i: int) -> float:
+        if stop.wait(settle_s):
+            raise PrimeError("load test stopped before it finished")
+        samples = []
+        end = time.monotonic() + average_s
+        while time.monotonic() < end:
+            samples.append(float(manager.resources.state.position[i]))
+            time.sleep(0.01)
+        return float(np.mean(samples))
+
+    control.call("gravity", enabled=False)
+    try:
+        for joint in joints:
+            i = robot.index(joint)
+            control.call("push", joint=joint, torque_nm=torque_nm)
+            q_plus = settle_and_average(i)
+            control.call("push", joint=joint, torque_nm=-torque_nm)
+            q_minus = settle_and_average(i)
+            control.call("push", joint=joint, torque_nm=0.0)
+            deflection = q_plus - q_minus
+            kp = 2.0 * torque_nm / deflection if deflection > 0 else float("nan")
+            ratio = kp / kp_nominal if kp_nominal > 0 else float("nan")
+            results.append({"joint": joint, "torque_nm": torque_nm, "deflection_rad": deflection,
+                            "kp_nominal": kp_nominal, "kp_realised": kp, "ratio": ratio,
+                            "torque_efficiency": efficiency})
+    finally:
+        for joint in joints:
+            with contextlib.suppress(PrimeError):
+                control.call("push", joint=joint, torque_nm=0.0)
+        control.call("gravity", enabled=True)
+    return results

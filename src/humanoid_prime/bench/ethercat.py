@@ -28,6 +28,7 @@ from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, GAIN_REGISTER_FORMAT, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
@@ -58,15 +59,14 @@ class _Loop:
         self._thread = threading.Thread(target=self._run, name="bench-ethercat-loop", daemon=True)
 
     def _run(self) -> None:
-        next_tick = time.monotonic()
+        rate = Rate(1.0 / self.period, sleep=self._stop.wait)
         while not self._stop.is_set():
+            rate.wait()
             start, cpu = time.perf_counter_ns(), time.thread_time_ns()
             self.system.read(0.0, self.state)
             self.system.write(0.0, self.command)
             self.costs_us.append((time.perf_counter_ns() - start) / 1e3)
             self.cpu_us.append((time.thread_time_ns() - cpu) / 1e3)
-            next_tick += self.period
-            self._stop.wait(max(0.0, next_tick - time.monotonic()))
 
     def __enter__(self) -> _Loop:
         self._thread.start()

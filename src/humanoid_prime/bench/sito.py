@@ -22,6 +22,7 @@ from humanoid_prime.bench import TARGET_LOAD_PERCENT
 from humanoid_prime.config.calibration import identity_calibration
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.sito.bus import frame_bits
 from humanoid_prime.drivers.sito.protocol import HOST_FRAME_TYPES
 from humanoid_prime.drivers.sito.system import SitoSystem
@@ -62,7 +63,9 @@ def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
             pass
         start = time.monotonic()
         ticks = round(seconds * UPDATE_RATE)
+        rate = Rate(UPDATE_RATE)
         for k in range(ticks):
+            rate.wait()
             t = k * period
             command.position[idx] = 0.2 * math.sin(math.pi * t)
             command.velocity[idx] = 0.2 * math.pi * math.cos(math.pi * t)
@@ -70,7 +73,6 @@ def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
             system.read(t, state)
             system.write(t, command)
             paced.append(time.perf_counter_ns() - begin)
-            time.sleep(max(0.0, start + (k + 1) * period - time.monotonic()))
         wall = time.monotonic() - start
         host_bits = feedback_bits = host_frames = feedback_frames = 0
         while (msg := sniffer.recv(0.0)) is not None:

@@ -36,6 +36,7 @@ from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
 from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
 from humanoid_prime.errors import PrimeError
@@ -405,32 +406,24 @@ class ControllerManager:
             on_tick: Callable[[ControllerManager], None] | None = None) -> None:
         """Tick at ``update_rate`` until ``duration`` seconds (that many periods) have run or ``stop`` is set.
 
-        Each period sleeps until ``SPIN_S`` before the deadline and spins the rest. A tick (with
-        ``on_tick``) that ends after the next deadline counts as an overrun, and the schedule restarts
-        from then instead of bursting to catch up.
+        Paced by ``Rate`` (its overrun policy: a tick, with ``on_tick``, that ends after the next deadline is
+        counted in ``stats.overruns`` and the schedule restarts from then instead of bursting to catch up);
+        the last ``SPIN_S`` of each period is busy-waited.
         """
         if not self._started:
             self.start()
         total = None if duration is None else max(1, round(duration * self.update_rate))
-        origin = self.clock()
+        rate = Rate(self.update_rate, clock=self.clock, sleep=self.sleep, spin_s=SPIN_S)
         k = 0
         while (total is None or k < total) and not (stop is not None and stop.is_set()):
-            self._wait_until(origin + k * self.period)
+            if not rate.wait():
+                self.stats.overruns += 1
             self.tick()
             if on_tick is not None:
                 on_tick(self)
             k += 1
-            now = self.clock()
-            if now > origin + k * self.period:
-                self.stats.overruns += 1
-                origin = now - k * self.period
-
-    def _wait_until(self, deadline: float) -> None:
-        remaining = deadline - self.clock()
-        if remaining > SPIN_S:
-            self.sleep(remaining - SPIN_S)
-        while self.clock() < deadline:  # pure spin: even sleep(0) costs a timer-slack wake-up (~50 us)
-            pass
+        if k and rate.deadline is not None and self.clock() > rate.deadline + self.period:
+            self.stats.overruns += 1  # the last tick overran too
 
 
 def _describe(exc: Exception) -> str:

@@ -24,6 +24,7 @@ from humanoid_prime.config.description import MUJOCO_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import gain_rows, pose_array
 from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.topics import MitCommand, TopicBus
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.modes import Mode
@@ -60,7 +61,6 @@ WAVE_AMPLITUDE_RAD: dict[str, float] = {
 }
 WAVE_PERIOD_S = 3.0
 WAVE_SITO_GAINS = (8.0, 0.5)  # kp, kd the stream asks of the Sito wrists (eRob take the mode gains)
-MAX_LAG_S = 0.2  # a real-time run further behind the wall clock than this drops the lost time
 
 
 class RemoteStream:
@@ -158,10 +158,9 @@ class Simulation:
             on_tick: Callable[[], None] | None = None) -> None:
         """Tick for ``duration`` simulated seconds (None: until ``stop`` is set or Ctrl-C)."""
         system, manager, stream, lock = self.system, self.manager, self.stream, self.lock
-        period = system.period
-        total = None if duration is None else max(1, round(duration / period))
+        total = None if duration is None else max(1, round(duration / system.period))
         began = self._running_since = time.perf_counter()
-        origin = began
+        rate = Rate(system.update_rate, clock=time.perf_counter) if self.realtime else None
         k = 0
         self.stopped_by = "duration"
         try:
@@ -169,6 +168,8 @@ class Simulation:
                 if stop is not None and stop.is_set():
                     self.stopped_by = "operator"
                     break
+                if rate is not None and not rate.wait():
+                    manager.stats.overruns += 1
                 now = self.now = system.sim_time
                 self._follow_schedule(now)
                 if stream is not None:
@@ -181,16 +182,6 @@ class Simulation:
                 if on_tick is not None:
                     on_tick()
                 k += 1
-                if self.realtime:
-                    remaining = origin + k * period - time.perf_counter()
-                    if remaining > 0.0:
-                        time.sleep(remaining)
-                    else:
-                        # Late (the tick or the terminal took too long). Physics does not mind a burst, so
-                        # catch up; beyond MAX_LAG_S give up on the lost time instead.
-                        manager.stats.overruns += 1
-                        if remaining < -MAX_LAG_S:
-                            origin = time.perf_counter() - k * period
         except KeyboardInterrupt:
             self.stopped_by = "interrupt"
         finally:

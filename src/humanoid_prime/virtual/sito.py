@@ -18,7 +18,6 @@ import math
 import queue
 import random
 import threading
-import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from typing import Any, Protocol
 import can
 
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL
 from humanoid_prime.drivers.sito.protocol import (
     COUNTS_PER_RAD,
@@ -312,7 +312,7 @@ class SitoEmulator:
         self._acknowledge = True
         self._lock = threading.RLock()
         self._thread: threading.Thread | None = None
-        self._running = threading.Event()
+        self._stopping = threading.Event()  # set by stop(): wakes the paced thread at once
 
     @classmethod
     def for_robot(cls, robot: Robot, bus: can.BusABC, plants: Mapping[str, Plant] | None = None, *,
@@ -401,30 +401,25 @@ class SitoEmulator:
             self.send_failures += 1
 
     def start(self) -> None:
-        """Run in a background thread, keeping firmware time in step with the wall clock."""
+        """Run in a background thread, one firmware tick per period of the wall clock."""
         if self._thread is not None:
             return
-        self._running.set()
+        self._stopping.clear()
         self._thread = threading.Thread(target=self._run, name="sito-emulator", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
-        self._running.clear()
+        self._stopping.set()
         if self._thread is not None:
             self._thread.join(5.0)
             self._thread = None
 
     def _run(self) -> None:
-        start = time.monotonic()
-        done = 0
-        while self._running.is_set():
-            due = int((time.monotonic() - start) / self.dt)
-            done = max(done, due - 100)  # after a long stall, drop the backlog instead of spiralling
+        rate = Rate(1.0 / self.dt, sleep=self._stopping.wait)
+        while not self._stopping.is_set():
+            rate.wait()
             with self._lock:
-                while done < due:
-                    self._tick()
-                    done += 1
-            time.sleep(self.dt / 2)
+                self._tick()
 
     def __enter__(self) -> SitoEmulator:
         return self

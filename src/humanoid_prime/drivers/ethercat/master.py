@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
@@ -282,13 +283,13 @@ class EthercatMaster(ABC):
             raise RingError(f"{type(self).__name__} configured {self.outputs.shape} outputs for {n} slaves")
         self.outputs[:] = 0
         self.outputs["mode_of_operation"] = MODE_CSP
-        period = 1.0 / self.bringup_rate
         deadline = t0 + self.bringup_timeout_s
         check_every = max(1, round(self.bringup_rate * 0.01))  # read AL states about every 10 ms
         cycles = 0
-        next_tick = time.monotonic()
+        rate = Rate(self.bringup_rate)
         op_requested = False
         while True:
+            rate.wait()
             np.copyto(self.outputs["target_position"], self.inputs["position_actual"])
             self.outputs["controlword"] = 0
             if on_cycle is not None:
@@ -304,14 +305,8 @@ class EthercatMaster(ABC):
                 if all(state == AL_OP for state, _ in states):
                     break
                 self._advance(states)
-            now = time.monotonic()
-            if now > deadline:
+            if time.monotonic() > deadline:
                 raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
-            next_tick += period
-            if next_tick > now:
-                time.sleep(next_tick - now)
-            else:
-                next_tick = now
         self.operational = True
         self.slave_ok[:] = True
         self.health_version += 1
@@ -375,17 +370,18 @@ class EthercatMaster(ABC):
         return wkc
 
     def _keep(self) -> None:
-        """Once in OP: when the owner of the cycle has been quiet for two periods, send the current outputs
-        every period until it ticks again, so no slave's output watchdog runs out and SYNC0 keeps its frames
-        while controllers load, a tick stalls, or the component is inactive."""
-        period = self.cycle_ns / 1e9
+        """Once in OP, every cycle period: when the owner of the cycle has been quiet for two periods, send the
+        current outputs, and go on every period until it ticks again, so no slave's output watchdog runs out
+        and SYNC0 keeps its frames while controllers load, a tick stalls, or the component is inactive."""
+        rate = Rate(1e9 / self.cycle_ns, sleep=self._stop_keeping.wait)
+        quiet_s = 2e-9 * self.cycle_ns
         while True:
-            due = self._last_send + (period if self._kept_last else 2 * period)
-            if self._stop_keeping.wait(max(0.0, due - time.monotonic())):
+            rate.wait()
+            if self._stop_keeping.is_set():
                 return
             with self._io:
-                if time.monotonic() - self._last_send < (period if self._kept_last else 2 * period):
-                    continue  # the owner sent meanwhile
+                if not self._kept_last and time.monotonic() - self._last_send < quiet_s:
+                    continue  # the owner is ticking
                 self._send_now()
                 self._receive_now()
                 self._kept_last = True

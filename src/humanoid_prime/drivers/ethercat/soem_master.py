@@ -31,6 +31,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pysoem
 
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.objects import (
     RXPDO,
     RXPDO_ASSIGN,
@@ -236,10 +237,14 @@ class SoemMaster(EthercatMaster):
 
     # ---------------------------------------------------------------------------- supervision
     def _supervise(self) -> None:
+        """Check the ring every ``supervise_period_s`` while a slave is out of OP, and at once when the cycle
+        sees a working-counter mismatch."""
+        rate = Rate(1.0 / self.supervise_period_s, sleep=self._check.wait)
         while not self._stop.is_set():
-            woken = self._check.wait(self.supervise_period_s)
+            rate.wait()
             if self._stop.is_set():
                 return
+            woken = self._check.is_set()
             self._check.clear()
             if woken or not self.slave_ok.all():
                 try:

@@ -30,6 +30,7 @@ from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import (
     DISABLE_VOLTAGE,
     ERROR_HINTS,
@@ -239,10 +240,10 @@ class EthercatSystem(HardwareComponent):
     def _enable(self) -> None:
         """CiA402 enable at the bring-up rate: target on the actual position first, then step to enabled."""
         master = self._master()
-        period = 1.0 / self.bringup_rate
         deadline = time.monotonic() + self.enable_timeout_s
-        next_tick = time.monotonic()
+        rate = Rate(self.bringup_rate)
         while True:
+            rate.wait()
             self._gather()
             if self._enabled.all():
                 np.take(self._out_target, self.ring, out=self._i32)
@@ -254,13 +255,10 @@ class EthercatSystem(HardwareComponent):
             self._out_mode[:] = MODE_CSP
             self._step_controlwords()
             master.exchange()
-            now = time.monotonic()
-            if now > deadline:
+            if time.monotonic() > deadline:
                 self._gather()
                 raise PrimeError(f"{self.name}: drives not operation-enabled within {self.enable_timeout_s:g} s: "
                                  + "; ".join(self._describe_drive(k) for k in np.flatnonzero(~self._enabled)))
-            next_tick += period
-            time.sleep(max(0.0, next_tick - now))
 
     # ---------------------------------------------------------------------------- hot path
     def _gather(self) -> None:

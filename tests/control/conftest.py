@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
 from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.manager import ControllerManager
+
+
+@functools.cache
+def bundled_robot() -> Robot:
+    return load_robot()
 
 
 class Plant(HardwareComponent):
@@ -18,7 +26,7 @@ class Plant(HardwareComponent):
 
     def __init__(self, name: str, joints: tuple[str, ...], events: list[str] | None = None,
                  inertia: float | None = None) -> None:
-        super().__init__(name, joints)
+        super().__init__(name, bundled_robot(), joints)
         self.position = np.zeros(len(joints))
         self.velocity = np.zeros(len(joints))
         self.effort = np.zeros(len(joints))

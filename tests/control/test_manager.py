@@ -10,17 +10,11 @@ import pytest
 
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import Lifecycle
-from humanoid_prime.control.manager import ClaimError, ControllerManager, LoopStats
+from humanoid_prime.control.manager import ControllerManager, LoopStats
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, SAFETY_STATUS, ControlMode, MitCommand
 from humanoid_prime.modes import Mode
 
 from .conftest import Clock, Plant, constant_policy, with_policy
-
-INTERFACES = 14 * 5
-
-
-def owners(manager):
-    return set(manager.claims.values())
 
 
 def remote_command(robot, **rows):
@@ -77,10 +71,10 @@ def test_a_request_changes_nothing_until_the_next_tick(manager):
     manager.tick(0.0)
     manager.request_mode(Mode.DAMPING)
     assert manager.active_mode is Mode.ZERO_TORQUE
-    assert owners(manager) == {"zero_torque_controller"}
+    assert manager.command_owner == "zero_torque_controller"
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
-    assert owners(manager) == {"damping_controller"}
+    assert manager.command_owner == "damping_controller"
 
 
 def test_every_switch_publishes_the_new_mode(manager):
@@ -91,7 +85,7 @@ def test_every_switch_publishes_the_new_mode(manager):
     assert [(m.mode, m.controller) for m in seen] == [("STANDBY", "standby_controller")]
 
 
-def test_any_mode_switches_to_any_mode_leaving_every_interface_claimed_by_the_active_controller_only(manager):
+def test_any_mode_switches_to_any_mode_leaving_one_active_controller_owning_the_commands(manager):
     t = 0.0
     for source, target in itertools.permutations(Mode, 2):
         for mode in (source, target):
@@ -99,14 +93,11 @@ def test_any_mode_switches_to_any_mode_leaving_every_interface_claimed_by_the_ac
             manager.tick(t)
             t += 0.01
             assert manager.active_mode is mode
-            assert len(manager.claims) == INTERFACES
-            assert owners(manager) == {mode.controller}
+            assert manager.command_owner == mode.controller
+            active = [c.name for c in manager.controllers.values()
+                      if c.lifecycle is Lifecycle.ACTIVE and c.claims_commands]
+            assert active == [mode.controller]
     assert manager.fallbacks == []
-
-
-def test_claiming_interfaces_held_by_another_controller_is_refused(manager):
-    with pytest.raises(ClaimError, match="held by zero_torque_controller"):
-        manager.claim(manager.controllers["damping_controller"])
 
 
 def test_the_new_controller_activates_on_the_state_measured_in_the_switching_tick(manager, plant):
@@ -131,7 +122,7 @@ def test_requests_from_other_threads_land_between_ticks(manager):
     while any(thread.is_alive() for thread in threads):
         manager.tick(k * 0.01)
         k += 1
-        assert owners(manager) == {manager.active_mode.controller}
+        assert manager.command_owner == manager.active_mode.controller
         time.sleep(0.0002)
     assert manager.fallbacks == []
     assert len(set(manager.modes_visited)) > 1
@@ -166,7 +157,7 @@ def test_a_nan_from_a_controller_reaches_damping_within_one_tick(robot, config, 
         position, velocity, effort, stiffness, damping = plant.last  # the write of that same tick
         np.testing.assert_array_equal(position, plant.position)
         assert stiffness.tolist() == [0.0] * 14 and damping.tolist() == [6.0] * 14
-        assert owners(manager) == {"damping_controller"}
+        assert manager.command_owner == "damping_controller"
 
 
 def test_zero_torque_takes_over_in_the_same_tick_when_damping_fails_too(robot, config, clock):
@@ -327,7 +318,7 @@ def test_shutdown_releases_the_controller_then_deactivates_and_shuts_down_the_ha
     manager.request_mode(Mode.STANDBY)
     manager.tick(0.0)
     manager.shutdown()
-    assert owners(manager) == {None}
+    assert manager.command_owner is None
     assert manager.controllers["standby_controller"].lifecycle is Lifecycle.INACTIVE
     assert plant.events == ["plant.configure", "plant.activate", "plant.deactivate", "plant.shutdown"]
 

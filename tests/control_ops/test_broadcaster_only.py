@@ -17,7 +17,7 @@ class Wrists(HardwareComponent):
     """Owns the four Sito joints at a fixed pose and records what it was told to do."""
 
     def __init__(self, robot):
-        super().__init__("wrists", robot.hardware.sito_joints)
+        super().__init__("wrists", robot, robot.hardware.sito_joints)
         self.written = []
 
     def read(self, now, state):

@@ -220,7 +220,6 @@ def test_the_emulator_firmware_runs_at_the_physics_rate(sim_robot, config):
 
 def test_a_mujoco_system_owning_the_erob_joints_leaves_the_wrist_actuators_at_zero(sim_robot):
     system = MujocoSystem(sim_robot, joints=sim_robot.hardware.erob_joints)
-    system.indices = sim_robot.indices("erob")
     assert system.joints == sim_robot.hardware.erob_joints
     command = CommandArrays(sim_robot.n)
     command.stiffness[:] = 20.0

@@ -120,7 +120,6 @@ def bench_ethercat(*, bringup_rates_hz: tuple[float, ...] = (50.0, 1000.0), cycl
             master = SoemMaster(ring.master_interface, update_rate=update_rate, bringup_rate=rate)
             system = EthercatSystem(robot, calibration, update_rate=update_rate, bringup_rate=rate,
                                     master=master)
-            system.indices = robot.indices("erob")
             try:
                 start = time.monotonic()
                 system.configure()

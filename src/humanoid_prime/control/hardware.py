@@ -2,20 +2,23 @@
 
 A component owns a subset of the joints (``joints``, names in canonical order) and the bus behind
 them, and applies the calibration itself, so everything above it is in the joint frame. It never
-knows which mode is active. The resource manager hands each component the global arrays plus the
-canonical indices of its joints; ``read`` fills ``state[:, indices]``, ``write`` sends
-``command[:, indices]``. Both must be non-blocking and allocation-free.
+knows which mode is active. It knows the canonical indices of its joints from construction on
+(``indices``); the resource manager hands it the global arrays, ``read`` fills ``state[:, indices]``,
+``write`` sends ``command[:, indices]``. Both must be non-blocking and allocation-free.
 """
 
 from __future__ import annotations
 
 import enum
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 
 import numpy as np
 
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.errors import PrimeError
 
 
 class Lifecycle(enum.Enum):
@@ -28,10 +31,14 @@ class Lifecycle(enum.Enum):
 class HardwareComponent(SafetyFlags, ABC):
     """Base class of ``MujocoSystem``, ``SitoSystem`` and ``EthercatSystem``."""
 
-    def __init__(self, name: str, joints: tuple[str, ...]) -> None:
+    def __init__(self, name: str, robot: Robot, joints: Sequence[str]) -> None:
         super().__init__(name)
-        self.joints = joints
-        self.indices = np.arange(len(joints), dtype=np.intp)  # set by the resource manager
+        unknown = [joint for joint in joints if joint not in robot.names]
+        if unknown:
+            raise PrimeError(f"hardware component {name!r} lists unknown joint {unknown[0]!r}; "
+                             f"known joints: {', '.join(robot.names)}")
+        self.joints = tuple(joints)
+        self.indices = np.array([robot.index(joint) for joint in self.joints], dtype=np.intp)
         self.lifecycle = Lifecycle.UNCONFIGURED
 
     # Lifecycle. Subclasses override the on_* hooks; these wrappers keep the state machine honest.

@@ -3,8 +3,9 @@
 - Staged start: hardware configure and activate, then the joint-state broadcaster, then ZERO_TORQUE
   active, then the other mode controllers loaded inactive, strictly in that order.
 - Flat switching: ``request_mode`` (any thread) is applied at the start of the next tick, after the
-  read, so the new controller activates on the live measured state. The old controller releases its
-  command interfaces and the new one claims all of them, exclusively.
+  read, so the new controller activates on the live measured state. Exactly one mode controller is
+  active and it owns every command interface (``command_owner``); the old one is deactivated before the
+  new one activates.
 - Fallback within one tick: a mode controller that raises, or whose command fails the output check,
   is discarded for that tick and replaced (DAMPING, then ZERO_TORQUE, then a limp command) whose
   update runs in the same tick, so every write is already safe.
@@ -51,10 +52,6 @@ FALLBACK: dict[Mode, Mode | None] = {
     Mode.DAMPING: Mode.ZERO_TORQUE,
     Mode.ZERO_TORQUE: None,
 }
-
-
-class ClaimError(RuntimeError):
-    """A command interface was claimed while another controller held it."""
 
 
 @dataclass
@@ -137,7 +134,6 @@ class ControllerManager:
         self.fallbacks: list[dict[str, Any]] = []
         self.modes_visited: list[str] = []
         self.stages: list[tuple[str, float]] = []
-        self.claims: dict[str, str | None] = {f"{j}/{i}": None for j in robot.names for i in COMMAND_NAMES}
         self.flags = SafetyFlags("controller_manager")
         self.tick_count = 0
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
@@ -260,7 +256,6 @@ class ControllerManager:
                 self._record_fallback(mode, fallback, f"{controller.name} could not activate: {_describe(exc)}")
                 mode = fallback
                 continue
-            self.claim(controller)
             controller.lifecycle = Lifecycle.ACTIVE
             self.active = controller
             self.active_mode = mode
@@ -279,24 +274,14 @@ class ControllerManager:
         except Exception as exc:
             self.flags.set_flag("deactivate", f"{controller.name} failed to deactivate: {_describe(exc)}")
         finally:
-            self.release(controller)
             controller.lifecycle = Lifecycle.INACTIVE
 
-    def claim(self, controller: Controller) -> None:
-        """Claim every command interface for ``controller``; refused if another controller holds any."""
-        if not controller.claims_commands:
-            return
-        held = [(key, owner) for key, owner in self.claims.items() if owner not in (None, controller.name)]
-        if held:
-            key, owner = held[0]
-            raise ClaimError(f"{controller.name} cannot claim {key}: held by {owner} ({len(held)} interfaces held)")
-        for key in self.claims:
-            self.claims[key] = controller.name
-
-    def release(self, controller: Controller) -> None:
-        for key, owner in self.claims.items():
-            if owner == controller.name:
-                self.claims[key] = None
+    @property
+    def command_owner(self) -> str | None:
+        """The controller that owns every command interface now; None when no controller commands (a
+        broadcaster-only run, or between a deactivation and the next activation)."""
+        active = self.active
+        return active.name if active is not None and active.claims_commands else None
 
     def _record_fallback(self, failed: Mode, to: Mode, reason: str) -> None:
         self.fallbacks.append({"tick": self.tick_count, "from": failed.value, "to": to.value, "reason": reason})

@@ -1,8 +1,8 @@
 """One flat list of 14 joints in canonical order, whichever hardware components own them.
 
-The resource manager owns the global state and command arrays, tells each component the canonical
-indices of its joints, and walks the components in order for every lifecycle step, ``read`` and
-``write``.
+The resource manager owns the global state and command arrays, checks that every joint has one owner
+(each component knows its joints' canonical indices from construction), and walks the components in
+order for every lifecycle step, ``read`` and ``write``.
 """
 
 from __future__ import annotations
@@ -25,17 +25,11 @@ class ResourceManager:
         self.components = tuple(components)
         owner: dict[str, str] = {}
         for component in self.components:
-            indices = []
             for joint in component.joints:
-                if joint not in robot.names:
-                    raise PrimeError(f"hardware component {component.name!r} lists unknown joint {joint!r}; "
-                                     f"known joints: {', '.join(robot.names)}")
                 if joint in owner:
                     raise PrimeError(f"joint {joint!r} is owned by both {owner[joint]!r} and {component.name!r}; "
                                      "each joint must belong to exactly one hardware component")
                 owner[joint] = component.name
-                indices.append(robot.index(joint))
-            component.indices = np.array(indices, dtype=np.intp)
         missing = [name for name in robot.names if name not in owner]
         if missing and not partial:
             names = ", ".join(c.name for c in self.components) or "none"

@@ -73,7 +73,6 @@ def make_system(robot, ring, calibration=None, **master_options) -> EthercatSyst
                         **master_options)
     system = EthercatSystem(robot, calibration or load_calibration(robot.hardware), update_rate=UPDATE_RATE,
                             master=master)
-    system.indices = robot.indices("erob")
     return system
 
 

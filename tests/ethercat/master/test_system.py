@@ -27,7 +27,6 @@ class Rig:
         calibration = calibration or load_calibration(robot.hardware)
         self.system = EthercatSystem(robot, calibration, update_rate=50.0, master=self.master,
                                      config_dir=tmp_path)
-        self.system.indices = robot.indices("erob")
         self.command = CommandArrays(robot.n)
         self.state = StateArrays(robot.n)
 

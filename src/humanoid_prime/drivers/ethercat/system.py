@@ -104,7 +104,7 @@ class EthercatSystem(HardwareComponent):
                  enable_timeout_s: float = 5.0, wkc_tolerance_cycles: int = 3,
                  name: str = ETHERCAT_BLOCK) -> None:
         hw = robot.hardware
-        super().__init__(name, hw.erob_joints)
+        super().__init__(name, robot, hw.erob_joints)
         self.robot = robot
         self.calibration = calibration
         self.update_rate = update_rate

@@ -181,7 +181,7 @@ class MujocoSystem(HardwareComponent):
             raise PrimeError(f"{name}: joints must be distinct joints of the robot, got {', '.join(owned) or 'none'}"
                              f"; known joints: {', '.join(robot.names)}")
         owned = tuple(j for j in robot.names if j in owned)  # canonical order
-        super().__init__(name, owned)
+        super().__init__(name, robot, owned)
         ratio = physics_rate / update_rate if update_rate > 0 else 0.0
         if not (physics_rate > 0 and ratio >= 1 and abs(ratio - round(ratio)) < 1e-9):
             raise PrimeError(f"simulation rates: physics_rate {physics_rate:g} Hz must be a whole multiple of the "
@@ -200,8 +200,7 @@ class MujocoSystem(HardwareComponent):
         self.qpos_adr = self.model.jnt_qposadr[joint_ids].astype(np.intp)
         self.dof_adr = self.model.jnt_dofadr[joint_ids].astype(np.intp)
         # Actuators are generated in canonical order, one per robot joint; these are the owned joints' ones.
-        self.actuator_ids = np.array([robot.index(j) for j in owned], dtype=np.intp)
-        self._actuators = slice(None) if owned == robot.names else self.actuator_ids
+        self._actuators = slice(None) if owned == robot.names else self.indices
         self._bias_kp = self.model.actuator_biasprm[:, 1]
         self._bias_kd = self.model.actuator_biasprm[:, 2]
         n = len(owned)
@@ -258,7 +257,7 @@ class MujocoSystem(HardwareComponent):
         state.position[idx] = self._a
         np.take(self._qvel, self.dof_adr, out=self._a)
         state.velocity[idx] = self._a
-        np.take(self._force, self.actuator_ids, out=self._a)
+        np.take(self._force, self.indices, out=self._a)
         state.effort[idx] = self._a
 
     def write(self, now: float, command: CommandArrays) -> None:

@@ -151,9 +151,8 @@ class SitoSystem(HardwareComponent):
                  rx_timeout_ms: float = 200.0, gain_refresh_s: float = 1.0, model: str = "TA40-50",
                  clock: Callable[[], float] = time.monotonic) -> None:
         joints = robot.hardware.sito_joints
-        super().__init__(SITO_BLOCK, joints)
+        super().__init__(SITO_BLOCK, robot, joints)
         self.robot = robot
-        self.indices = robot.indices("sito")
         self.can_ids = tuple(robot.hardware.mit_joints[j] for j in joints)
         try:
             self.model = sito_model(model)

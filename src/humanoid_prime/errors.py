@@ -22,3 +22,11 @@ class ConfigError(PrimeError):
         if fix:
             text += f" ({fix})"
         super().__init__(text)
+
+
+class ControllerError(PrimeError):
+    """A controller cannot produce a safe command (stale or invalid input); the manager falls back."""
+
+
+class LifecycleError(PrimeError):
+    """A lifecycle step was asked for in the wrong state (a hardware component, the controller manager)."""

@@ -12,6 +12,7 @@ from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.control.manager import ControllerManager, LoopStats
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, SAFETY_STATUS, ControlMode, MitCommand
+from humanoid_prime.errors import LifecycleError
 from humanoid_prime.modes import Mode
 
 from .conftest import Clock, Plant, constant_policy, with_policy
@@ -61,7 +62,7 @@ def test_start_publishes_zero_torque_on_control_mode(manager):
 
 
 def test_tick_before_start_is_refused(robot, config, plant):
-    with pytest.raises(RuntimeError, match="started"):
+    with pytest.raises(LifecycleError, match="started"):
         ControllerManager(robot, [plant], config).tick(0.0)
 
 

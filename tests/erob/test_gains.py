@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from humanoid_prime.drivers.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA, EROB80_KT_NM_PER_MA
+from humanoid_prime.config.hardware import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
+from humanoid_prime.drivers.erob.constants import EROB80_KT_NM_PER_MA
 from humanoid_prime.drivers.erob.gains import (
     REGISTER_MAX,
     ErobRegisters,

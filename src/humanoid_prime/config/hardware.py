@@ -7,12 +7,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from humanoid_prime.drivers.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled, load_yaml
 
 HARDWARE_FILE = "prime_hardware.yaml"
 CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
+# What an eRob joint without its own joints.erob_kt / joints.erob_gear entry has (DESIGN §2).
+DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
+DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
 
 
 @dataclass(frozen=True)

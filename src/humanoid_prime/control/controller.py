@@ -19,11 +19,8 @@ from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
+from humanoid_prime.errors import ControllerError
 from humanoid_prime.modes import Mode
-
-
-class ControllerError(Exception):
-    """Raised by ``update()`` (or ``on_activate()``) for stale or invalid input; triggers the fallback."""
 
 
 class Controller(SafetyFlags, ABC):

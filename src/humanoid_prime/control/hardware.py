@@ -18,7 +18,7 @@ import numpy as np
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.errors import LifecycleError, PrimeError
 
 
 class Lifecycle(enum.Enum):
@@ -44,13 +44,13 @@ class HardwareComponent(SafetyFlags, ABC):
     # Lifecycle. Subclasses override the on_* hooks; these wrappers keep the state machine honest.
     def configure(self) -> None:
         if self.lifecycle is not Lifecycle.UNCONFIGURED:
-            raise RuntimeError(f"{self.name}: configure from {self.lifecycle.value}")
+            raise LifecycleError(f"{self.name}: configure from {self.lifecycle.value}")
         self.on_configure()
         self.lifecycle = Lifecycle.INACTIVE
 
     def activate(self) -> None:
         if self.lifecycle is not Lifecycle.INACTIVE:
-            raise RuntimeError(f"{self.name}: activate from {self.lifecycle.value}")
+            raise LifecycleError(f"{self.name}: activate from {self.lifecycle.value}")
         self.on_activate()
         self.lifecycle = Lifecycle.ACTIVE
 

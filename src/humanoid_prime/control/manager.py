@@ -32,7 +32,7 @@ import numpy as np
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.control.controller import Controller, ControllerError
+from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
@@ -40,7 +40,7 @@ from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.errors import ControllerError, LifecycleError, PrimeError
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
 
 POSITION_MARGIN = 0.005  # rad beyond a limit that is clipped rather than rejected
@@ -164,7 +164,7 @@ class ControllerManager:
     def start(self) -> None:
         """Hardware configure + activate, then the staged controller start; each stage's seconds in ``stages``."""
         if self._started:
-            raise RuntimeError("the controller manager is already started")
+            raise LifecycleError("the controller manager is already started")
         t = self.clock()
         self.resources.configure()
         t = self._stage("hardware configure", t)
@@ -293,7 +293,7 @@ class ControllerManager:
         """One read -> update -> write, without waiting. ``now`` defaults to the clock (simulation passes
         its own time)."""
         if not self._started or self._closed:
-            raise RuntimeError("tick() needs a started, not shut down, controller manager")
+            raise LifecycleError("tick() needs a started, not shut down, controller manager")
         began = self.clock()
         if now is None:
             now = began

@@ -16,8 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from humanoid_prime.control.controller import ControllerError
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.errors import ControllerError, PrimeError
 
 if TYPE_CHECKING:
     import onnx

@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.control.controller import Controller, ControllerError, capture_position, gain_rows
+from humanoid_prime.control.controller import Controller, capture_position, gain_rows
 from humanoid_prime.control.controllers.standby import min_jerk
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.policy import Policy
 from humanoid_prime.control.topics import TopicBus
+from humanoid_prime.errors import ControllerError
 from humanoid_prime.modes import Mode
 
 ENTRY_BLEND_S = 1.0

@@ -8,9 +8,7 @@ PRODUCT_CODE = 0x00029252
 COUNTS_PER_REV = 524288  # 2**19 absolute multi-turn output encoder
 COUNTS_PER_RAD = COUNTS_PER_REV / (2.0 * math.pi)
 
-DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
 EROB80_KT_NM_PER_MA = 0.134e-3  # eRob80 V5_MC2
-DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
 # Output torque that 0x6077 / 0x60B2 count in per-mille (0x6076, rated torque). Nominal eRob70 50:1 figure,
 # not yet read off a Prime drive: read 0x6076 (and the gear) on one and correct this line if they differ.
 RATED_TORQUE_NM = 23.0

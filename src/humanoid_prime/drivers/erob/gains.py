@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from humanoid_prime.drivers.erob.constants import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
+from humanoid_prime.config.hardware import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
 from humanoid_prime.drivers.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
 
 KD_PER_VEL_REG_NM_S_PER_RAD = 0.1063  # damping of one vel_reg step, eRob70 Kt at 50:1; measured, see DESIGN §2

@@ -83,7 +83,7 @@ class SyncManager:
 
 @dataclass(frozen=True)
 class SlaveConfig:
-    path: Path | None
+    source: str  # the file it was read from, or what generated it
     vendor_id: int
     product_id: int
     assign_activate: int
@@ -112,17 +112,17 @@ class SlaveConfig:
         for channel in channels:
             if channel.interface == interface:
                 return channel
-        raise ConfigError(self.path or "slave config", section, f"no channel with {key}: {interface}",
+        raise ConfigError(self.source, section, f"no channel with {key}: {interface}",
                           "regenerate it with `prime calibration fold`")
 
 
-def _int(value: Any, path: Path, key: str, lo: int, hi: int) -> int:
+def _int(value: Any, path: str | Path, key: str, lo: int, hi: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
         raise ConfigError(path, key, f"expected an integer in 0x{lo:X}..0x{hi:X}, got {value!r}")
     return value
 
 
-def _number(value: Any, path: Path, key: str, *, allow_nan: bool = False) -> float:
+def _number(value: Any, path: str | Path, key: str, *, allow_nan: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(path, key, f"expected a number, got {value!r}")
     if not (math.isfinite(value) or (allow_nan and math.isnan(value))):
@@ -130,14 +130,14 @@ def _number(value: Any, path: Path, key: str, *, allow_nan: bool = False) -> flo
     return float(value)
 
 
-def _choice(value: Any, path: Path, key: str, choices: tuple[str | None, ...]) -> str | None:
+def _choice(value: Any, path: str | Path, key: str, choices: tuple[str | None, ...]) -> str | None:
     if value not in choices:
         names = ", ".join("~" if c is None else c for c in choices)
         raise ConfigError(path, key, f"expected one of {names}, got {value!r}")
     return value
 
 
-def _channel(raw: Any, path: Path, key: str, interface_key: str, other_key: str) -> Channel:
+def _channel(raw: Any, path: str | Path, key: str, interface_key: str, other_key: str) -> Channel:
     if not isinstance(raw, dict):
         raise ConfigError(path, key, "expected a mapping {index, sub_index, type, ...}")
     if other_key in raw:
@@ -162,7 +162,7 @@ def _channel(raw: Any, path: Path, key: str, interface_key: str, other_key: str)
     )
 
 
-def _pdos(data: dict, path: Path, section: str) -> tuple[Pdo, ...]:
+def _pdos(data: dict, path: str | Path, section: str) -> tuple[Pdo, ...]:
     interface_key, other_key = (("command_interface", "state_interface") if section == "rpdo"
                                 else ("state_interface", "command_interface"))
     raw = data.get(section, [])
@@ -191,7 +191,7 @@ def _pdos(data: dict, path: Path, section: str) -> tuple[Pdo, ...]:
     return tuple(pdos)
 
 
-def _sync_managers(data: dict, path: Path) -> tuple[SyncManager, ...]:
+def _sync_managers(data: dict, path: str | Path) -> tuple[SyncManager, ...]:
     raw = data.get("sm", [])
     if not isinstance(raw, list):
         raise ConfigError(path, "sm", "expected a list of {index, type, pdo, watchdog}")
@@ -210,16 +210,22 @@ def _sync_managers(data: dict, path: Path) -> tuple[SyncManager, ...]:
 
 
 def load_slave_config(path: str | Path) -> SlaveConfig:
-    """Load and validate one per-slave config; every error names the file and the key."""
+    """Load and validate one per-slave config file; every error names the file and the key."""
     path = Path(path)
-    data = load_yaml(path)
+    return parse_slave_config(load_yaml(path), path)
+
+
+def parse_slave_config(data: Any, source: str | Path) -> SlaveConfig:
+    """Validate one per-slave config document (as YAML loads it); errors name ``source`` (a file, or what
+    generated the document) and the key."""
+    path = source
     if not isinstance(data, dict):
         raise ConfigError(path, "", "expected a mapping with vendor_id, product_id, rpdo, tpdo")
     auto_fault_reset = data.get("auto_fault_reset", False)
     if not isinstance(auto_fault_reset, bool):
         raise ConfigError(path, "auto_fault_reset", f"expected true or false, got {auto_fault_reset!r}")
     return SlaveConfig(
-        path=path,
+        source=str(source),
         vendor_id=_int(data.get("vendor_id"), path, "vendor_id", 0, 0xFFFFFFFF),
         product_id=_int(data.get("product_id"), path, "product_id", 0, 0xFFFFFFFF),
         assign_activate=_int(data.get("assign_activate", 0), path, "assign_activate", 0, 0xFFFF),

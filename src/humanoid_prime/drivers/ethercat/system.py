@@ -1,8 +1,8 @@
 """``EthercatSystem``: the ten eRob arm joints as one hardware component, CiA402 CSP over an EtherCAT master.
 
 Calibration is applied exactly as the C++ stack applies it: at configure time the calibration is folded
-into one per-slave config per joint (``calibration/fold.py``), each is loaded back with
-``load_slave_config``, and every channel converts with ``value = factor * x + offset`` (DESIGN §2).
+into one per-slave config per joint (``fold.py``, in memory), each is validated with
+``parse_slave_config``, and every channel converts with ``value = factor * x + offset`` (DESIGN §2).
 
 Per tick, ``read`` collects the frame and converts position, velocity and effort into the joint frame;
 ``write`` converts the command into CSP targets and sends the frame. While a joint's commanded stiffness
@@ -19,7 +19,6 @@ decoded statusword and error code).
 
 from __future__ import annotations
 
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,7 +50,7 @@ from humanoid_prime.drivers.erob.objects import (
     VELOCITY_ACTUAL,
     VELOCITY_OFFSET,
 )
-from humanoid_prime.drivers.ethercat.fold import write_folded_configs
+from humanoid_prime.drivers.ethercat.fold import fold_slave_config, write_folded_configs
 from humanoid_prime.drivers.ethercat.master import (
     RX_DTYPE,
     TX_DTYPE,
@@ -60,7 +59,7 @@ from humanoid_prime.drivers.ethercat.master import (
     ExpectedSlave,
     check_ring,
 )
-from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, load_slave_config
+from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, parse_slave_config
 from humanoid_prime.errors import ConfigError, PrimeError
 
 
@@ -121,7 +120,6 @@ class EthercatSystem(HardwareComponent):
         self.slave_configs: dict[str, SlaveConfig] = {}
         self.expected: tuple[ExpectedSlave, ...] = ()
         self.bringup: BringupReport | None = None
-        self._tmpdir: tempfile.TemporaryDirectory | None = None
         n = len(self.joints)
         # factor/offset per MIT interface (rows position, velocity, effort), joint order
         self.state_factor = np.ones((3, n))
@@ -162,15 +160,17 @@ class EthercatSystem(HardwareComponent):
 
     # ---------------------------------------------------------------------------- lifecycle
     def on_configure(self) -> None:
-        if self.config_dir is None:
-            self._tmpdir = tempfile.TemporaryDirectory(prefix="prime-erob-")
-            out_dir = Path(self._tmpdir.name)
-        else:
-            out_dir = self.config_dir
-        write_folded_configs(self.robot, self.calibration, out_dir)
+        """Fold the calibration into one per-slave config per joint, in memory (``config_dir`` also gets the
+        files, for the C++ stack and for people), take every channel's factor and offset from it, then open
+        the master and check the ring against the hardware file."""
+        if self.config_dir is not None:
+            write_folded_configs(self.robot, self.calibration, self.config_dir)
+        source = f"the calibration fold of {self.calibration.path or 'the calibration in memory'}"
         expected, auto_reset = [], []
         for k, joint in enumerate(self.joints):
-            config = load_slave_config(out_dir / f"{joint}.yaml")
+            spec = self.robot.joints[int(self.indices[k])]
+            config = parse_slave_config(fold_slave_config(spec, self.calibration.joints[joint]),
+                                        f"{source} ({joint})")
             self.slave_configs[joint] = config
             for row, interface in enumerate(_MIT):
                 state = _checked(config, config.state(interface), _STATE_OBJECTS[row])
@@ -212,9 +212,6 @@ class EthercatSystem(HardwareComponent):
     def on_shutdown(self) -> None:
         if self.master is not None:
             self.master.close()
-        if self._tmpdir is not None:
-            self._tmpdir.cleanup()
-            self._tmpdir = None
 
     @property
     def bus_ready(self) -> bool:
@@ -390,7 +387,7 @@ class EthercatSystem(HardwareComponent):
 def _checked(config: SlaveConfig, channel: Channel, index: int) -> Channel:
     """A MIT channel must sit on the object this component reads or writes (the PDO layout is fixed)."""
     if channel.index != index:
-        raise ConfigError(config.path or "slave config", f"0x{channel.index:04X}",
+        raise ConfigError(config.source, f"0x{channel.index:04X}",
                           f"the {channel.interface} channel maps object 0x{channel.index:04X}, expected 0x{index:04X}",
                           "regenerate the slave configs with `prime calibration fold`")
     return channel

@@ -11,6 +11,8 @@ import struct
 from dataclasses import dataclass
 from enum import IntEnum
 
+import numpy as np
+
 ID_PREFIX = 0x0506_0000
 ID_PREFIX_MASK = 0xFFFF_0000
 DATA_LENGTH = 8
@@ -23,8 +25,12 @@ DISABLE_PAYLOAD = b"\x55" * DATA_LENGTH
 INT16_MIN, INT16_MAX = -(2**15), 2**15 - 1
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
-COMMAND = struct.Struct(">hhi")  # ff current mA, velocity counts/s, position counts
-GAINS = struct.Struct(">ff")  # Kp, Kd in firmware units
+# Payload layouts, each once: a struct for single frames and the same layout as a NumPy dtype for the
+# host's per-tick packing of all motors at once.
+COMMAND_DTYPE = np.dtype([("current", ">i2"), ("velocity", ">i2"), ("position", ">i4")])  # mA, counts/s, counts
+GAINS_DTYPE = np.dtype([("kp", ">f4"), ("kd", ">f4")])  # firmware units
+COMMAND = struct.Struct(">" + "".join(COMMAND_DTYPE[f].char for f in COMMAND_DTYPE.names))
+GAINS = struct.Struct(">" + "".join(GAINS_DTYPE[f].char for f in GAINS_DTYPE.names))
 ENABLE = struct.Struct(">BBBB4x")  # mode, feedback-1/2/3 interval ms
 FEEDBACK1 = struct.Struct(">hhhh")  # voltage, pwm, phase current mA, velocity counts/s
 FEEDBACK2 = struct.Struct(">ii")  # motor position counts, output position counts

@@ -31,12 +31,14 @@ from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF, is_interface_down, open_bus
 from humanoid_prime.drivers.sito.protocol import (
+    COMMAND_DTYPE,
     COUNTS_PER_RAD,
     DATA_LENGTH,
     DISABLE_PAYLOAD,
     ENABLE,
     FEEDBACK1,
     FEEDBACK2,
+    GAINS_DTYPE,
     HOST_FRAME_TYPES,
     ID_PREFIX,
     ID_PREFIX_MASK,
@@ -57,8 +59,6 @@ _FEEDBACK1 = int(FrameType.FEEDBACK1)
 _FEEDBACK2 = int(FrameType.FEEDBACK2)
 _LIFECYCLE_SEND_TIMEOUT_S = 0.02  # gains, enable, disable may wait for queue space; per-tick frames never do
 _NOTIFIER_POLL_S = 0.05  # how long stop() can wait for the receive thread
-_COMMAND_DTYPE = np.dtype([("current", ">i2"), ("velocity", ">i2"), ("position", ">i4")])
-_GAINS_DTYPE = np.dtype([("kp", ">f4"), ("kd", ">f4")])
 
 
 class _FeedbackReceiver(can.Listener):
@@ -203,8 +203,8 @@ class SitoSystem(HardwareComponent):
         self._oldest = np.zeros(n)
         self._late = np.zeros(n, dtype=bool)
         self._state = np.zeros((3, n))
-        self._command_payload = np.zeros(n, dtype=_COMMAND_DTYPE)
-        self._gains_payload = np.zeros(n, dtype=_GAINS_DTYPE)
+        self._command_payload = np.zeros(n, dtype=COMMAND_DTYPE)
+        self._gains_payload = np.zeros(n, dtype=GAINS_DTYPE)
         self._gains_word = self._gains_payload.view(np.uint64)  # one word per motor: compare gains bitwise
         self._gains_sent = np.zeros(n, dtype=np.uint64)
         self._gains_stamp = np.zeros(n)

@@ -26,11 +26,10 @@ from __future__ import annotations
 import math
 from enum import IntEnum
 
+from humanoid_prime.config.hardware import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
 from humanoid_prime.drivers.erob import objects as obj
 from humanoid_prime.drivers.erob.constants import (
     COUNTS_PER_RAD,
-    DEFAULT_GEAR,
-    DEFAULT_KT_NM_PER_MA,
     MIN_CYCLE_S,
     MODE_CSP,
     PRODUCT_CODE,

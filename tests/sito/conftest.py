@@ -18,7 +18,8 @@ from humanoid_prime.config.calibration import Calibration, identity_calibration
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.sito.system import SitoSystem
-from humanoid_prime.virtual.sito import InertiaPlant, Plant, SitoEmulator
+from humanoid_prime.virtual.plant import InertiaPlant, Plant
+from humanoid_prime.virtual.sito import SitoEmulator
 
 UPDATE_RATE = 50.0
 PERIOD = 1.0 / UPDATE_RATE
@@ -35,14 +36,14 @@ def wait_until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -
 
 class Rig:
     def __init__(self, robot: Robot, calibration: Calibration | None = None,
-                 plants: dict[str, Plant] | None = None, **system_options: object) -> None:
+                 plant: Plant | None = None, **system_options: object) -> None:
         self.robot = robot
         self.channel = f"sito-test-{uuid.uuid4().hex}"
         self.emulator_bus = can.Bus(interface="virtual", channel=self.channel)
         self.host_bus = can.Bus(interface="virtual", channel=self.channel)
         self.sniffer = can.Bus(interface="virtual", channel=self.channel)
-        self.plants = plants or {name: InertiaPlant() for name in robot.hardware.sito_joints}
-        self.emulator = SitoEmulator.for_robot(robot, self.emulator_bus, self.plants)
+        self.plant = plant or InertiaPlant.wrists(len(robot.hardware.sito_joints))
+        self.emulator = SitoEmulator.for_robot(robot, self.emulator_bus, self.plant)
         self.system = SitoSystem(robot, calibration or identity_calibration(robot.hardware),
                                  update_rate=UPDATE_RATE, bus=self.host_bus, clock=lambda: self.emulator.time,
                                  **system_options)
@@ -53,8 +54,9 @@ class Rig:
     def motor(self, can_id: int):
         return self.emulator.motors[can_id]
 
-    def plant(self, joint: str) -> InertiaPlant:
-        return self.plants[joint]
+    def slot(self, joint: str) -> int:
+        """The plant joint (and emulated motor) of a Sito joint: its place among the Sito joints."""
+        return self.robot.hardware.sito_joints.index(joint)
 
     def activate(self) -> None:
         """Activate while the emulator runs, as on the robot; re-raise what activation raised."""

@@ -7,9 +7,9 @@ import uuid
 from collections.abc import Iterator
 
 import can
-import mujoco
 import pytest
 
+from humanoid_prime.config.calibration import Calibration, JointCalibration
 from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF
 from humanoid_prime.drivers.sito.protocol import (
     COUNTS_PER_RAD,
@@ -28,7 +28,8 @@ from humanoid_prime.drivers.sito.protocol import (
     torque_to_current_mA,
     velocity_to_counts,
 )
-from humanoid_prime.virtual.sito import TX_QUEUE_LENGTH, InertiaPlant, MujocoJoint, SitoEmulator, SitoMotor
+from humanoid_prime.virtual.plant import InertiaPlant, PrimeWorld, truth_calibration
+from humanoid_prime.virtual.sito import TX_QUEUE_LENGTH, SitoEmulator, SitoMotor
 
 TA40_50 = SITO_MODELS["TA40-50"]
 CAN_ID = 22
@@ -67,7 +68,7 @@ class Bench:
 
 @pytest.fixture
 def bench() -> Iterator[Bench]:
-    bench = Bench(InertiaPlant())
+    bench = Bench(InertiaPlant.wrists(1))
     yield bench
     bench.close()
 
@@ -95,7 +96,7 @@ def test_gains_frame_sets_the_realised_stiffness_and_damping(bench):
 
 
 def test_mit_law_realises_the_commanded_kp_kd_and_feed_forward(bench):
-    bench.plant.position, bench.plant.velocity = 0.1, 0.5
+    bench.plant.q[0], bench.plant.qd[0] = 0.1, 0.5
     bench.send(gains(20.0, 2.0), mit_enable(),
                Command(torque_to_current_mA(0.459, TA40_50)[0], 0, position_to_counts(0.3)))
     bench.emulator.process_pending()
@@ -111,10 +112,10 @@ def test_torque_saturates_at_4_8_nm(bench):
 
 def test_without_gains_an_enabled_motor_is_limp(bench):
     bench.send(mit_enable(), Command(0, 0, position_to_counts(1.0)))
-    bench.plant.external_torque = -0.1
+    bench.plant.external[0] = -0.1
     bench.emulator.step(0.2)
     assert bench.motor.torque == 0.0
-    assert bench.plant.position < -0.05
+    assert bench.plant.q[0] < -0.05
 
 
 def test_feedback_streams_at_the_requested_intervals(bench):
@@ -131,13 +132,13 @@ def test_no_feedback_before_enable(bench):
 
 
 def test_feedback_reports_output_position_velocity_and_current(bench):
-    bench.plant.position, bench.plant.velocity = 0.25, 0.0
+    bench.plant.q[0], bench.plant.qd[0] = 0.25, 0.0
     bench.send(gains(0.0, 0.0), mit_enable(), Command(100, 0, 0))
     bench.emulator.step(0.001)
     fb1, fb2 = bench.feedback()[:2]
     assert fb1.phase_current_mA == 100
-    assert fb1.velocity_counts == velocity_to_counts(bench.plant.velocity)[0]
-    assert fb2.output_position_counts == position_to_counts(bench.plant.position)
+    assert fb1.velocity_counts == velocity_to_counts(bench.plant.qd[0])[0]
+    assert fb2.output_position_counts == position_to_counts(bench.plant.q[0])
 
 
 def test_disable_makes_the_motor_limp_and_silent(bench):
@@ -153,7 +154,7 @@ def test_disable_makes_the_motor_limp_and_silent(bench):
 
 
 def test_enable_holds_the_current_position_until_the_first_command(bench):
-    bench.plant.position = 0.4
+    bench.plant.q[0] = 0.4
     bench.send(gains(20.0, 2.0), mit_enable())
     bench.emulator.step(0.001)
     assert bench.motor.position_counts == position_to_counts(0.4)
@@ -170,7 +171,7 @@ def test_silent_motor_obeys_but_sends_nothing(bench):
     bench.send(gains(20.0, 2.0), mit_enable(), Command(0, 0, position_to_counts(0.2)))
     bench.emulator.step(1.0)
     assert bench.received() == []
-    assert bench.plant.position == pytest.approx(0.2, abs=1e-3)
+    assert bench.plant.q[0] == pytest.approx(0.2, abs=1e-3)
 
 
 def test_dropping_half_the_frames_loses_about_half_the_feedback(bench):
@@ -235,34 +236,22 @@ def test_background_thread_advances_firmware_time_and_stops(bench):
     assert bench.emulator.time == stopped_at
 
 
-PENDULUM = """
-<mujoco>
-  <option timestep="0.001"/>
-  <worldbody>
-    <body>
-      <joint name="wrist" type="hinge" axis="0 1 0"/>
-      <geom type="capsule" fromto="0 0 0 0 0 -0.1" size="0.02" mass="0.3"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-
-
-def test_a_mujoco_joint_is_a_plant():
-    model = mujoco.MjModel.from_xml_string(PENDULUM)
-    data = mujoco.MjData(model)
+def test_a_motor_moves_its_wrist_of_the_prime_world_through_the_wiring(robot):
+    """A Sito on a wrist of the MuJoCo world (wired backwards, factory offset 0.1 rad) holds the raw position
+    it is commanded; the joint itself sits at direction * (raw - offset)."""
+    truth = truth_calibration(robot, Calibration({"left_wrist_pitch": JointCalibration(-1, 0.1)}))
+    world = PrimeWorld(robot, truth, held=robot.hardware.erob_joints)
     channel = f"sito-emu-{uuid.uuid4().hex}"
     motor_bus, host = can.Bus(interface="virtual", channel=channel), can.Bus(interface="virtual", channel=channel)
     try:
-        motor = SitoMotor(CAN_ID, MujocoJoint(model, data, "wrist"))
-        emulator = SitoEmulator(motor_bus, [motor], world_step=lambda dt: mujoco.mj_step(model, data))
+        motor = SitoMotor(CAN_ID, world.plant(["left_wrist_pitch"]), torque_limit=4.8)
+        emulator = SitoEmulator(motor_bus, [motor], world_step=world.step)
         for frame in (gains(20.0, 2.0), mit_enable(), Command(0, 0, position_to_counts(0.3))):
             ident, payload = pack_frame(CAN_ID, frame)
             host.send(can.Message(arbitration_id=ident, is_extended_id=True, data=payload), timeout=0.0)
         emulator.step(1.0)
-        gravity = 0.3 * 9.81 * 0.05  # capsule mass at half its length
-        assert data.qpos[0] == pytest.approx(0.3, abs=gravity / 20.0 + 1e-3)
-        assert data.qpos[0] < 0.3
+        assert world.joint_positions()["left_wrist_pitch"] == pytest.approx(-0.2, abs=0.01)
+        assert world.joint_positions()["left_shoulder_pitch"] == 0.0  # held: no device drives it
     finally:
         motor_bus.shutdown()
         host.shutdown()

@@ -11,7 +11,7 @@ from humanoid_prime.config.calibration import JointCalibration, identity_calibra
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, position_to_counts
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.virtual.sito import InertiaPlant
+from humanoid_prime.virtual.plant import InertiaPlant
 
 from .conftest import PERIOD, SITO_IDS
 
@@ -121,7 +121,7 @@ def test_calibration_is_applied_to_commands(robot, make_rig):
 def test_calibration_is_applied_to_state(robot, make_rig):
     calibration = identity_calibration(robot.hardware).with_joint("right_wrist_pitch", JointCalibration(-1, 0.1))
     rig = make_rig(calibration=calibration)
-    rig.plant("right_wrist_pitch").position = 0.35
+    rig.plant.q[rig.slot("right_wrist_pitch")] = 0.35
     rig.activate()
     rig.tick()
     assert rig.state.position[12] == pytest.approx(-(0.35 - 0.1), abs=ONE_COUNT)
@@ -168,9 +168,9 @@ def test_host_frames_at_50_hz_load_the_bus_under_5_percent(rig):
 # --- behaviour at the joint ----------------------------------------------------------------------------------
 
 def test_commanded_position_is_reached_with_standby_gains(robot, make_rig):
-    plant = InertiaPlant(gravity_torque=0.3)
-    rig = make_rig(plants={name: (plant if name == "left_wrist_pitch" else InertiaPlant())
-                           for name in robot.hardware.sito_joints})
+    plant = InertiaPlant.wrists(4)
+    plant.gravity[robot.hardware.sito_joints.index("left_wrist_pitch")] = 0.3
+    rig = make_rig(plant=plant)
     rig.activate()
     standby(rig, position=0.3)
     rig.tick(50)
@@ -182,15 +182,15 @@ def test_commanded_position_is_reached_with_standby_gains(robot, make_rig):
 
 
 def test_state_reports_position_velocity_and_effort(rig):
-    rig.plant("left_wrist_roll").position = 0.2
+    rig.plant.q[rig.slot("left_wrist_roll")] = 0.2
     rig.command.effort[4] = 0.459
     rig.tick(2)
-    assert rig.state.position[4] == pytest.approx(rig.plant("left_wrist_roll").position, abs=0.02)
+    assert rig.state.position[4] == pytest.approx(rig.plant.q[rig.slot("left_wrist_roll")], abs=0.02)
     assert rig.state.effort[4] == pytest.approx(0.459, abs=1e-9)
 
 
 def test_wrists_are_limp_by_default(rig):
-    rig.plant("left_wrist_roll").external_torque = 0.2
+    rig.plant.external[rig.slot("left_wrist_roll")] = 0.2
     rig.tick(5)
     assert rig.motor(22).torque == 0.0
     assert rig.state.position[4] > 0.1
@@ -292,7 +292,7 @@ def test_a_garbled_frame_never_reaches_a_controller(rig):
     standby(rig, position=0.1)
     for _ in range(25):
         rig.tick()
-        truth = np.array([rig.plants[name].position for name in rig.system.joints])
+        truth = np.array([rig.plant.q[rig.slot(name)] for name in rig.system.joints])
         assert np.abs(rig.state.position[rig.idx] - truth).max() < 0.02  # one feedback period of motion
         assert np.all(np.abs(rig.state.velocity[rig.idx]) < 3.2)
     assert rig.system.invalid_frames >= 25 * 4

@@ -26,7 +26,8 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.sito.bus import frame_bits
 from humanoid_prime.drivers.sito.protocol import HOST_FRAME_TYPES
 from humanoid_prime.drivers.sito.system import SitoSystem
-from humanoid_prime.virtual.sito import InertiaPlant, SitoEmulator
+from humanoid_prime.virtual.plant import InertiaPlant
+from humanoid_prime.virtual.sito import SitoEmulator
 
 UPDATE_RATE = 50.0
 WARM_TICKS = 2000
@@ -45,8 +46,8 @@ def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
     channel = f"sito-bench-{uuid.uuid4().hex}"
     buses = [can.Bus(interface="virtual", channel=channel) for _ in range(3)]
     emulator_bus, host_bus, sniffer = buses
-    plants = {name: InertiaPlant(gravity_torque=0.3, coulomb_friction=0.02) for name in robot.hardware.sito_joints}
-    emulator = SitoEmulator.for_robot(robot, emulator_bus, plants)
+    plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
+    emulator = SitoEmulator.for_robot(robot, emulator_bus, plant)
     system = SitoSystem(robot, identity_calibration(robot.hardware), update_rate=UPDATE_RATE, bus=host_bus)
     command, state = CommandArrays(robot.n), StateArrays(robot.n)
     idx = system.indices

@@ -42,7 +42,8 @@ from humanoid_prime.drivers.sito.protocol import (
     split_arbitration_id,
 )
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.virtual.sito import InertiaPlant, SitoEmulator
+from humanoid_prime.virtual.plant import InertiaPlant
+from humanoid_prime.virtual.sito import SitoEmulator
 
 PROBE_FEEDBACK_MS = 10
 _ERROR_CLASSES = ((CAN_ERR_BUSOFF, "bus-off"), (CAN_ERR_ACK, "no acknowledge"),
@@ -168,8 +169,8 @@ def _emulate(args: argparse.Namespace) -> int:
         raise PrimeError(f"refusing to emulate wrists on SocketCAN channel {channel!r}, where real ones may live; "
                          "use a vcan channel or a virtual interface, e.g. --interface udp_multicast")
     bus = open_bus(robot.hardware, interface=args.interface, channel=args.channel)
-    plants = {name: InertiaPlant(gravity_torque=0.3, coulomb_friction=0.02) for name in robot.hardware.sito_joints}
-    emulator = SitoEmulator.for_robot(robot, bus, plants, model=args.model)
+    plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
+    emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
     ids = ", ".join(str(i) for i in emulator.motors)
     print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface})", flush=True)
     deadline = time.monotonic() + args.seconds if args.seconds else float("inf")

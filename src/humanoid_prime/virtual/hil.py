@@ -18,7 +18,6 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import can
-import mujoco
 from can.interfaces.virtual import VirtualBus
 
 from humanoid_prime.config.calibration import Calibration, load_calibration
@@ -29,7 +28,8 @@ from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.drivers.sito.protocol import FrameType
 from humanoid_prime.drivers.sito.system import SitoSystem
-from humanoid_prime.virtual.sito import MotorSidePlant, MujocoJoint, SitoEmulator
+from humanoid_prime.virtual.plant import PrimeWorld
+from humanoid_prime.virtual.sito import SitoEmulator
 
 HOST_RECEIVE_TIMEOUT_S = 1.0  # wall time the loop waits for the host to take the feedback; then it carries on
 
@@ -68,13 +68,12 @@ class HilSimulation:
             self.system = MujocoSystem(robot, physics_rate=config.physics_rate, update_rate=config.sim_update_rate,
                                        model_path=model_path, initial_pose=initial_pose,
                                        joints=robot.hardware.erob_joints, advance=self._advance)
-            model, data = self.system.model, self.system.data
-            plants = {joint: MotorSidePlant(MujocoJoint(model, data, joint), calibration.joints[joint].direction,
-                                            calibration.joints[joint].homing_offset)
-                      for joint in robot.hardware.sito_joints}
+            # The wrists of the simulated model, seen through their wiring and factory offsets (the calibration).
+            world = PrimeWorld(robot, calibration, model=self.system.model, data=self.system.data)
             # The world stands still until the loop runs: start() attaches world_step.
-            self.emulator = SitoEmulator.for_robot(robot, emulator_bus, plants, rate_hz=self.system.physics_rate)
-            self._world_step = lambda dt: mujoco.mj_step(model, data)
+            self.emulator = SitoEmulator.for_robot(robot, emulator_bus, world.plant(robot.hardware.sito_joints),
+                                                   rate_hz=self.system.physics_rate)
+            self._world_step = world.step
             self.sito = SitoSystem(robot, calibration, update_rate=config.sim_update_rate, bus=self._host_bus,
                                    clock=self._firmware_time)
             self.manager = ControllerManager(robot, [self.sito, self.system], config,

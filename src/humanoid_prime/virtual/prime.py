@@ -19,7 +19,7 @@ import can
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.virtual.plant import PrimePlant, truth_calibration
+from humanoid_prime.virtual.plant import PrimeWorld, ring_order, truth_calibration
 from humanoid_prime.virtual.ring.__main__ import wait_for_interface
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
@@ -28,37 +28,36 @@ from humanoid_prime.virtual.sito import SitoEmulator
 
 
 class VirtualPrimeServer(EmulatorServer):
-    def __init__(self, ring: Ring, interface: str, control_path: str, plant: PrimePlant,
+    def __init__(self, ring: Ring, interface: str, control_path: str, world: PrimeWorld,
                  sito: SitoEmulator | None, parent_fd: int | None = None) -> None:
         super().__init__(ring, interface, control_path, parent_fd=parent_fd)
-        self.plant = plant
+        self.world = world
         self.sito = sito
 
     def _op_joints(self) -> dict[str, float]:
-        return self.plant.joint_positions()
+        return self.world.joint_positions()
 
     def _op_push(self, joint: str, torque_nm: float) -> None:
-        self.plant.robot.index(joint)  # KeyError names the known joints
-        self.plant.set_joint_external(joint, float(torque_nm))
+        self.world.robot.index(joint)  # KeyError names the known joints
+        self.world.set_joint_external(joint, float(torque_nm))
 
     def _op_hand(self, joint: str, speed_rad_s: float, force_nm: float) -> None:
-        self.plant.robot.index(joint)
-        self.plant.set_hand(joint, float(speed_rad_s), float(force_nm))
+        self.world.robot.index(joint)
+        self.world.set_hand(joint, float(speed_rad_s), float(force_nm))
 
     def _op_gravity(self, enabled: bool) -> list[float]:
         """Switch gravity in the plant off (a load test measures the drives alone) or back on."""
-        self.plant.model.opt.gravity[:] = (0.0, 0.0, -9.81) if enabled else (0.0, 0.0, 0.0)
-        return list(self.plant.model.opt.gravity)
+        return self.world.set_gravity(bool(enabled))
 
     def _op_truth(self) -> dict[str, dict[str, float]]:
         return {j: {"direction": c.direction, "homing_offset": c.homing_offset}
-                for j, c in self.plant.truth.joints.items()}
+                for j, c in self.world.truth.joints.items()}
 
     def _op_sito(self, joint: str, silent: bool | None = None, drop_fraction: float | None = None,
                  garbage: bool | None = None) -> dict[str, Any]:
         if self.sito is None:
             raise KeyError("this virtual Prime has no Sito motors")
-        can_id = self.plant.robot.hardware.mit_joints[joint]
+        can_id = self.world.robot.hardware.mit_joints[joint]
         motor = self.sito.motors[can_id]
         if silent is not None:
             motor.silent = bool(silent)
@@ -106,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         if options.slaves != len(robot.hardware.erob_slaves):
             raise PrimeError(f"--slaves {options.slaves} but the hardware file has "
                              f"{len(robot.hardware.erob_slaves)} eRob")
-        plant = PrimePlant(robot, truth, physics_dt=options.physics_dt_s, initial_pose=_pose(args.pose))
+        world = PrimeWorld(robot, truth, physics_dt=options.physics_dt_s, initial_pose=_pose(args.pose))
+        ring_plant = world.plant(ring_order(robot), clock=True)
     except (PrimeError, ValueError) as exc:
         print(f"virtual prime: {exc}", file=sys.stderr)
         return 2
@@ -114,12 +114,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"virtual prime: interface {args.iface} does not exist", file=sys.stderr)
         return 1
     bus = can.Bus(interface=args.can_interface, channel=args.can_channel)
-    sito = SitoEmulator.for_robot(robot, bus, {j: plant.sito_plant(j) for j in robot.hardware.sito_joints},
-                                  rate_hz=1.0 / options.physics_dt_s, world_step=plant.world_step)
-    plant.attach_sito(sito.step)
+    sito = SitoEmulator.for_robot(robot, bus, world.plant(robot.hardware.sito_joints),
+                                  rate_hz=1.0 / options.physics_dt_s, world_step=world.step)
+    world.attach(sito.step)  # each physics step is one firmware tick, which steps the world
     try:
         bring_up(args.iface)
-        server = VirtualPrimeServer(Ring(options, plant=plant), args.iface, args.control, plant, sito,
+        server = VirtualPrimeServer(Ring(options, plant=ring_plant), args.iface, args.control, world, sito,
                                     parent_fd=args.parent_fd)
     except OSError as exc:
         bus.shutdown()

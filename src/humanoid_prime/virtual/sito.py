@@ -14,16 +14,15 @@ whole bus stop acknowledging (the host's transmit queue fills) and report bus-of
 
 from __future__ import annotations
 
-import math
 import queue
 import random
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
-from typing import Any, Protocol
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import can
+import numpy as np
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.rate import Rate
@@ -58,96 +57,11 @@ from humanoid_prime.drivers.sito.protocol import (
     torque_to_current_mA,
     velocity_to_counts,
 )
+from humanoid_prime.virtual.plant import InertiaPlant, Plant
 
 FIRMWARE_RATE_HZ = 1000.0
 TX_QUEUE_LENGTH = 10  # Linux default txqueuelen of a CAN interface
 SUPPLY_VOLTAGE_RAW = 240  # reported as-is in 0xB1; the firmware's unit is not documented
-
-
-class Plant(Protocol):
-    """What a motor drives: its output angle and rate, and a torque applied for ``dt``.
-
-    A standalone plant integrates in ``step``. A joint of a shared world (e.g. MuJoCo) only records
-    the torque in ``step``; the emulator's ``world_step`` then advances the world once for all motors.
-    """
-
-    def state(self) -> tuple[float, float]:
-        """(position rad, velocity rad/s) of the motor output, in the motor's own frame."""
-        ...
-
-    def step(self, torque: float, dt: float) -> None:
-        """Apply ``torque`` (Nm) at the output for ``dt`` seconds."""
-        ...
-
-
-@dataclass
-class InertiaPlant:
-    """A rigid link on the output: inertia, gravity ``-gravity_torque·sin(q)``, viscous and Coulomb friction,
-    and an ``external_torque`` a test can push with."""
-
-    inertia: float = 0.005  # kg·m², hand plus reflected rotor
-    gravity_torque: float = 0.0  # Nm at q = ±π/2
-    viscous_friction: float = 0.01  # Nm·s/rad
-    coulomb_friction: float = 0.0  # Nm
-    position: float = 0.0
-    velocity: float = 0.0
-    external_torque: float = 0.0
-    substeps: int = 4
-
-    def state(self) -> tuple[float, float]:
-        return self.position, self.velocity
-
-    def step(self, torque: float, dt: float) -> None:
-        h = dt / self.substeps
-        for _ in range(self.substeps):
-            net = (torque + self.external_torque - self.gravity_torque * math.sin(self.position)
-                   - self.viscous_friction * self.velocity)
-            if self.velocity == 0.0 and abs(net) <= self.coulomb_friction:
-                continue  # stiction holds
-            sign = math.copysign(1.0, self.velocity if self.velocity != 0.0 else net)
-            velocity = self.velocity + (net - sign * self.coulomb_friction) / self.inertia * h
-            if self.coulomb_friction > 0.0 and self.velocity != 0.0 and velocity * self.velocity < 0.0:
-                velocity = 0.0  # friction stops the link; it does not reverse it
-            self.velocity = velocity
-            self.position += velocity * h
-
-
-class MujocoJoint:
-    """One hinge of a caller's MuJoCo model as a plant: torque goes into ``qfrc_applied``; the caller's
-    ``world_step`` (e.g. ``lambda dt: mujoco.mj_step(model, data)``) advances the world."""
-
-    def __init__(self, model: Any, data: Any, joint: str) -> None:
-        import mujoco
-
-        joint_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
-        if joint_id < 0:
-            raise ValueError(f"the MuJoCo model has no joint {joint!r}")
-        self._data = data
-        self._qpos = int(model.jnt_qposadr[joint_id])
-        self._dof = int(model.jnt_dofadr[joint_id])
-
-    def state(self) -> tuple[float, float]:
-        return float(self._data.qpos[self._qpos]), float(self._data.qvel[self._dof])
-
-    def step(self, torque: float, dt: float) -> None:
-        self._data.qfrc_applied[self._dof] = torque
-
-
-class MotorSidePlant:
-    """A plant seen from the motor's side of the calibration: ``raw = direction·q + homing_offset``,
-    so the host's calibration turns the emulated motor's readings back into the model's joint frame."""
-
-    def __init__(self, joint: Plant, direction: int, homing_offset: float) -> None:
-        self.joint = joint
-        self.direction = float(direction)
-        self.homing_offset = float(homing_offset)
-
-    def state(self) -> tuple[float, float]:
-        q, qd = self.joint.state()
-        return self.direction * q + self.homing_offset, self.direction * qd
-
-    def step(self, torque: float, dt: float) -> None:
-        self.joint.step(self.direction * torque, dt)
 
 
 def _saturate(value: float, low: int, high: int) -> int:
@@ -156,12 +70,13 @@ def _saturate(value: float, low: int, high: int) -> int:
 
 
 class SitoMotor:
-    """One emulated Sito at ``can_id`` driving ``plant``."""
+    """One emulated Sito at ``can_id`` driving joint ``index`` of ``plant`` (its raw frame is the motor's)."""
 
-    def __init__(self, can_id: int, plant: Plant, *, model: str | SitoModel = "TA40-50",
+    def __init__(self, can_id: int, plant: Plant, index: int = 0, *, model: str | SitoModel = "TA40-50",
                  torque_limit: float = 4.8, rate_hz: float = FIRMWARE_RATE_HZ, seed: int | None = None) -> None:
         self.can_id = can_id
         self.plant = plant
+        self.index = index
         self.model = model if isinstance(model, SitoModel) else sito_model(model)
         self.torque_limit = torque_limit
         self.rate_hz = rate_hz
@@ -222,7 +137,7 @@ class SitoMotor:
                 self.enabled = mode == MODE_MIT
                 self._tick = 0
                 if self.enabled:
-                    q, _ = self.plant.state()  # hold where it is until the first command
+                    q = float(self.plant.q[self.index])  # hold where it is until the first command
                     self.position_counts = position_to_counts(q)
                     self.velocity_counts = 0
             case Gains(kp_fw, kd_fw):
@@ -234,16 +149,11 @@ class SitoMotor:
         """The firmware MIT law at the current plant state (Nm); zero while not enabled."""
         if not self.enabled:
             return 0.0
-        q, qd = self.plant.state()
+        q, qd = float(self.plant.q[self.index]), float(self.plant.qd[self.index])
         torque = (self.kp * (counts_to_position(self.position_counts) - q)
                   + self.kd * (counts_to_velocity(self.velocity_counts) - qd)
                   + current_mA_to_torque(self.current_mA, self.model))
         return min(max(torque, -self.torque_limit), self.torque_limit)
-
-    def step(self, dt: float) -> None:
-        """One firmware tick of the law: compute the torque and apply it to the plant for ``dt``."""
-        self.torque = self.control()
-        self.plant.step(self.torque, dt)
 
     def stream(self, send: Callable[[can.Message], None]) -> None:
         """Send the feedback frames due at this tick (after the world has moved)."""
@@ -258,7 +168,7 @@ class SitoMotor:
     def _send_feedback(self, frame_type: FrameType, send: Callable[[can.Message], None]) -> None:
         if self.silent or (self.drop_fraction and self._rng.random() < self.drop_fraction):
             return
-        q, qd = self.plant.state()
+        q, qd = float(self.plant.q[self.index]), float(self.plant.qd[self.index])
         if frame_type == FrameType.FEEDBACK1:
             current, _ = torque_to_current_mA(self.torque, self.model)
             pwm = _saturate(1000.0 * self.torque / self.torque_limit, INT16_MIN, INT16_MAX)
@@ -301,6 +211,10 @@ class SitoEmulator:
                 raise ValueError(f"two emulated motors share CAN id {motor.can_id}")
             motor.rate_hz = rate_hz
             self.motors[motor.can_id] = motor
+        # Each plant the motors drive is stepped once per tick with all of its motors' torques.
+        self._plants = {id(m.plant): m.plant for m in self.motors.values()}
+        self._torques = {key: np.zeros(plant.n) for key, plant in self._plants.items()}
+        self._unbraked = {key: np.zeros(plant.n, dtype=bool) for key, plant in self._plants.items()}
         self.dt = 1.0 / rate_hz
         self.world_step = world_step
         self.time = 0.0
@@ -315,16 +229,17 @@ class SitoEmulator:
         self._stopping = threading.Event()  # set by stop(): wakes the paced thread at once
 
     @classmethod
-    def for_robot(cls, robot: Robot, bus: can.BusABC, plants: Mapping[str, Plant] | None = None, *,
+    def for_robot(cls, robot: Robot, bus: can.BusABC, plant: Plant | None = None, *,
                   model: str = "TA40-50", **options: Any) -> SitoEmulator:
-        """One motor per ``robot.hardware.mit_joints`` entry, each on its joint's plant (default: InertiaPlant)
-        and saturated at the joint's effort limit."""
-        plants = plants or {}
-        motors = [
-            SitoMotor(robot.hardware.mit_joints[name], plants.get(name) or InertiaPlant(), model=model,
-                      torque_limit=robot.joints[robot.index(name)].effort_limit)
-            for name in robot.hardware.sito_joints
-        ]
+        """One motor per ``robot.hardware.mit_joints`` entry, joint ``k`` of ``plant`` driven by the ``k``-th
+        Sito joint in canonical order (default: free wrist links), saturated at the joint's effort limit."""
+        joints = robot.hardware.sito_joints
+        plant = plant if plant is not None else InertiaPlant.wrists(len(joints))
+        if plant.n != len(joints):
+            raise ValueError(f"the plant has {plant.n} joints for {len(joints)} Sito motors")
+        motors = [SitoMotor(robot.hardware.mit_joints[name], plant, k, model=model,
+                            torque_limit=robot.joints[robot.index(name)].effort_limit)
+                  for k, name in enumerate(joints)]
         return cls(bus, motors, **options)
 
     # --- faults ----------------------------------------------------------------------------------------
@@ -383,9 +298,13 @@ class SitoEmulator:
                 self._tick()
 
     def _tick(self) -> None:
+        """One firmware tick: apply the frames, run every motor's law, move the plants, stream feedback."""
         self.process_pending()
         for motor in self.motors.values():
-            motor.step(self.dt)
+            motor.torque = motor.control()
+            self._torques[id(motor.plant)][motor.index] = motor.torque
+        for key, plant in self._plants.items():
+            plant.step(self._torques[key], self._unbraked[key], self.dt)
         if self.world_step is not None:
             self.world_step(self.dt)
         self.ticks += 1

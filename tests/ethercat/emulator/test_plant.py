@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
-from humanoid_prime.virtual.ring.plant import InertiaPlant, MujocoPlant
+from humanoid_prime.virtual.plant import InertiaPlant, PrimeWorld, ring_order
 
 DT = 0.001
 
@@ -46,7 +46,7 @@ def test_arms_layout_repeats_per_arm():
 @pytest.fixture
 def mujoco_plant(robot):
     calibration = load_calibration(robot.hardware).with_joint("left_wrist_yaw", JointCalibration(-1, 0.3))
-    return MujocoPlant(robot, calibration)
+    return PrimeWorld(robot, calibration, held=robot.hardware.sito_joints).plant(ring_order(robot), clock=True)
 
 
 def test_mujoco_ring_positions_read_raw_angles_through_the_calibration(mujoco_plant):
@@ -69,3 +69,31 @@ def test_mujoco_raised_arm_falls_unless_braked(mujoco_plant):
     steps(mujoco_plant, 0.3, braked=braked)
     assert float(mujoco_plant.q[0]) > -0.8
     assert float(mujoco_plant.q[5]) == pytest.approx(-1.0)
+
+
+def test_coulomb_friction_holds_a_link_at_rest_against_a_smaller_torque():
+    plant = InertiaPlant(np.array([0.5]), coulomb=np.array([0.3]))
+    steps(plant, 0.5, torque=np.array([0.2]))
+    assert float(plant.q[0]) == 0.0 and float(plant.qd[0]) == 0.0
+
+
+def test_coulomb_friction_takes_its_share_of_a_larger_torque():
+    plant = InertiaPlant(np.array([0.5]), coulomb=np.array([0.3]))
+    steps(plant, 1.0, torque=np.array([0.8]))
+    assert float(plant.qd[0]) == pytest.approx((0.8 - 0.3) / 0.5, rel=1e-3)
+
+
+def test_coulomb_friction_stops_a_coasting_link_without_reversing_it():
+    plant = InertiaPlant(np.array([0.5]), coulomb=np.array([0.5]))
+    plant.qd[0] = 0.2
+    steps(plant, 1.0)
+    assert float(plant.qd[0]) == 0.0
+    assert float(plant.q[0]) == pytest.approx(0.2 * 0.2 / 2.0, rel=0.02)  # v^2 / (2 a) with a = 1 rad/s^2
+
+
+def test_a_braked_joint_holds_whatever_torque_acts_on_it():
+    plant = InertiaPlant(np.array([0.5, 0.5]))
+    plant.q[:] = 0.5
+    steps(plant, 0.5, torque=np.array([1.0, 1.0]), braked=np.array([True, False]))
+    assert float(plant.q[0]) == 0.5
+    assert float(plant.q[1]) == pytest.approx(0.5 + 0.5 * 2.0 * 0.5**2, rel=0.01)

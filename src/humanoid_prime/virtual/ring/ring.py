@@ -20,6 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from humanoid_prime.virtual.plant import Plant, make_ring_plant
 from humanoid_prime.virtual.ring.esc import REG_DC_SYSTEM_TIME
 from humanoid_prime.virtual.ring.firmware import ErobFirmware
 from humanoid_prime.virtual.ring.frames import (
@@ -29,7 +30,6 @@ from humanoid_prime.virtual.ring.frames import (
     iter_datagrams,
 )
 from humanoid_prime.virtual.ring.options import RingOptions
-from humanoid_prime.virtual.ring.plant import Plant, make_plant
 
 _U16 = struct.Struct("<H")
 _ADDRESS = struct.Struct("<HH")
@@ -55,7 +55,8 @@ class Ring:
         self.sdo_log: list[tuple[float, int, int, int, int, bool]] = []
         self.slaves = [ErobFirmware(i, options, clock_origin_ns=now - 1_000_003 * (i + 1), log=self._log)
                        for i in range(options.slaves)]
-        self.plant = plant if plant is not None else make_plant(options.plant, options.slaves, options.physics_dt_s)
+        self.plant = (plant if plant is not None
+                      else make_ring_plant(options.plant, options.slaves, options.physics_dt_s))
         if self.plant.n != options.slaves:
             raise ValueError(f"plant has {self.plant.n} joints for {options.slaves} slaves")
         self.powered = [True] * options.slaves

@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from doubles.control import Plant, constant_policy, with_policy
 from humanoid_prime.control.controllers.standby import min_jerk
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.policy import Policy
@@ -12,8 +13,6 @@ from humanoid_prime.control.topics import REMOTE_COMMAND, SAFETY_STATUS, MitComm
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import bundled
 from humanoid_prime.modes import Mode
-
-from .conftest import Plant, constant_policy, with_policy
 
 READY = {"left_shoulder_pitch": -0.3, "left_shoulder_roll": 0.2, "left_elbow_pitch": -0.6,
          "right_shoulder_pitch": -0.3, "right_shoulder_roll": -0.2, "right_elbow_pitch": -0.6}

@@ -8,14 +8,13 @@ import time
 import numpy as np
 import pytest
 
+from doubles.control import Clock, Plant, constant_policy, with_policy
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.control.manager import ControllerManager, LoopStats
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, SAFETY_STATUS, ControlMode, MitCommand
 from humanoid_prime.errors import LifecycleError
 from humanoid_prime.modes import Mode
-
-from .conftest import Clock, Plant, constant_policy, with_policy
 
 
 def remote_command(robot, **rows):

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from doubles.control import Clock
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.errors import PrimeError
-
-from .conftest import Clock
 
 
 def test_the_first_wait_starts_the_schedule_without_waiting():

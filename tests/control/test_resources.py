@@ -3,10 +3,9 @@
 import numpy as np
 import pytest
 
+from doubles.control import Plant
 from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.errors import PrimeError
-
-from .conftest import Plant
 
 
 def split_like_hardware(robot):

@@ -17,9 +17,8 @@ from pathlib import Path
 import can
 import pytest
 
+from doubles.sito import SITO_IDS, wait_until
 from humanoid_prime.virtual.sito import SitoEmulator
-
-from .conftest import SITO_IDS, wait_until
 
 CHILD = Path(__file__).with_name("exit_child.py")
 pytest.importorskip("msgpack", reason="python-can's udp_multicast interface needs msgpack")

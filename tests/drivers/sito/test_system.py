@@ -7,13 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from doubles.sito import PERIOD, SITO_IDS
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, position_to_counts
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.plant import InertiaPlant
-
-from .conftest import PERIOD, SITO_IDS
 
 ONE_COUNT = 1.0 / COUNTS_PER_RAD
 GAINS, ENABLE, COMMAND, DISABLE = 0x45, 0x01, 0x09, 0x00

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from doubles.igh import FakeIgh
 from humanoid_prime.drivers.ethercat.igh import IghSdo, parse_upload
 from humanoid_prime.drivers.ethercat.master import RingError, SdoError, SdoRefused
-
-from .fake_igh import FakeIgh
 
 
 @pytest.fixture

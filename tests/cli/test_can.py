@@ -10,6 +10,7 @@ from collections.abc import Iterator
 import can
 import pytest
 
+from doubles.sito import SITO_IDS, wait_until
 from humanoid_prime.cli import main
 from humanoid_prime.cli.can import describe
 from humanoid_prime.drivers.sito.protocol import (
@@ -24,8 +25,6 @@ from humanoid_prime.drivers.sito.protocol import (
     pack_frame,
 )
 from humanoid_prime.virtual.sito import SitoEmulator
-
-from .conftest import SITO_IDS, wait_until
 
 TA40_50 = SITO_MODELS["TA40-50"]
 JOINTS = {22: "left_wrist_roll"}

@@ -7,14 +7,13 @@ import struct
 
 import pytest
 
+from doubles.wire import STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
 from humanoid_prime.virtual.ring.frames import Command, Datagram
 from humanoid_prime.virtual.ring.mailbox import sdo_abort_code
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
-
-from .wire import STATION_BASE, WireMaster
 
 START_NS = 5_000_000_000_000
 MS = 1_000_000

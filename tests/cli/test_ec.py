@@ -6,11 +6,10 @@ import json
 
 import pytest
 
+from doubles.igh import FakeIgh
 from humanoid_prime.cli import main
 from humanoid_prime.cli.ec import parse_address
 from humanoid_prime.errors import PrimeError
-
-from .fake_igh import FakeIgh
 
 
 @pytest.fixture

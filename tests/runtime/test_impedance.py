@@ -5,13 +5,12 @@ import threading
 import numpy as np
 import pytest
 
+from doubles.mailboxes import DriveMailboxes
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, JointState, TopicBus
 from humanoid_prime.drivers.erob.gains import gains_to_registers
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
-
-from .drives import DriveMailboxes
 
 
 @pytest.fixture

@@ -9,10 +9,9 @@ from __future__ import annotations
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import can
-import pytest
 
 from humanoid_prime.config.calibration import Calibration, identity_calibration
 from humanoid_prime.config.robot import Robot
@@ -118,30 +117,3 @@ class Rig:
                 bus.shutdown()
 
 
-@pytest.fixture
-def make_rig(robot: Robot) -> Iterator[Callable[..., Rig]]:
-    rigs: list[Rig] = []
-
-    def make(**options: object) -> Rig:
-        rig = Rig(robot, **options)
-        rigs.append(rig)
-        return rig
-
-    yield make
-    for rig in rigs:
-        rig.close()
-
-
-@pytest.fixture
-def rig(make_rig: Callable[..., Rig]) -> Rig:
-    """An activated rig with the bundled robot, identity calibration and free inertia plants."""
-    rig = make_rig()
-    rig.activate()
-    rig.sniffed()
-    return rig
-
-
-
-@pytest.fixture
-def channel() -> str:
-    return f"sito-test-{uuid.uuid4().hex}"

@@ -2,10 +2,9 @@
 
 import pytest
 
+from doubles.mailboxes import DriveMailboxes
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.errors import PrimeError
-
-from .drives import DriveMailboxes
 
 
 def found(drives, p):

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from doubles.master import FakeMaster
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
 from humanoid_prime.errors import PrimeError
-
-from .fake import FakeMaster
 
 
 def test_sync0_is_the_loop_period_at_50_hz():

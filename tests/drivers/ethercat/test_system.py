@@ -9,13 +9,12 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from doubles.master import FAULT, OPERATION_ENABLED, FakeMaster, erob_ring
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
 from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_SAFE_OP, SdoRefused
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
-
-from .fake import FAULT, OPERATION_ENABLED, FakeMaster, erob_ring
 
 C = COUNTS_PER_RAD
 

@@ -8,10 +8,9 @@ import time
 
 import pytest
 
+from doubles.mailboxes import DriveMailboxes
 from humanoid_prime.cli import main
 from humanoid_prime.runtime.socket import ControlServer
-
-from .drives import DriveMailboxes
 
 
 @pytest.fixture

@@ -2,7 +2,7 @@
 
 import pytest
 
-from humanoid_prime.bench.sim import TARGET_REALTIME_FACTOR, bench_sim
+from humanoid_prime.bench.sim import bench_sim
 from humanoid_prime.modes import Mode
 
 
@@ -16,7 +16,6 @@ def test_bench_sim_runs_every_mode_for_the_requested_simulated_time():
 
 def test_bench_sim_reports_the_realtime_factor_against_the_20x_target():
     result = bench_sim(seconds=0.5)
-    assert TARGET_REALTIME_FACTOR == 20.0
     assert result["realtime_factor"] == pytest.approx(result["sim_seconds"] / result["wall_seconds"], rel=1e-3)
     assert result["meets_target"] == (result["realtime_factor"] >= 20.0)
     assert 0 < result["tick_us"]["median"] <= result["tick_us"]["p99"]

@@ -7,7 +7,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from humanoid_prime.calibration.math import (
-    MIN_SWEEP_RAD,
     Status,
     SweepStats,
     calibrate_from_sweeps,
@@ -42,8 +41,11 @@ def test_sweep_recovers_the_true_offset(direction, offset):
     assert offset_from_sweep(sweep.min, sweep.max, *ELBOW, direction) == pytest.approx(offset, abs=1e-9)
 
 
-def test_min_sweep_is_half_a_radian():
-    assert MIN_SWEEP_RAD == 0.5
+def test_a_sweep_just_under_half_a_radian_keeps_the_prior_and_one_just_over_is_used(robot, prior):
+    lower = ELBOW[0]
+    for width, status in ((0.499, Status.SKIPPED), (0.501, Status.CALIBRATED)):
+        _, reports = calibrate_from_sweeps({"left_elbow_pitch": SweepStats(lower, lower + width)}, prior, robot)
+        assert next(r for r in reports if r.joint == "left_elbow_pitch").status is status
 
 
 @pytest.fixture

@@ -129,10 +129,10 @@ def test_no_sdo_reached_a_drive_before_op(switching_run):
         assert 0xA000 not in slave["error_history"], slave
 
 
-def test_mode_switches_are_fast_and_even(switching_run):
+def test_every_mode_switch_reaches_every_slave(switching_run):
     switches = [s for s in switching_run["mode_switches"] if s["mode"] in ("DAMPING", "STANDBY")]
     assert len(switches) == 5 and all(s["ok"] for s in switches)
-    assert max(s["wall_seconds"] for s in switches) < 0.5  # DESIGN §6 target 0.1 s is measured by the bench
+    assert all(s["wall_seconds"] >= s["skew_seconds"] >= 0 for s in switches)  # the times are the bench's
 
 
 def test_gate_is_back_to_zero_after_the_run(switching_run):
@@ -140,15 +140,17 @@ def test_gate_is_back_to_zero_after_the_run(switching_run):
     assert all(slave["gate"] == 0 for slave in switching_run["emulator"]["slaves"])
 
 
-def test_sequential_sdo_is_measurably_slower_than_parallel(tmp_path):
-    """With a drive-like 5 ms mailbox service time, parallel writes overlap the waiting and serial ones add it up."""
-    medians = {}
+def test_parallel_sdo_overlaps_the_drives_mailbox_service_and_sequential_sdo_never_does(tmp_path):
+    """With a drive-like 5 ms mailbox service time, as the drives saw it: parallel writes reach several slaves
+    while one is still serving a request; sequential ones arrive at least one service time apart."""
+    latency = 0.005
+    closest = {}
     for label, extra in (("parallel", []), ("sequential", ["--sequential-sdo"])):
-        run = bringup(tmp_path / label, "--sequence", "DAMPING,STANDBY,DAMPING,STANDBY", "--dwell", "0.4",
-                      "--mailbox-latency", "0.005", *extra)
-        walls = sorted(s["wall_seconds"] for s in run["mode_switches"] if s["mode"] in ("DAMPING", "STANDBY"))
-        medians[label] = walls[len(walls) // 2]
-    assert medians["sequential"] > 2 * medians["parallel"], medians
+        run = bringup(tmp_path / label, "--sequence", "DAMPING,STANDBY", "--dwell", "0.4",
+                      "--mailbox-latency", str(latency), *extra)
+        times = sorted(e["time"] for e in run["emulator"]["sdo_log"])
+        closest[label] = min(b - a for a, b in zip(times, times[1:], strict=False))
+    assert closest["sequential"] >= latency - 1e-6 and closest["parallel"] < latency, closest
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

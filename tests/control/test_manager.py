@@ -176,6 +176,26 @@ def test_zero_torque_takes_over_in_the_same_tick_when_damping_fails_too(robot, c
         assert plant.last[1:].tolist() == [[0.0] * 14] * 4
 
 
+def test_when_zero_torque_itself_fails_the_last_resort_is_limp_on_the_last_valid_targets(manager, plant):
+    manager.tick(0.0)
+    plant.velocity[:] = 0.3
+    manager.tick(0.01)
+    last_valid = plant.last[0].copy()
+
+    def broken(now, dt, state, command):
+        raise RuntimeError("zero torque broke")
+
+    manager.controllers["zero_torque_controller"].update = broken
+    plant.position[:] += 0.2  # the arm moved since: the limp command keeps the last valid target
+    manager.tick(0.02)
+    assert manager.fallbacks[-1]["from"] == manager.fallbacks[-1]["to"] == "ZERO_TORQUE"
+    assert "writing a limp command" in manager.fallbacks[-1]["reason"]
+    position, velocity, effort, stiffness, damping = plant.last
+    np.testing.assert_array_equal(position, last_valid)
+    assert [velocity.tolist(), effort.tolist(), stiffness.tolist(), damping.tolist()] == [[0.0] * 14] * 4
+    assert "zero torque broke" in manager.topics.latest(SAFETY_STATUS).flags["controller_manager/fallback"]
+
+
 def test_a_fallback_is_flagged_on_safety_status(robot, config, clock, tmp_path):
     plant = Plant("plant", robot.names)
     nan_policy = constant_policy(tmp_path / "nan.onnx", robot, np.nan)

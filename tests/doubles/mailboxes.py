@@ -20,6 +20,8 @@ class DriveMailboxes:
         self.log: list[tuple[float, int, str, int]] = []  # accepted writes
         self.fail_next: dict[int, int] = {}  # position -> number of writes to refuse
         self.dead: set[int] = set()
+        self.in_flight = 0  # transfers being served now, and the most ever served at once
+        self.most_in_flight = 0
         self._lock = threading.Lock()
 
     def _check(self, position: int, index: int, sub: int) -> str:
@@ -32,14 +34,25 @@ class DriveMailboxes:
         except KeyError:
             raise PrimeError(f"ring {position}: SDO abort 0x06020000 on 0x{index:04X}:{sub:02X}") from None
 
+    def _serve(self) -> None:
+        """The mailbox service time, counting how many transfers overlap."""
+        with self._lock:
+            self.in_flight += 1
+            self.most_in_flight = max(self.most_in_flight, self.in_flight)
+        try:
+            time.sleep(self.latency_s)
+        finally:
+            with self._lock:
+                self.in_flight -= 1
+
     def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
         name = self._check(position, index, sub_index)
-        time.sleep(self.latency_s)
+        self._serve()
         return struct.pack("<I", self.values[position][name])
 
     def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
         name = self._check(position, index, sub_index)
-        time.sleep(self.latency_s)
+        self._serve()
         with self._lock:
             if self.fail_next.get(position, 0) > 0:
                 self.fail_next[position] -= 1

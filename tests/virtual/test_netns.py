@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import os
 import struct
-import time
 
 import pytest
 
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
@@ -44,24 +44,23 @@ def exchange(master) -> int:
     return master.receive_processdata(2000)
 
 
-def to_op(master, timeout_s: float = 5.0) -> float:
-    """ec_config_map, ec_configdc, SYNC0 on every slave, then a 1 kHz loop until all slaves are in OP."""
+def to_op(master, max_cycles: int = 20_000) -> int:
+    """ec_config_map, ec_configdc, SYNC0 on every slave, then a 1 kHz loop until all slaves are in OP; returns
+    the cycles it took (bounded in cycles, not in wall time)."""
     master.config_map()
     assert master.state_check(pysoem.SAFEOP_STATE, 500_000) == pysoem.SAFEOP_STATE
     assert master.config_dc()
     for slave in master.slaves:
         slave.dc_sync(True, SYNC0_NS)
-    start = time.monotonic()
     master.state = pysoem.OP_STATE
     master.write_state()
-    next_tick = start
-    while time.monotonic() - start < timeout_s:
+    rate = Rate(1.0 / PERIOD_S)
+    for cycle in range(max_cycles):
+        rate.wait()
         exchange(master)
         if master.read_state() == pysoem.OP_STATE:
-            return time.monotonic() - start
-        next_tick += PERIOD_S
-        time.sleep(max(0.0, next_tick - time.monotonic()))
-    raise AssertionError(f"not in OP after {timeout_s} s: {[hex(s.state) for s in master.slaves]}")
+            return cycle
+    raise AssertionError(f"not in OP after {max_cycles} cycles: {[hex(s.state) for s in master.slaves]}")
 
 
 def test_config_init_finds_every_erob_with_its_identity(master):
@@ -80,8 +79,7 @@ def test_config_map_maps_13_output_and_15_input_bytes_per_drive(master):
 
 def test_drives_reach_op_after_the_dc_lock_and_count_in_the_working_counter(master):
     master.config_init()
-    elapsed = to_op(master)
-    assert elapsed >= LOCK_CYCLES * PERIOD_S
+    assert to_op(master) >= LOCK_CYCLES
     assert exchange(master) == master.expected_wkc
 
 
@@ -119,10 +117,12 @@ def test_process_data_moves_a_drive(master, ring):
     before = ring.control.slave(4)["joint"]["q_rad"]
     target = struct.unpack_from("<i", bytes(drive.input), 2)[0]
     step = round(0.3 * COUNTS_PER_RAD / 1000)  # 0.3 rad over 1000 cycles once enabled
-    start = time.monotonic()
-    next_tick = start
+    rate = Rate(1.0 / PERIOD_S)
     moved = 0
-    while time.monotonic() - start < 3.0 and moved < 1500:
+    for _ in range(20_000):  # enabling takes a few cycles, then 1000 cycles of motion and 500 to settle
+        if moved >= 1500:
+            break
+        rate.wait()
         statusword = struct.unpack_from("<H", bytes(drive.input))[0]
         if statusword == 5687:
             moved += 1
@@ -130,8 +130,6 @@ def test_process_data_moves_a_drive(master, ring):
                 target += step
         drive.output = RXPDO_STRUCT.pack(next_controlword(statusword), target, 0, 0, 8)
         exchange(master)
-        next_tick += PERIOD_S
-        time.sleep(max(0.0, next_tick - time.monotonic()))
     status = ring.control.slave(4)
     assert status["drive"]["statusword"] == 5687
     assert status["joint"]["q_rad"] - before == pytest.approx(0.3, abs=0.03)

@@ -41,19 +41,24 @@ class ScriptedOperator:
         self.stop = stop or threading.Event()  # set when the run ends: let go at once
 
     def _wait_at_rest(self, index: int, travel_s: float = 0.0) -> float:
-        """Wait until the joint rests (at most ``travel_s`` plus the timeout); returns its reading."""
-        velocity = self.manager.resources.state.velocity
-        position = self.manager.resources.state.position
-        deadline = time.monotonic() + travel_s + self.timeout_s
-        still_since = None
-        while time.monotonic() < deadline and not self.stop.is_set():
-            if abs(float(velocity[index])) < REST_SPEED_RAD_S:
-                still_since = still_since or time.monotonic()
-                if time.monotonic() - still_since >= REST_S:
-                    break
-            else:
-                still_since = None
-            time.sleep(0.01)
+        """Wait until the joint rests (at most ``travel_s`` plus the timeout); returns its reading.
+
+        Counted in control ticks, not wall time: "at rest" means slower than ``REST_SPEED_RAD_S`` in every
+        measurement for ``REST_S`` worth of ticks, so a loop starved by a busy machine cannot fake it."""
+        manager = self.manager
+        velocity, position = manager.resources.state.velocity, manager.resources.state.position
+        rest_ticks = max(1, round(REST_S * manager.update_rate))
+        last_tick = manager.tick_count + round((travel_s + self.timeout_s) * manager.update_rate)
+        seen = manager.tick_count
+        still = 0
+        while manager.tick_count < last_tick and not self.stop.is_set():
+            if manager.tick_count == seen:
+                time.sleep(0.25 * manager.period)  # until the next tick has measured the joint
+                continue
+            seen = manager.tick_count
+            still = still + 1 if abs(float(velocity[index])) < REST_SPEED_RAD_S else 0
+            if still >= rest_ticks:
+                break
         return float(position[index])
 
     @contextlib.contextmanager

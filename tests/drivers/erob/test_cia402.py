@@ -105,9 +105,18 @@ def test_enable_steps_reach_operation_enabled_from_any_state(start):
     assert state is DriveState.OPERATION_ENABLED
 
 
+DESIGN_STATES = {  # (statusword & 0x6F) and (statusword & 0x4F) patterns, DESIGN §2
+    0x6F: {0x21: DriveState.READY_TO_SWITCH_ON, 0x23: DriveState.SWITCHED_ON, 0x27: DriveState.OPERATION_ENABLED,
+           0x07: DriveState.QUICK_STOP_ACTIVE},
+    0x4F: {0x00: DriveState.NOT_READY_TO_SWITCH_ON, 0x40: DriveState.SWITCH_ON_DISABLED,
+           0x0F: DriveState.FAULT_REACTION_ACTIVE, 0x08: DriveState.FAULT},
+}
+
+
 @given(st.integers(0, 0xFFFF))
-def test_every_statusword_decodes(statusword):
-    assert isinstance(drive_state(statusword), DriveState)
+def test_every_statusword_decodes_to_the_state_its_bit_pattern_names(statusword):
+    named = [states[statusword & mask] for mask, states in DESIGN_STATES.items() if statusword & mask in states]
+    assert drive_state(statusword) == (named[0] if named else DriveState.UNDEFINED)
     assert enable_step(statusword) in (SHUTDOWN, SWITCH_ON, ENABLE_OPERATION, FAULT_RESET, DISABLE_VOLTAGE)
 
 

@@ -10,13 +10,17 @@ from hypothesis import strategies as st
 from humanoid_prime.calibration.math import calibrate_from_sweeps
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK
-from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
+from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import RXPDO, TXPDO
 from humanoid_prime.drivers.ethercat.fold import fold_slave_config, render_slave_config, write_folded_configs
-from humanoid_prime.drivers.ethercat.slave_config import Channel, load_slave_config
+from humanoid_prime.drivers.ethercat.slave_config import Channel, load_slave_config, parse_slave_config
 from humanoid_prime.errors import ConfigError
 
 C = 524288 / (2 * math.pi)
+
+
+def load_slave_config_from_doc(doc):
+    return parse_slave_config(doc, "test")
 
 
 @pytest.fixture(scope="module")
@@ -31,8 +35,10 @@ def folded(tmp_path, elbow):
     return load_slave_config(path)
 
 
-def test_counts_per_rad():
-    assert COUNTS_PER_RAD == C
+def test_one_output_revolution_of_counts_reads_two_pi(elbow):
+    folded = load_slave_config_from_doc(fold_slave_config(elbow, JointCalibration(1, 0.0)))
+    assert folded.state("position").state_value(524288) == pytest.approx(2 * math.pi, abs=1e-12)
+    assert folded.command("position").command_raw(2 * math.pi) == 524288
 
 
 def test_identity_and_dc_sync0(elbow):

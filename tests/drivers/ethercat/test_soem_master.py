@@ -12,6 +12,7 @@ import pytest
 
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
@@ -45,13 +46,12 @@ class Loop:
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
-        next_tick = time.monotonic()
+        rate = Rate(UPDATE_RATE, sleep=self._stop.wait)
         while not self._stop.is_set():
+            rate.wait()
             self.system.read(0.0, self.state)
             self.system.write(0.0, self.command)
             self.ticks += 1
-            next_tick += 1.0 / UPDATE_RATE
-            self._stop.wait(max(0.0, next_tick - time.monotonic()))
 
     def __enter__(self) -> Loop:
         self._thread.start()

@@ -1,0 +1,54 @@
+"""Prime without a network for whole-session tests: the description's EtherCAT block is built on the master
+double (ten CiA402 drives with gain registers), the Sito block talks to emulated motors on a private
+virtual CAN channel, both through the runtime's own component registry."""
+
+from __future__ import annotations
+
+import contextlib
+import struct
+
+import can
+
+from doubles.master import FakeMaster
+from humanoid_prime.config.description import ETHERCAT_BLOCK
+from humanoid_prime.config.robot import Robot
+from humanoid_prime.drivers.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.runtime import registry
+from humanoid_prime.runtime.session import BringupOptions, Session, open_session, plan_session
+from humanoid_prime.virtual.sito import SitoEmulator
+
+FACTORY_REGISTERS = (300, 94, 5)  # pos_reg, vel_reg, integral
+
+
+class DoubledRobot:
+    """Opens sessions on the doubles; ``master`` is the master double of the last session's EtherCAT block."""
+
+    def __init__(self, robot: Robot, channel: str, monkeypatch, stack: contextlib.ExitStack) -> None:
+        self.robot = robot
+        self.channel = channel
+        self.stack = stack
+        self.master: FakeMaster | None = None
+        bus = can.Bus(interface="virtual", channel=channel)
+        stack.callback(bus.shutdown)
+        self.emulator = SitoEmulator.for_robot(robot, bus)
+        self.emulator.start()
+        stack.callback(self.emulator.stop)
+        monkeypatch.setitem(registry.COMPONENTS, ETHERCAT_BLOCK, self._ethercat)
+
+    def _ethercat(self, settings: registry.ComponentSettings) -> EthercatSystem:
+        master = FakeMaster(update_rate=settings.update_rate, bringup_rate=settings.bringup_rate)
+        for position in range(len(master.found)):
+            for address, value in zip((POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL), FACTORY_REGISTERS,
+                                      strict=True):
+                master.objects[(position, *address)] = struct.pack("<I", value)
+        self.master = master
+        return EthercatSystem(settings.robot, settings.calibration, update_rate=settings.update_rate,
+                              bringup_rate=settings.bringup_rate, master=master)
+
+    def options(self, **fields: object) -> BringupOptions:
+        return BringupOptions(can_interface="virtual", can_channel=self.channel, **fields)
+
+    def open(self, **fields: object) -> Session:
+        """A session on the doubles, torn down with the test."""
+        return open_session(plan_session(self.options(**fields)), self.stack)

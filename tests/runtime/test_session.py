@@ -1,0 +1,95 @@
+"""A whole session on the doubles: the staged bring-up, the impedance manager following the mode, the run
+policy, the control socket glue and the report."""
+
+from __future__ import annotations
+
+import struct
+import threading
+
+import numpy as np
+import pytest
+
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.run import close_impedance_while_ticking, run_loop
+from humanoid_prime.runtime.session import control_server, plan_session
+from humanoid_prime.runtime.socket import request
+
+
+def gate(master, position: int) -> int:
+    return master.objects[(position, *BUS_GAIN_GATE)][0]
+
+
+def test_a_full_session_comes_up_in_the_documented_stages(doubled):
+    session = doubled.open()
+    assert [name for name, _ in session.stages] == [
+        "configuration", "hardware configure", "hardware activate", "joint_state_broadcaster",
+        "zero_torque_controller", "damping_controller", "standby_controller", "locomotion_controller",
+        "remote_policy_controller", "first tick", "impedance manager armed"]
+    assert session.manager.active_mode is Mode.ZERO_TORQUE
+    assert np.all(np.isfinite(session.manager.resources.state.position))  # all 14 joints measured
+
+
+def test_the_gate_is_armed_on_every_slave_once_the_session_is_up(doubled):
+    doubled.open()
+    assert [gate(doubled.master, p) for p in range(10)] == [1] * 10
+
+
+def test_a_mode_switch_writes_that_modes_gains_to_every_slave(doubled):
+    session = doubled.open()
+    session.manager.request_mode(Mode.STANDBY)
+    session.manager.tick()
+    assert session.impedance.wait_idle(10.0)
+    pos_reg, vel_reg = (struct.unpack("<I", doubled.master.objects[(3, *a)])[0] for a in (POS_LOOP_GAIN,
+                                                                                          VEL_LOOP_GAIN))
+    assert (pos_reg, vel_reg) == (515, 19)  # STANDBY kp 20, kd 2 (DESIGN §2)
+    assert session.summary()["mode_switches"][-1]["mode"] == "STANDBY"
+
+
+def test_the_run_ends_after_its_sequence_and_resets_every_gate_while_still_ticking(doubled):
+    session = doubled.open(sequence=(Mode.DAMPING, Mode.STANDBY), dwell=0.05)
+    run_loop(session, threading.Event())
+    assert session.manager.modes_visited[-2:] == ["DAMPING", "STANDBY"]
+    assert [gate(doubled.master, p) for p in range(10)] == [0] * 10
+    assert session.gate_reset_failures == []
+
+
+def test_a_single_bus_session_runs_only_the_broadcaster_and_arms_nothing(doubled):
+    session = doubled.open(backends="ec")
+    assert session.manager.broadcaster_only and session.impedance is None and session.sito is None
+    assert (0, *BUS_GAIN_GATE) not in doubled.master.objects
+
+
+def test_the_control_socket_switches_modes_of_a_full_session(doubled, tmp_path):
+    session = doubled.open()
+    with control_server(session, tmp_path / "control.sock"):
+        assert request(tmp_path / "control.sock", {"op": "mode", "mode": "damping"})["mode"] == "DAMPING"
+    session.manager.tick()
+    assert session.manager.active_mode is Mode.DAMPING
+
+
+def test_in_a_calibration_session_the_socket_marks_a_joint_limp_and_resets_its_gate_at_the_end(doubled, tmp_path):
+    session = doubled.open(backends="ec")
+    path = tmp_path / "control.sock"
+    with control_server(session, path):
+        assert request(path, {"op": "limp", "position": 4, "limp": True})["joint"] == "left_wrist_yaw"
+        assert session.manager.resources.command.position[6] == 0.0  # a finite target: it follows the joint
+    assert gate(doubled.master, 4) == 0
+    assert "still limp when the run ended" in session.faults["limp/ring4"]
+
+
+def test_closing_the_impedance_while_ticking_resets_the_gates(doubled):
+    session = doubled.open()
+    close_impedance_while_ticking(session)
+    assert [gate(doubled.master, p) for p in range(10)] == [0] * 10
+
+
+def test_an_unknown_backend_is_refused_before_anything_opens(doubled):
+    with pytest.raises(PrimeError, match="backends must be one of all, ec, can"):
+        plan_session(doubled.options(backends="both"))
+
+
+def test_a_sync0_period_that_differs_from_the_loop_is_refused_before_anything_opens(doubled):
+    with pytest.raises(PrimeError, match="differs from the loop period"):
+        plan_session(doubled.options(sync0_period_s=0.001))

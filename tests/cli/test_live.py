@@ -100,3 +100,13 @@ def test_live_table_shows_the_mode_every_joint_and_the_loop_timing(started, sim_
     for name in sim_robot.names:
         assert name in text
     assert "1 ZERO_TORQUE  2 DAMPING  3 STANDBY  4 LOCOMOTION  5 REMOTE  q quit" in text
+
+
+def test_live_table_shows_a_fault_from_the_tick_it_is_raised(started):
+    system, manager = started
+    console = Console(file=io.StringIO(), width=200)
+    table = LiveTable(manager, console=console)
+    system.set_flag("joint/left_elbow_pitch", "left_elbow_pitch: encoder lost")
+    manager.tick()  # the same tick publishes it on /safety_status; the next refresh draws it
+    console.print(table.render())
+    assert "ERROR MujocoSystem/joint/left_elbow_pitch: left_elbow_pitch: encoder lost" in console.file.getvalue()

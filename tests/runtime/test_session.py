@@ -76,7 +76,7 @@ def test_in_a_calibration_session_the_socket_marks_a_joint_limp_and_resets_its_g
         assert request(path, {"op": "limp", "position": 4, "limp": True})["joint"] == "left_wrist_yaw"
         assert session.manager.resources.command.position[6] == 0.0  # a finite target: it follows the joint
     assert gate(doubled.master, 4) == 0
-    assert "still limp when the run ended" in session.faults["limp/ring4"]
+    assert any(f.key == "limp/ring4" and "still limp when the run ended" in f.text for f in session.faults)
 
 
 def test_closing_the_impedance_while_ticking_resets_the_gates(doubled):
@@ -93,3 +93,51 @@ def test_an_unknown_backend_is_refused_before_anything_opens(doubled):
 def test_a_sync0_period_that_differs_from_the_loop_is_refused_before_anything_opens(doubled):
     with pytest.raises(PrimeError, match="differs from the loop period"):
         plan_session(doubled.options(sync0_period_s=0.001))
+
+
+def run_ticks(session, count: int) -> None:
+    for _ in range(count):
+        session.manager.tick()
+
+
+def test_a_drive_fault_during_the_run_makes_the_report_a_failure_with_the_fault_and_its_time(doubled):
+    session = doubled.open()
+    run_ticks(session, 3)
+    doubled.master.fault(2, 0x8500)
+    run_ticks(session, 3)
+    session.capture_end()
+    summary = session.summary()
+    assert not summary["ok"]
+    fault = next(f for f in summary["faults"] if f["key"] == "PrimeEtherCATSide/ethercat/ring2/fault")
+    assert fault["level"] == "ERROR" and "0x8500" in fault["text"] and fault["since_s"] > 0
+    assert any(line.startswith("PrimeEtherCATSide/ethercat/ring2/fault at ") for line in summary["problems"])
+
+
+def test_the_end_counts_what_holds_then_not_what_was_reached_earlier(doubled):
+    session = doubled.open()
+    run_ticks(session, 3)
+    doubled.master.states[5] = 0x04  # ring 5 dropped to SAFE-OP
+    session.capture_end()
+    assert session.end["slaves_op"] == 9 and session.end["slaves"] == 10
+    assert "1 of 10 EtherCAT slaves not in OP at the end" in session.problems
+
+
+def test_a_run_with_warnings_only_is_a_success(doubled):
+    session = doubled.open()
+    session.manager.request_mode(Mode.REMOTE)  # no remote stream: REMOTE warns that it waits, and damps
+    run_ticks(session, 5)
+    session.capture_end()
+    summary = session.summary()
+    assert summary["ok"], summary["problems"]
+    assert [f["level"] for f in summary["faults"]] == ["WARN"]
+    assert "waiting for the first command" in summary["faults"][0]["text"]
+
+
+def test_a_flag_that_cleared_stays_in_the_history_with_the_time_it_cleared(doubled):
+    session = doubled.open()
+    session.manager.request_mode(Mode.REMOTE)
+    run_ticks(session, 2)
+    session.manager.request_mode(Mode.DAMPING)
+    run_ticks(session, 2)
+    (record,) = session.faults
+    assert record.until_s is not None and record.until_s >= record.since_s

@@ -20,7 +20,9 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.control.topics import SAFETY_STATUS
 from humanoid_prime.modes import Mode
 
 # As a gamepad would: one key per mode, in the order of the mode ladder.
@@ -32,6 +34,16 @@ KEY_HELP = "  ".join(f"{key} {mode.value}" for key, mode in MODE_KEYS.items()) +
 
 def _micros(value: float | None) -> str:
     return "-" if value is None else f"{value:.0f}"
+
+
+def flag_lines(manager: ControllerManager) -> list[Text]:
+    """The safety flags standing now, errors in red and warnings in yellow, one line each."""
+    status = manager.topics.latest(SAFETY_STATUS)
+    if status is None or not status.flags:
+        return []
+    return [Text(f"{status.levels.get(key, Level.ERROR).name:<5} {key}: {text}",
+                 style="bold red" if status.levels.get(key, Level.ERROR) is Level.ERROR else "yellow")
+            for key, text in sorted(status.flags.items(), key=lambda item: -status.levels.get(item[0], Level.ERROR))]
 
 
 def loop_line(manager: ControllerManager) -> str:
@@ -74,7 +86,7 @@ class LiveTable:
         header = Text.assemble(("mode ", "bold"), (mode, "bold cyan"))
         if self.status is not None:
             header.append(f"   {self.status()}")
-        parts: list[Any] = [header, Text(loop_line(manager)), table]
+        parts: list[Any] = [header, Text(loop_line(manager)), *flag_lines(manager), table]
         if self.keys:
             parts.append(Text(f"keys: {KEY_HELP}" + (f"   [{self.note}]" if self.note else ""), style="dim"))
         return Group(*parts)

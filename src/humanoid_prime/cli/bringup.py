@@ -141,8 +141,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         _print_report(summary)
-    if summary["gate_reset_failures"]:
-        print("prime bringup: gate not reset on: " + "; ".join(summary["gate_reset_failures"]), file=sys.stderr)
+    problems = summary["problems"]
+    if problems:
+        more = f" (and {len(problems) - 1} more, listed above)" if len(problems) > 1 else ""
+        print(f"prime bringup: FAULTED: {problems[0]}{more}", file=sys.stderr)
         return 1
     return 0
 
@@ -160,7 +162,7 @@ def _start_load_test(session: Session, virtual, joints: list[str], stop: threadi
             time.sleep(session.config.standby.duration + 1.0)
             session.reports["load_test"].extend(measure_stiffness(session, virtual.control, joints, stop=stop))
         except PrimeError as exc:
-            session.faults["load_test"] = str(exc)
+            session.record_fault("load_test", str(exc))
         finally:
             stop.set()
 
@@ -182,5 +184,12 @@ def _print_report(summary: dict) -> None:
     for row in summary["load_test"]:
         print(f"load test {row['joint']:<22} kp nominal {row['kp_nominal']:5.1f}  realised {row['kp_realised']:5.1f} "
               f"Nm/rad  ({row['ratio']:.2f}x, torque_efficiency {row['torque_efficiency']:g})")
-    for key, text in summary["faults"].items():
-        print(f"flag {key}: {text}")
+    for fault in summary["faults"]:
+        until = "held to the end" if fault["until_s"] is None else f"until {fault['until_s']:.2f} s"
+        print(f"{fault['level']:<5} {fault['key']} at {fault['since_s']:.2f} s ({until}): {fault['text']}")
+    end = summary["end"]
+    if "slaves" in end:
+        print(f"at the end: {end['slaves_op']} of {end['slaves']} EtherCAT slaves in OP, "
+              f"{end['drives_enabled']} drives enabled, in fault: {', '.join(end['drives_faulted']) or 'none'}")
+    if "sito" in end:
+        print(f"at the end: {end['sito_online']} of {end['sito']} Sito wrists answering")

@@ -184,7 +184,8 @@ def _calibrate(args: argparse.Namespace, prior: Any, ring: dict[str, Any]) -> in
     if args.plot:
         plot_sweeps(args.plot, result, robot)
     if args.json:
-        print(json.dumps({"output": str(args.output), **result.as_dict(), "faults": session.faults}, indent=2))
+        faults = [f.as_dict() for f in session.faults]
+        print(json.dumps({"output": str(args.output), **result.as_dict(), "faults": faults}, indent=2))
     else:
         _report(console, result, args.output, hardware.path.name)
     return 0
@@ -201,7 +202,7 @@ def _start_scripted(session: Session, virtual: Any, joints: tuple[str, ...], sto
                     return
                 operator.sweep(joint)
         except Exception as exc:  # reported with the run; the file is still written from what was swept
-            session.faults["scripted_operator"] = f"{type(exc).__name__}: {exc}"
+            session.record_fault("scripted_operator", f"{type(exc).__name__}: {exc}")
         finally:
             stop.set()
 

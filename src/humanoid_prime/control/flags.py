@@ -2,6 +2,15 @@
 
 from __future__ import annotations
 
+from enum import IntEnum
+
+
+class Level(IntEnum):
+    """How bad a flag is, on the scale of ROS 2's diagnostic_msgs/DiagnosticStatus."""
+
+    WARN = 1  # the stack copes by design (a clamped command, a stale remote stream, a stray frame)
+    ERROR = 2  # a device or the control cannot do what was asked (a drive fault, a lost slave, gains not applied)
+
 
 class SafetyFlags:
     """Problems observed now, keyed by source; ``flags_version`` grows on every change (cheap to poll)."""
@@ -9,14 +18,17 @@ class SafetyFlags:
     def __init__(self, name: str) -> None:
         self.name = name
         self.flags: dict[str, str] = {}
+        self.levels: dict[str, Level] = {}
         self.flags_version = 0
 
-    def set_flag(self, key: str, text: str) -> None:
-        if self.flags.get(key) != text:
+    def set_flag(self, key: str, text: str, level: Level = Level.ERROR) -> None:
+        if self.flags.get(key) != text or self.levels.get(key) is not level:
             self.flags[key] = text
+            self.levels[key] = level
             self.flags_version += 1
 
     def clear_flag(self, key: str) -> None:
         if key in self.flags:
             del self.flags[key]
+            self.levels.pop(key, None)
             self.flags_version += 1

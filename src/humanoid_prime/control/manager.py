@@ -34,7 +34,7 @@ from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
-from humanoid_prime.control.flags import SafetyFlags
+from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
 from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays
 from humanoid_prime.control.rate import Rate
@@ -317,7 +317,7 @@ class ControllerManager:
         try:
             broadcaster.update(now, dt, self.resources.state, self._proposal)
         except Exception as exc:  # a faulty subscriber must not stop the control loop
-            self.flags.set_flag("broadcast", f"{broadcaster.name} failed: {_describe(exc)}")
+            self.flags.set_flag("broadcast", f"{broadcaster.name} failed: {_describe(exc)}", Level.WARN)
 
     def _update(self, now: float, dt: float) -> None:
         proposal, command = self._proposal, self.resources.command
@@ -383,9 +383,13 @@ class ControllerManager:
         if version == self._flags_seen:
             return
         self._flags_seen = version
-        flags = {f"{source.name}/{key}": text
-                 for source in self._flag_sources for key, text in dict(source.flags).items()}
-        self.topics.publish(SAFETY_STATUS, SafetyStatus(ok=not flags, flags=flags, stamp=now))
+        flags: dict[str, str] = {}
+        levels: dict[str, Level] = {}
+        for source in self._flag_sources:
+            for key, text in dict(source.flags).items():
+                flags[f"{source.name}/{key}"] = text
+                levels[f"{source.name}/{key}"] = source.levels.get(key, Level.ERROR)
+        self.topics.publish(SAFETY_STATUS, SafetyStatus(ok=not flags, flags=flags, levels=levels, stamp=now))
 
     def run(self, duration: float | None = None, stop: threading.Event | None = None,
             on_tick: Callable[[ControllerManager], None] | None = None) -> None:

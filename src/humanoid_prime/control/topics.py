@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from humanoid_prime.control.flags import Level
+
 JOINT_STATES = "/prime/joint_states"
 CONTROL_MODE = "/control_mode"
 SAFETY_STATUS = "/safety_status"
@@ -52,11 +54,18 @@ class ControlMode:
 
 @dataclass(frozen=True)
 class SafetyStatus:
-    """Latched: published on change. ``flags`` maps a source key to a human-readable problem."""
+    """Latched: published on change. ``flags`` maps a source key to a human-readable problem, ``levels`` the
+    same key to how bad it is (``Level.WARN`` or ``Level.ERROR``)."""
 
     ok: bool
     flags: dict[str, str] = field(default_factory=dict)
     stamp: float = 0.0
+    levels: dict[str, Level] = field(default_factory=dict)
+
+    @property
+    def faulted(self) -> bool:
+        """Some flag is an error (a warning alone is not a fault)."""
+        return any(level is Level.ERROR for level in self.levels.values())
 
 
 class TopicBus:

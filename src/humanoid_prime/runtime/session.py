@@ -31,6 +31,7 @@ from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.controllers import ControllersConfig, load_controllers
 from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SITO_BLOCK
 from humanoid_prime.config.robot import Robot, load_robot
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, BUS_GAIN_GATE_FORMAT
@@ -109,6 +110,22 @@ def plan_session(options: BringupOptions) -> Plan:
 
 
 @dataclass
+class FaultRecord:
+    """One problem of the run: what, how bad, when it appeared and when it cleared (None: it held to the end),
+    in seconds since the run began."""
+
+    key: str
+    text: str
+    level: Level
+    since_s: float
+    until_s: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"key": self.key, "level": self.level.name, "text": self.text, "since_s": round(self.since_s, 3),
+                "until_s": None if self.until_s is None else round(self.until_s, 3)}
+
+
+@dataclass
 class Session:
     """Everything a running bringup holds; ``summary()`` is the report of the run."""
 
@@ -118,9 +135,11 @@ class Session:
     sito: Any = None  # SitoSystem
     impedance: ImpedanceManager | None = None
     bringup_seconds: float = 0.0
-    faults: dict[str, str] = field(default_factory=dict)
+    faults: list[FaultRecord] = field(default_factory=list)
     gate_reset_failures: list[str] = field(default_factory=list)
+    end: dict[str, Any] = field(default_factory=dict)  # what held when the run ended (capture_end)
     reports: dict[str, Any] = field(default_factory=dict)  # further sections of the summary (e.g. load_test)
+    _open: dict[str, FaultRecord] = field(default_factory=dict)
 
     @property
     def robot(self) -> Robot:
@@ -144,27 +163,79 @@ class Session:
         no command, and the drive holds where it is."""
         self.manager.resources.command.position[self.robot.index(joint)] = 0.0 if limp else np.nan
 
-    def summary(self) -> dict[str, Any]:
-        stats = self.manager.stats.summary()
-        slaves_op = 0
-        ec_bringup = None
-        if self.ethercat is not None and self.ethercat.master is not None:
-            master = self.ethercat.master
-            slaves_op = int(np.count_nonzero(np.asarray(master.al_state) & 0x0F == 0x08))
-            ec_bringup = self.ethercat.bringup.as_dict() if self.ethercat.bringup is not None else None
-        sito_online = 0
+    def note(self, status: SafetyStatus) -> None:
+        """Keep the history of every flag: opened when it appears, closed when it clears."""
+        now = status.stamp - self.plan.began
+        for key, text in status.flags.items():
+            if key not in self._open:
+                record = FaultRecord(key, text, status.levels.get(key, Level.ERROR), now)
+                self._open[key] = record
+                self.faults.append(record)
+        for key in [key for key in self._open if key not in status.flags]:
+            self._open.pop(key).until_s = now
+
+    def record_fault(self, key: str, text: str, level: Level = Level.ERROR) -> None:
+        """A problem that is no flag of a component (a tool of the run failed, a teardown step did not take)."""
+        self.faults.append(FaultRecord(key, text, level, time.monotonic() - self.plan.began, None))
+
+    def capture_end(self) -> None:
+        """What holds as the run ends, read fresh from the buses before they close: slaves in OP, drives
+        enabled or faulted, wrists heard from."""
+        end: dict[str, Any] = {}
+        ethercat = self.ethercat
+        if ethercat is not None and ethercat.master is not None:
+            master = ethercat.master
+            try:
+                states = [s.al_state for s in master.read_states()]
+            except Exception as exc:  # a dead ring is an answer too
+                states = []
+                self.record_fault("ethercat/end", f"AL states not readable at the end of the run: {exc}")
+            end["slaves"] = len(master.slaves)
+            end["slaves_op"] = sum(1 for state in states if state == 0x08)
+            end["drives_enabled"] = int(np.count_nonzero(ethercat.enabled))
+            end["drives_faulted"] = [ethercat.joints[k] for k in np.flatnonzero(ethercat.faulted)]
         if self.sito is not None:
             silent = {key.rsplit("/", 1)[-1] for key in self.sito.flags if "/rx_timeout/" in key}
-            sito_online = len(self.robot.hardware.mit_joints) - len(silent)
+            end["sito"] = len(self.robot.hardware.mit_joints)
+            end["sito_online"] = end["sito"] - len(silent)
+        self.end = end
+
+    @property
+    def problems(self) -> list[str]:
+        """Why this run is not a success, one line each (empty: every device did what it was asked)."""
+        lines = [f"{r.key} at {r.since_s:.2f} s: {r.text}" for r in self.faults if r.level is Level.ERROR]
+        end = self.end
+        if end.get("slaves_op", 0) < end.get("slaves", 0):
+            lines.append(f"{end['slaves'] - end['slaves_op']} of {end['slaves']} EtherCAT slaves not in OP at the end")
+        if end.get("drives_faulted"):
+            lines.append(f"drives in fault at the end: {', '.join(end['drives_faulted'])}")
+        if end.get("sito_online", 0) < end.get("sito", 0):
+            silent = end["sito"] - end["sito_online"]
+            lines.append(f"{silent} of {end['sito']} Sito wrists silent at the end")
+        for report in self.impedance.reports if self.impedance is not None else ():
+            failed = report.as_dict()["failed"]
+            if failed:
+                where = ", ".join(f"{joint} ({error})" for joint, error in failed.items())
+                lines.append(f"{report.mode} gains not applied on {where}")
+        lines += [f"gate not reset: {failure}" for failure in self.gate_reset_failures]
+        return lines
+
+    def summary(self) -> dict[str, Any]:
+        stats = self.manager.stats.summary()
+        ec_bringup = None
+        if self.ethercat is not None and self.ethercat.bringup is not None:
+            ec_bringup = self.ethercat.bringup.as_dict()
+        problems = self.problems
         return {
+            "ok": not problems,
+            "problems": problems,
             "backends": self.options.backends,
             "emulate": self.options.emulated,
             "update_rate": self.manager.update_rate,
             "bringup_seconds": self.bringup_seconds,
             "stages": [{"name": name, "seconds": seconds} for name, seconds in self.stages],
             "ethercat_bringup": ec_bringup,
-            "slaves_op": slaves_op,
-            "sito_online": sito_online,
+            "end": dict(self.end),
             "mode_switches": [r.as_dict() for r in self.impedance.reports] if self.impedance is not None else [],
             "modes_visited": list(self.manager.modes_visited),
             "ticks": stats["ticks"],
@@ -172,7 +243,7 @@ class Session:
             "jitter_us": stats["jitter_us"],
             "overruns": stats["overruns"],
             "fallbacks": list(self.manager.fallbacks),
-            "faults": dict(self.faults),
+            "faults": [r.as_dict() for r in self.faults],
             "gate_reset_failures": list(self.gate_reset_failures),
             **{key: value for key, value in self.reports.items()},
         }
@@ -193,7 +264,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
                                 broadcaster_only=plan.broadcaster_only)
     stack.callback(manager.shutdown)
     session = Session(plan, manager, ethercat=by_block.get(ETHERCAT_BLOCK), sito=by_block.get(SITO_BLOCK))
-    manager.topics.subscribe(SAFETY_STATUS, lambda status: _note_faults(session, status))
+    stack.callback(session.capture_end)  # before the buses close, after everything entered later
+    manager.topics.subscribe(SAFETY_STATUS, session.note, latched=True)
     manager.start()
     plan.stages.extend(manager.stages)
     t = time.monotonic()
@@ -213,11 +285,6 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0)
         plan.stage("impedance manager armed", t)
     return session
-
-
-def _note_faults(session: Session, status: SafetyStatus) -> None:
-    for key, text in status.flags.items():
-        session.faults.setdefault(key, text)
 
 
 def control_server(session: Session, path: str | Path | None) -> ControlServer:
@@ -245,7 +312,7 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
             for position in sorted(marked):
                 with contextlib.suppress(Exception):
                     sdo.sdo_write(position, *BUS_GAIN_GATE, struct.pack(BUS_GAIN_GATE_FORMAT, 0))
-                session.faults[f"limp/ring{position}"] = (f"{ring_joints[position]} (ring {position}) was still "
-                                                          "limp when the run ended; its gate was reset to 0")
+                session.record_fault(f"limp/ring{position}", f"{ring_joints[position]} (ring {position}) was still "
+                                     "limp when the run ended; its gate was reset to 0", Level.WARN)
 
     return ControlServer(request, path, sdo=sdo, joint_limp=joint_limp, on_close=on_close)

@@ -8,6 +8,7 @@ import numpy as np
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, gain_rows
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays, StateArrays
 from humanoid_prime.control.topics import REMOTE_COMMAND, MitCommand, TopicBus
 from humanoid_prime.modes import Mode
@@ -105,15 +106,16 @@ class RemotePolicyController(Controller):
                 self.clear_flag("rejected")
             if self.rejected != self._rejections_seen:
                 self._rejections_seen = self.rejected
-                self.set_flag("rejected", f"rejected command #{self.rejected} on {self.topic}: {self.last_rejection}")
+                self.set_flag("rejected", f"rejected command #{self.rejected} on {self.topic}: {self.last_rejection}",
+                              Level.WARN)
         stale = not self._has_command or now - self._arrival > self.timeout
         if stale != self._stale:
             self._stale = stale
             if stale and not self._has_command:
-                self.set_flag("stale", f"waiting for the first command on {self.topic}; damping meanwhile")
+                self.set_flag("stale", f"waiting for the first command on {self.topic}; damping meanwhile", Level.WARN)
             elif stale:
                 self.set_flag("stale", f"no command on {self.topic} for more than {self.timeout * 1000:.0f} ms; "
-                                       f"{self.stale_policy} until the next one")
+                                       f"{self.stale_policy} until the next one", Level.WARN)
             else:
                 self.clear_flag("stale")
         if stale and (self.stale_policy == "damp" or not self._has_command):

@@ -214,6 +214,16 @@ class EthercatSystem(HardwareComponent):
             self.master.close()
 
     @property
+    def enabled(self) -> np.ndarray:
+        """Per joint: its drive reported operation enabled in the last frame read (copy)."""
+        return self._enabled.copy()
+
+    @property
+    def faulted(self) -> np.ndarray:
+        """Per joint: its drive reported fault in the last frame read (copy)."""
+        return self._fault.copy()
+
+    @property
     def bus_ready(self) -> bool:
         """True once every slave is in OP and joint states flow: SDOs (gains) may go out."""
         return self.master is not None and self.master.sdo_ready

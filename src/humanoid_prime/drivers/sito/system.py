@@ -27,6 +27,7 @@ import numpy as np
 from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.description import SITO_BLOCK
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF, is_interface_down, open_bus
@@ -374,9 +375,9 @@ class SitoSystem(HardwareComponent):
         np.not_equal(self._late, self._rx_raised, out=self._rx_changed)
         if self._rx_changed.any():
             for i in np.flatnonzero(self._rx_changed):
-                self._flag(bool(self._late[i]), self._rx_keys[i], self._rx_texts[i])
+                self._flag(bool(self._late[i]), self._rx_keys[i], self._rx_texts[i], Level.ERROR)
             np.copyto(self._rx_raised, self._late)
-        self._flag(rx.last_invalid_stamp >= limit, self._invalid_key, self._invalid_text)
+        self._flag(rx.last_invalid_stamp >= limit, self._invalid_key, self._invalid_text, Level.WARN)
         if rx.bus_off:
             self.set_flag(self._bus_off_key, self._bus_off_text)
         down = rx.down_error or self._tx_down_error
@@ -442,12 +443,12 @@ class SitoSystem(HardwareComponent):
 
         if failed != self._tx_failed:
             self._tx_failed = failed
-            self._flag(failed and not self._tx_down_error, self._tx_key, self._tx_text)
+            self._flag(failed and not self._tx_down_error, self._tx_key, self._tx_text, Level.WARN)
         np.not_equal(problems, self._problems_raised, out=self._problems_changed)
         if self._problems_changed.any():
             for row, i in zip(*np.nonzero(self._problems_changed), strict=True):
                 keys, texts = self._problem_flags[row]
-                self._flag(bool(problems[row, i]), keys[i], texts[i])
+                self._flag(bool(problems[row, i]), keys[i], texts[i], Level.WARN)
             np.copyto(self._problems_raised, problems)
 
     def _send(self, bus: can.BusABC, msg: can.Message) -> bool:
@@ -461,9 +462,9 @@ class SitoSystem(HardwareComponent):
         self.frames_sent += 1
         return True
 
-    def _flag(self, raised: bool, key: str, text: str) -> None:
+    def _flag(self, raised: bool, key: str, text: str, level: Level) -> None:
         if raised:
-            self.set_flag(key, text)
+            self.set_flag(key, text, level)
         else:
             self.clear_flag(key)
 

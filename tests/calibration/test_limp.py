@@ -2,7 +2,7 @@
 
 import pytest
 
-from doubles.mailboxes import DriveMailboxes
+from doubles.mailboxes import FACTORY_WINDOW, DriveMailboxes
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.errors import PrimeError
 
@@ -14,7 +14,7 @@ def found(drives, p):
 def test_limp_sets_gate_then_zero_position_gain_and_integral(robot):
     drives = DriveMailboxes()
     with DampedLimp(drives, 3) as limp:
-        assert drives.values[3] == {"gate": 1, "pos_reg": 0, "vel_reg": 94, "integral": 0}
+        assert drives.values[3] == {"gate": 1, "pos_reg": 0, "vel_reg": 94, "integral": 0, "window": FACTORY_WINDOW}
         assert limp.readback.registers.pos_reg == 0 and limp.readback.gate == 1
 
 
@@ -64,7 +64,7 @@ def test_limp_that_does_not_take_is_reported_and_undone(robot):
     original = drives.sdo_write
 
     def gate_stuck(position, index, sub_index, data):
-        if (index, sub_index) == (0x2383, 0) and data == b"\x01":
+        if (index, sub_index) == (0x2383, 0) and int.from_bytes(data, "little") == 1:
             return  # a drive that never arms the gate: gain writes are ignored
         original(position, index, sub_index, data)
 

@@ -33,7 +33,7 @@ def test_limp_for_a_scripted_time_then_restores(served, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["joint"] == "left_elbow_pitch"
     assert out["limp"]["pos_reg"] == 0 and out["limp"]["gate"] == 1
-    assert out["restored"] == before
+    assert out["restored"] == {key: value for key, value in before.items() if key != "window"}
     assert drives.values[3] == before
     assert drives.limp_marks == [(3, True), (3, False)]
 

@@ -1,22 +1,33 @@
-"""A test double of ten eRob mailboxes: gain registers that ignore writes while the gate is 0."""
+"""A test double of ten eRob mailboxes: gain registers that ignore writes while the gate is 0, each object
+held in its own size (the gains u16 as in the vendor EDS, or u32 as one host reads them) and a write of
+another length aborted as a CoE stack that enforces sizes does."""
 
 from __future__ import annotations
 
-import struct
 import threading
 import time
 
-from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.drivers.erob.objects import (
+    BUS_GAIN_GATE,
+    FOLLOWING_ERROR_WINDOW,
+    POS_LOOP_GAIN,
+    VEL_LOOP_GAIN,
+    VEL_LOOP_INTEGRAL,
+)
 from humanoid_prime.errors import PrimeError
 
-NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral", BUS_GAIN_GATE: "gate"}
+NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral", BUS_GAIN_GATE: "gate",
+         (FOLLOWING_ERROR_WINDOW, 0): "window"}
+FACTORY_WINDOW = 41722  # counts, about 0.5 rad
 
 
 class DriveMailboxes:
-    def __init__(self, positions=range(10), *, latency_s: float = 0.0, initial=(300, 94, 5)) -> None:
+    def __init__(self, positions=range(10), *, latency_s: float = 0.0, initial=(300, 94, 5),
+                 gain_bytes: int = 2) -> None:
         self.latency_s = latency_s
-        self.values = {p: {"gate": 0, "pos_reg": initial[0], "vel_reg": initial[1], "integral": initial[2]}
-                       for p in positions}
+        self.values = {p: {"gate": 0, "pos_reg": initial[0], "vel_reg": initial[1], "integral": initial[2],
+                           "window": FACTORY_WINDOW} for p in positions}
+        self.sizes = {"gate": 4, "pos_reg": gain_bytes, "vel_reg": gain_bytes, "integral": gain_bytes, "window": 4}
         self.log: list[tuple[float, int, str, int]] = []  # accepted writes
         self.fail_next: dict[int, int] = {}  # position -> number of writes to refuse
         self.dead: set[int] = set()
@@ -48,7 +59,7 @@ class DriveMailboxes:
     def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
         name = self._check(position, index, sub_index)
         self._serve()
-        return struct.pack("<I", self.values[position][name])
+        return self.values[position][name].to_bytes(self.sizes[name], "little")
 
     def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
         name = self._check(position, index, sub_index)
@@ -57,9 +68,12 @@ class DriveMailboxes:
             if self.fail_next.get(position, 0) > 0:
                 self.fail_next[position] -= 1
                 raise PrimeError(f"ring {position}: SDO timeout")
+            if len(data) != self.sizes[name]:
+                raise PrimeError(f"ring {position}: SDO abort 0x06070010 on 0x{index:04X}:{sub_index:02X} (data "
+                                 f"type does not match: {len(data)} bytes for a {self.sizes[name]}-byte object)")
             value = int.from_bytes(data, "little")
             regs = self.values[position]
-            if name != "gate" and regs["gate"] != 1:
+            if name in ("pos_reg", "vel_reg", "integral") and regs["gate"] != 1:
                 return  # the drive silently ignores gain writes unless the gate is armed
             regs[name] = value
             self.log.append((time.monotonic(), position, name, value))

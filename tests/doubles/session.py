@@ -9,10 +9,17 @@ import struct
 
 import can
 
+from doubles.mailboxes import FACTORY_WINDOW
 from doubles.master import FakeMaster
 from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.drivers.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.drivers.erob.objects import (
+    BUS_GAIN_GATE,
+    FOLLOWING_ERROR_WINDOW,
+    POS_LOOP_GAIN,
+    VEL_LOOP_GAIN,
+    VEL_LOOP_INTEGRAL,
+)
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.runtime import registry
 from humanoid_prime.runtime.session import BringupOptions, Session, open_session, plan_session
@@ -41,7 +48,9 @@ class DoubledRobot:
         for position in range(len(master.found)):
             for address, value in zip((POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL), FACTORY_REGISTERS,
                                       strict=True):
-                master.objects[(position, *address)] = struct.pack("<I", value)
+                master.objects[(position, *address)] = struct.pack("<H", value)  # UNSIGNED16, as the EDS has them
+            master.objects[(position, *BUS_GAIN_GATE)] = struct.pack("<I", 0)
+            master.objects[(position, FOLLOWING_ERROR_WINDOW, 0)] = struct.pack("<i", FACTORY_WINDOW)
         self.master = master
         return EthercatSystem(settings.robot, settings.calibration, update_rate=settings.update_rate,
                               bringup_rate=settings.bringup_rate, master=master)

@@ -5,10 +5,13 @@ import threading
 import numpy as np
 import pytest
 
-from doubles.mailboxes import DriveMailboxes
+from doubles.mailboxes import FACTORY_WINDOW, DriveMailboxes
 from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, JointState, TopicBus
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.gains import gains_to_registers
+from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
 
@@ -55,14 +58,66 @@ def test_nothing_touches_the_bus_before_op_and_joint_states(robot, gains):
     mgr.close()
 
 
-def test_gate_is_armed_first_on_every_slave(robot, gains):
+def test_the_window_then_the_gate_go_before_any_gain_on_every_slave(robot, gains):
     drives = DriveMailboxes()
     mgr = make(robot, gains, drives)
     mgr.arm()
     mgr.apply(Mode.STANDBY)
     for position in range(10):
-        first = next(entry for entry in drives.log if entry[1] == position)
-        assert first[2:] == ("gate", 1)
+        writes = [entry[2] for entry in drives.log if entry[1] == position]
+        assert writes[:2] == ["window", "gate"] and {"pos_reg", "vel_reg"} <= set(writes[2:])
+    mgr.close()
+
+
+@pytest.mark.parametrize("joint, window_rad", [("left_shoulder_pitch", 3.0), ("left_wrist_yaw", 1.0)])
+def test_the_following_window_admits_twice_the_sag_at_the_effort_limit_of_the_stiffest_mode(robot, gains, joint,
+                                                                                              window_rad):
+    """kp 20 (STANDBY, LOCOMOTION, REMOTE): a shoulder (30 Nm) sags up to 1.5 rad, wrist yaw (10 Nm) 0.5 rad."""
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    position = robot.hardware.erob_slaves[joint]
+    assert drives.values[position]["window"] == round(window_rad * COUNTS_PER_RAD)
+    mgr.close()
+    assert drives.values[position]["window"] == FACTORY_WINDOW
+
+
+def test_a_drive_with_a_wider_window_keeps_it(robot, gains):
+    drives = DriveMailboxes()
+    drives.values[0]["window"] = 10 * round(3.0 * COUNTS_PER_RAD)
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    assert drives.values[0]["window"] == 10 * round(3.0 * COUNTS_PER_RAD)
+    mgr.close()
+
+
+@pytest.mark.parametrize("gain_bytes", [2, 4])
+def test_gains_are_written_with_the_size_the_drive_holds_them_in(robot, gains, gain_bytes):
+    drives = DriveMailboxes(gain_bytes=gain_bytes)  # a drive that aborts any other length
+    mgr = make(robot, gains, drives)
+    mgr.arm()
+    report = mgr.apply(Mode.STANDBY)
+    assert report.ok and drives.registers(3)[:2] == (515, 19)
+    mgr.close()
+
+
+def test_a_gate_armed_whose_registers_cannot_be_read_back_is_a_warning_not_an_unarmed_gate(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    real_read = drives.sdo_read
+
+    def registers_unreadable(position, index, sub):
+        if position == 2 and index == 0x2381:
+            raise PrimeError("ring 2: no reply")
+        return real_read(position, index, sub)
+
+    drives.sdo_read = registers_unreadable
+    mgr.arm()
+    assert drives.values[2]["gate"] == 1
+    assert "gate armed, gain registers not read back" in mgr.flags["erob/impedance/ring2"]
+    assert mgr.levels["erob/impedance/ring2"] is Level.WARN
+    drives.sdo_read = real_read
+    assert mgr.apply(Mode.STANDBY).ok
     mgr.close()
 
 

@@ -18,7 +18,7 @@ from humanoid_prime.runtime.socket import request
 
 
 def gate(master, position: int) -> int:
-    return master.objects[(position, *BUS_GAIN_GATE)][0]
+    return int.from_bytes(master.objects[(position, *BUS_GAIN_GATE)], "little")
 
 
 def test_a_full_session_comes_up_in_the_documented_stages(doubled):
@@ -41,7 +41,7 @@ def test_a_mode_switch_writes_that_modes_gains_to_every_slave(doubled):
     session.manager.request_mode(Mode.STANDBY)
     session.manager.tick()
     assert session.impedance.wait_idle(10.0)
-    pos_reg, vel_reg = (struct.unpack("<I", doubled.master.objects[(3, *a)])[0] for a in (POS_LOOP_GAIN,
+    pos_reg, vel_reg = (struct.unpack("<H", doubled.master.objects[(3, *a)])[0] for a in (POS_LOOP_GAIN,
                                                                                           VEL_LOOP_GAIN))
     assert (pos_reg, vel_reg) == (515, 19)  # STANDBY kp 20, kd 2 (DESIGN §2)
     assert session.summary()["mode_switches"][-1]["mode"] == "STANDBY"
@@ -58,7 +58,7 @@ def test_the_run_ends_after_its_sequence_and_resets_every_gate_while_still_ticki
 def test_a_single_bus_session_runs_only_the_broadcaster_and_arms_nothing(doubled):
     session = doubled.open(backends="ec")
     assert session.manager.broadcaster_only and session.impedance is None and session.sito is None
-    assert (0, *BUS_GAIN_GATE) not in doubled.master.objects
+    assert not [entry for entry in doubled.master.sdo_log if entry[0] == "write"]
 
 
 def test_the_control_socket_switches_modes_of_a_full_session(doubled, tmp_path):

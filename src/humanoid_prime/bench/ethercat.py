@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import statistics
-import struct
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -29,7 +28,8 @@ from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
-from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, GAIN_REGISTER_FORMAT, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.drivers.ethercat.sdo import SizedSdo
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
@@ -80,10 +80,14 @@ class _Loop:
 def _switches(master: SoemMaster, positions: list[int], count: int, parallel: bool) -> dict[str, Any]:
     """Alternate the two register sets ``count`` times; wall time and skew per switch."""
     walls, skews = [], []
+    objects = SizedSdo(master)
+    for position in positions:  # each register's size, learnt before the clock starts
+        objects.size(position, POS_LOOP_GAIN)
+        objects.size(position, VEL_LOOP_GAIN)
 
     def write(position: int, registers: tuple[int, int], start: float) -> float:
-        master.sdo_write(position, *POS_LOOP_GAIN, struct.pack(GAIN_REGISTER_FORMAT, registers[0]))
-        master.sdo_write(position, *VEL_LOOP_GAIN, struct.pack(GAIN_REGISTER_FORMAT, registers[1]))
+        objects.write(position, POS_LOOP_GAIN, registers[0])
+        objects.write(position, VEL_LOOP_GAIN, registers[1])
         return time.monotonic() - start
 
     with ThreadPoolExecutor(max_workers=len(positions)) as pool:
@@ -158,14 +162,15 @@ def _steady_state(system: EthercatSystem, master: SoemMaster, robot: Robot, upda
         while len(loop.costs_us) < cycles and time.monotonic() < deadline:
             time.sleep(0.05)
         idle, idle_cpu = list(loop.costs_us), list(loop.cpu_us)
+        objects = SizedSdo(master)
         for position in positions:
-            master.sdo_write(position, *BUS_GAIN_GATE, b"\x01")
+            objects.write(position, BUS_GAIN_GATE, 1)
         mark = len(loop.costs_us)
         parallel = _switches(master, positions, switches, parallel=True)
         sequential = _switches(master, positions, switches, parallel=False)
         during = loop.costs_us[mark:]
         for position in positions:
-            master.sdo_write(position, *BUS_GAIN_GATE, b"\x00")
+            objects.write(position, BUS_GAIN_GATE, 0)
     return {
         "cycle_us": _percentiles(idle[5:]),
         "cycle_cpu_us": _percentiles(idle_cpu[5:]),

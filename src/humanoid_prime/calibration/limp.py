@@ -10,20 +10,17 @@ gate) and report any register that could not be restored.
 from __future__ import annotations
 
 import signal
-import struct
 import threading
 from dataclasses import dataclass
 
 from humanoid_prime.drivers.erob.gains import ErobRegisters, write_order
 from humanoid_prime.drivers.erob.objects import (
     BUS_GAIN_GATE,
-    BUS_GAIN_GATE_FORMAT,
-    GAIN_REGISTER_FORMAT,
     POS_LOOP_GAIN,
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
-from humanoid_prime.drivers.ethercat.sdo import SdoClient
+from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 
 REGISTER_NAMES = {POS_LOOP_GAIN: "pos_reg 0x2382:01", VEL_LOOP_GAIN: "vel_reg 0x2381:01",
@@ -36,20 +33,14 @@ class GainSnapshot:
     registers: ErobRegisters
 
 
-def _read_uint(sdo: SdoClient, position: int, address: tuple[int, int]) -> int:
-    raw = sdo.sdo_read(position, address[0], address[1])
-    if not raw:
-        raise PrimeError(f"ring {position}: empty answer reading {REGISTER_NAMES[address]}")
-    return int.from_bytes(raw[:4], "little")
-
-
-def read_snapshot(sdo: SdoClient, position: int) -> GainSnapshot:
+def read_snapshot(objects: SizedSdo, position: int) -> GainSnapshot:
+    """The gate and the three gain registers as the drive holds them (learning each object's size)."""
     return GainSnapshot(
-        gate=_read_uint(sdo, position, BUS_GAIN_GATE),
+        gate=objects.read(position, BUS_GAIN_GATE),
         registers=ErobRegisters(
-            pos_reg=_read_uint(sdo, position, POS_LOOP_GAIN),
-            vel_reg=_read_uint(sdo, position, VEL_LOOP_GAIN),
-            integral=_read_uint(sdo, position, VEL_LOOP_INTEGRAL),
+            pos_reg=objects.read(position, POS_LOOP_GAIN),
+            vel_reg=objects.read(position, VEL_LOOP_GAIN),
+            integral=objects.read(position, VEL_LOOP_INTEGRAL),
         ),
     )
 
@@ -64,25 +55,25 @@ class DampedLimp:
     def __init__(self, sdo: SdoClient, position: int, vel_reg: int | None = None) -> None:
         if vel_reg is not None and vel_reg < 0:
             raise PrimeError(f"ring {position}: damping register must be >= 0, got {vel_reg}")
-        self.sdo = sdo
+        self.objects = SizedSdo(sdo)
         self.position = position
         self.vel_reg = vel_reg
         self.snapshot: GainSnapshot | None = None
         self.readback: GainSnapshot | None = None
         self.unrestored: list[str] = []
 
-    def _write(self, address: tuple[int, int], value: int, fmt: str) -> None:
-        self.sdo.sdo_write(self.position, address[0], address[1], struct.pack(fmt, value))
+    def _write(self, address: tuple[int, int], value: int) -> None:
+        self.objects.write(self.position, address, value)
 
     def __enter__(self) -> DampedLimp:
-        self.snapshot = read_snapshot(self.sdo, self.position)
+        self.snapshot = read_snapshot(self.objects, self.position)
         try:
             limp = ErobRegisters(pos_reg=0, vel_reg=self.snapshot.registers.vel_reg if self.vel_reg is None
                                  else self.vel_reg, integral=0)
-            self._write(BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
+            self._write(BUS_GAIN_GATE, 1)
             for address, value in write_order(self.snapshot.registers, limp):
-                self._write(address, value, GAIN_REGISTER_FORMAT)
-            self.readback = read_snapshot(self.sdo, self.position)
+                self._write(address, value)
+            self.readback = read_snapshot(self.objects, self.position)
             if self.readback.gate != 1 or self.readback.registers.pos_reg != 0:
                 raise PrimeError(
                     f"ring {self.position}: limp did not take (read back gate={self.readback.gate}, "
@@ -104,16 +95,16 @@ class DampedLimp:
             signal.pthread_sigmask(signal.SIG_BLOCK, held)
         try:
             try:
-                current = read_snapshot(self.sdo, self.position).registers
+                current = read_snapshot(self.objects, self.position).registers
             except Exception:
                 current = self.readback.registers if self.readback is not None else None
             for address, value in write_order(current, self.snapshot.registers):
                 try:
-                    self._write(address, value, GAIN_REGISTER_FORMAT)
+                    self._write(address, value)
                 except Exception as exc:
                     self.unrestored.append(f"{REGISTER_NAMES[address]} (wanted {value}): {exc}")
             try:
-                self._write(BUS_GAIN_GATE, self.snapshot.gate, BUS_GAIN_GATE_FORMAT)
+                self._write(BUS_GAIN_GATE, self.snapshot.gate)
             except Exception as exc:
                 self.unrestored.append(f"{REGISTER_NAMES[BUS_GAIN_GATE]} (wanted {self.snapshot.gate}): {exc}")
         finally:

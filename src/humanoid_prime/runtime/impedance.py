@@ -5,13 +5,18 @@ per mode, not per tick (DESIGN §2, §3). The manager:
 
 - stays off the bus until every slave is in OP and joint states flow (mailbox traffic during DC
   activation faults a slave with 0xA000);
+- widens each drive's following-error window (0x6065) to what the stiffest mode lets a loaded joint sag
+  (``FOLLOWING_WINDOW_MARGIN`` times effort limit over the smallest non-zero kp), so a compliant
+  impedance never trips 0x8500 by design; the drive's own window is restored on close;
 - arms the bus-gain gate (0x2383 = 1) once, first, then reads back what the registers hold;
+- writes every object with the size the drive reports for it (``SizedSdo``);
 - on each mode change converts (kp, kd) with each joint's Kt, gear and the torque efficiency, and
   writes only the registers whose value changes, in the order that never leaves an intermediate
   pair stiffer than both modes;
 - writes all slaves concurrently (one worker per slave) unless ``parallel`` is off;
 - retries a failed write a bounded number of times, then raises a safety flag for that slave;
-- on close resets the gate to 0 on every reachable slave, so the next bringup starts on factory gains.
+- on close resets the gate to 0 on every reachable slave, so the next bringup starts on factory gains, then
+  puts back the following-error window.
 
 Mode changes arrive on ``/control_mode`` in the control loop's thread; they are queued and applied
 by a worker thread, newest first (an intermediate mode nobody is in any more is skipped).
@@ -20,7 +25,6 @@ by a worker thread, newest first (an intermediate mode nobody is in any more is 
 from __future__ import annotations
 
 import queue
-import struct
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -28,18 +32,18 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.control.flags import SafetyFlags
+from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, TopicBus
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.gains import ErobRegisters, gains_to_registers, write_order
 from humanoid_prime.drivers.erob.objects import (
     BUS_GAIN_GATE,
-    BUS_GAIN_GATE_FORMAT,
-    GAIN_REGISTER_FORMAT,
+    FOLLOWING_ERROR_WINDOW,
     POS_LOOP_GAIN,
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
-from humanoid_prime.drivers.ethercat.sdo import SdoClient
+from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
@@ -80,8 +84,13 @@ class SwitchReport:
 
 
 RETRY_BACKOFF_S = 0.005
+# The following-error window admits this much more than the sag of a joint holding its effort limit at the
+# stiffest mode's nominal kp: the drive realises about 0.7x the nominal stiffness (DESIGN §2), 1/0.7 = 1.43.
+FOLLOWING_WINDOW_MARGIN = 2.0
+WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
 
 _NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral"}
+_LOGGED = {**_NAMES, BUS_GAIN_GATE: "gate", (FOLLOWING_ERROR_WINDOW, 0x00): "following_window"}
 
 
 @dataclass
@@ -90,9 +99,20 @@ class _Slave:
     position: int
     kt: float
     gear: float
+    window_counts: int | None  # the following-error window this run needs; None: leave the drive's
     registers: ErobRegisters | None = None  # what the drive holds now; None = unknown
     gate_armed: bool = False
+    factory_window: int | None = None  # the drive's own window, put back on close
     lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def following_window_counts(effort_limit: float, mode_gains: Mapping[Mode, tuple[float, float]]) -> int | None:
+    """The following-error window (counts) a joint needs: the margin times its sag when holding its effort
+    limit at the smallest non-zero kp of the modes; None when no mode is stiff (every target follows)."""
+    stiff = [kp for kp, _ in mode_gains.values() if kp > 0]
+    if not stiff:
+        return None
+    return round(FOLLOWING_WINDOW_MARGIN * effort_limit / min(stiff) * COUNTS_PER_RAD)
 
 
 class ImpedanceManager(SafetyFlags):
@@ -106,7 +126,10 @@ class ImpedanceManager(SafetyFlags):
         self.clock = clock
         self.efficiency = hw.torque_efficiency
         self.mode_gains = dict(mode_gains)
-        self.slaves = [_Slave(j, hw.erob_slaves[j], hw.erob_kt[j], hw.erob_gear[j]) for j in hw.erob_joints]
+        self.slaves = [_Slave(j, hw.erob_slaves[j], hw.erob_kt[j], hw.erob_gear[j],
+                              following_window_counts(robot.joints[robot.index(j)].effort_limit, mode_gains))
+                       for j in hw.erob_joints]
+        self.objects = SizedSdo(sdo)
         self.targets = {
             mode: {s.position: gains_to_registers(kp, kd, kt=s.kt, gear=s.gear, efficiency=self.efficiency)
                    for s in self.slaves}
@@ -174,13 +197,12 @@ class ImpedanceManager(SafetyFlags):
             return self._idle.wait_for(lambda: self._done >= self._submitted, timeout)
 
     # ------------------------------------------------------------------------------------- bus
-    def _write(self, slave: _Slave, address: tuple[int, int], value: int, fmt: str) -> int:
+    def _write(self, slave: _Slave, address: tuple[int, int], value: int) -> int:
         """Write one object with bounded retries; returns the retries used, raises the last error."""
-        data = struct.pack(fmt, value)
         for attempt in range(self.retries + 1):
             try:
-                self.sdo.sdo_write(slave.position, address[0], address[1], data)
-                self.sdo_log.append((self.clock(), slave.position, _NAMES.get(address, "gate"), value))
+                self.objects.write(slave.position, address, value)
+                self.sdo_log.append((self.clock(), slave.position, _LOGGED[address], value))
                 return attempt
             except Exception:
                 if attempt == self.retries:
@@ -189,11 +211,9 @@ class ImpedanceManager(SafetyFlags):
         return self.retries
 
     def _read_registers(self, slave: _Slave) -> ErobRegisters:
-        def read(address: tuple[int, int]) -> int:
-            raw = self.sdo.sdo_read(slave.position, address[0], address[1])
-            return int.from_bytes(raw[:4].ljust(4, b"\0"), "little")
-        return ErobRegisters(pos_reg=read(POS_LOOP_GAIN), vel_reg=read(VEL_LOOP_GAIN),
-                             integral=read(VEL_LOOP_INTEGRAL))
+        read = self.objects.read
+        return ErobRegisters(pos_reg=read(slave.position, POS_LOOP_GAIN), vel_reg=read(slave.position, VEL_LOOP_GAIN),
+                             integral=read(slave.position, VEL_LOOP_INTEGRAL))
 
     def _each(self, fn: Callable[[_Slave], object]) -> list[object]:
         if self._pool is not None:
@@ -201,23 +221,30 @@ class ImpedanceManager(SafetyFlags):
         return [fn(s) for s in self.slaves]
 
     def arm(self) -> None:
-        """Set the gate to 1 on every slave (first), then learn what the gain registers hold."""
-        self.armed = True  # from here on, close() resets the gate on every slave
-        errors = [e for e in self._each(self._arm_one) if e]
-        for slave in self.slaves:
-            key = f"erob/impedance/ring{slave.position}"
-            problem = next((e for e in errors if e.startswith(f"{slave.joint} ")), None)
-            self._set_flag(key, problem)
+        """On every slave: the following-error window first, then the gate to 1, then learn what the gain
+        registers hold."""
+        self.armed = True  # from here on, close() resets the gate and the window on every slave
+        for slave, problem in zip(self.slaves, self._each(self._arm_one), strict=True):
+            self._set_flag(f"erob/impedance/ring{slave.position}", problem)
 
-    def _arm_one(self, slave: _Slave) -> str | None:
+    def _arm_one(self, slave: _Slave) -> tuple[str, Level] | None:
         with slave.lock:
+            where = f"{slave.joint} (ring {slave.position})"
             try:
-                self._write(slave, BUS_GAIN_GATE, 1, BUS_GAIN_GATE_FORMAT)
-                slave.gate_armed = True
-                slave.registers = self._read_registers(slave)
+                if slave.window_counts is not None and slave.factory_window is None:
+                    slave.factory_window = self.objects.read(slave.position, WINDOW)
+                    self._write(slave, WINDOW, max(slave.window_counts, slave.factory_window))
+                self._write(slave, BUS_GAIN_GATE, 1)
             except Exception as exc:
                 slave.registers = None
-                return f"{slave.joint} (ring {slave.position}): gate not armed: {exc}"
+                return f"{where}: gate not armed, no gains will be written until it is: {exc}", Level.ERROR
+            slave.gate_armed = True
+            try:
+                slave.registers = self._read_registers(slave)
+            except Exception as exc:  # armed; the registers are unknown, so the next switch writes all three
+                slave.registers = None
+                return f"{where}: gate armed, gain registers not read back ({exc}); all three will be written", \
+                    Level.WARN
         return None
 
     def apply(self, mode: Mode) -> SwitchReport:
@@ -234,13 +261,13 @@ class ImpedanceManager(SafetyFlags):
                 retries = 0
                 if not slave.gate_armed:  # gain writes are ignored until the gate is 1: arm it first
                     problem = self._arm_one(slave)
-                    if problem is not None:
+                    if problem is not None and problem[1] is Level.ERROR:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
-                                           f"{mode.value} gains not applied: {problem}")
+                                           f"{mode.value} gains not applied: {problem[0]}")
                 with slave.lock:
                     try:
                         for address, value in write_order(slave.registers, new):
-                            retries += self._write(slave, address, value, GAIN_REGISTER_FORMAT)
+                            retries += self._write(slave, address, value)
                             written.append((_NAMES[address], value))
                             slave.registers = _updated(slave.registers, address, value)
                         slave.registers = new
@@ -263,7 +290,7 @@ class ImpedanceManager(SafetyFlags):
             self.reports.append(report)
             for r in results:
                 self._set_flag(f"erob/impedance/ring{r.position}",
-                               f"{r.joint} (ring {r.position}): {r.error}" if r.error else None)
+                               (f"{r.joint} (ring {r.position}): {r.error}", Level.ERROR) if r.error else None)
             return report
 
     def close(self) -> list[str]:
@@ -278,12 +305,19 @@ class ImpedanceManager(SafetyFlags):
         failures: list[str] = []
         if self.armed:
             def reset(slave: _Slave) -> str | None:
+                problems = []
                 with slave.lock:
                     try:
-                        self._write(slave, BUS_GAIN_GATE, 0, BUS_GAIN_GATE_FORMAT)
+                        self._write(slave, BUS_GAIN_GATE, 0)
                     except Exception as exc:
-                        return f"{slave.joint} (ring {slave.position}): gate not reset: {exc}"
-                return None
+                        problems.append(f"gate not reset: {exc}")
+                    if slave.factory_window is not None:
+                        try:
+                            self._write(slave, WINDOW, slave.factory_window)
+                            slave.factory_window = None
+                        except Exception as exc:
+                            problems.append(f"following-error window not restored to {slave.factory_window}: {exc}")
+                return f"{slave.joint} (ring {slave.position}): " + "; ".join(problems) if problems else None
             failures = [e for e in self._each(reset) if e]
             self.armed = False
         if self._pool is not None:
@@ -291,11 +325,11 @@ class ImpedanceManager(SafetyFlags):
             self._pool = None
         return failures
 
-    def _set_flag(self, key: str, text: str | None) -> None:
-        if text is None:
+    def _set_flag(self, key: str, problem: tuple[str, Level] | None) -> None:
+        if problem is None:
             self.clear_flag(key)
         else:
-            self.set_flag(key, text)
+            self.set_flag(key, *problem)
 
 
 def _updated(regs: ErobRegisters | None, address: tuple[int, int], value: int) -> ErobRegisters | None:

@@ -18,7 +18,6 @@ Everything opened is registered on the caller's ExitStack; ``runtime.run`` runs 
 from __future__ import annotations
 
 import contextlib
-import struct
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -34,8 +33,9 @@ from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
-from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, BUS_GAIN_GATE_FORMAT
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
+from humanoid_prime.drivers.ethercat.sdo import SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
@@ -311,7 +311,7 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
             factory gains (gate 0) rather than leave it limp in drive memory for the next bringup."""
             for position in sorted(marked):
                 with contextlib.suppress(Exception):
-                    sdo.sdo_write(position, *BUS_GAIN_GATE, struct.pack(BUS_GAIN_GATE_FORMAT, 0))
+                    SizedSdo(sdo).write(position, BUS_GAIN_GATE, 0)
                 session.record_fault(f"limp/ring{position}", f"{ring_joints[position]} (ring {position}) was still "
                                      "limp when the run ended; its gate was reset to 0", Level.WARN)
 

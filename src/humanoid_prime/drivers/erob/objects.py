@@ -41,8 +41,8 @@ POS_LOOP_GAIN = (0x2382, 0x01)  # pos_reg
 VEL_LOOP_GAIN = (0x2381, 0x01)  # vel_reg
 VEL_LOOP_INTEGRAL = (0x2381, 0x02)  # held at 0 for a clean impedance
 BUS_GAIN_GATE = (0x2383, 0x00)  # 1 = bus-written gains, 0 = factory gains (default)
-BUS_GAIN_GATE_FORMAT = "<B"
-GAIN_REGISTER_FORMAT = "<I"  # registers are written as u32; EDS says u16, one ESI says u32 (DESIGN §2)
+# Their widths differ between sources (the EDS: gains UNSIGNED16; a public host: u32; one table: the gate
+# UDINT), so they are written with the size each drive reports (drivers/ethercat/sdo.SizedSdo).
 
 
 @dataclass(frozen=True)

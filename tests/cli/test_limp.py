@@ -78,7 +78,8 @@ def test_signal_while_waiting_restores_the_snapshot(served, sig):
         time.sleep(0.02)
     assert drives.values[6]["pos_reg"] == 0, "the joint never went limp"
     proc.send_signal(sig)
-    out, err = proc.communicate(timeout=20)
+    proc.wait(timeout=20)  # stdin stays open: the signal, not an end of input, ends the limp
+    out, err = proc.communicate()
     assert proc.returncode == 130, err
     assert drives.values[6] == before
     assert "restored" in out

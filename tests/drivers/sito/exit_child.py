@@ -5,6 +5,7 @@ Run by test_exit.py: ``python exit_child.py GROUP PORT normal|exception|signal``
 
 from __future__ import annotations
 
+import faulthandler
 import sys
 import time
 
@@ -17,6 +18,7 @@ from humanoid_prime.drivers.sito.system import SitoSystem
 
 
 def main() -> None:
+    faulthandler.dump_traceback_later(20.0, exit=True)  # a hang shows where every thread is, then ends
     group, port, how = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     robot = load_robot()
     bus = can.Bus(interface="udp_multicast", channel=group, port=port)

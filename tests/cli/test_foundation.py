@@ -178,7 +178,7 @@ def test_fold_into_a_file_is_refused(capsys, tmp_path, calibration_file):
     blocker.write_text("")
     code, _, err = prime(capsys, "calibration", "fold", "--calibration", str(calibration_file), "--out",
                          str(blocker))
-    assert_one_line_error(code, err, "is not a folder")
+    assert_one_line_error(code, err, "is a file, not a folder")
 
 
 def test_flip_rewrites_the_file(capsys, robot, calibration_file):

@@ -22,7 +22,7 @@ from humanoid_prime.drivers.erob.objects import (
 )
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.runtime import registry
-from humanoid_prime.runtime.session import BringupOptions, Session, open_session, plan_session
+from humanoid_prime.runtime.session import BringupOptions, Session, claim_control_socket, open_session, plan_session
 from humanoid_prime.virtual.sito import SitoEmulator
 
 FACTORY_REGISTERS = (300, 94, 5)  # pos_reg, vel_reg, integral
@@ -59,5 +59,9 @@ class DoubledRobot:
         return BringupOptions(can_interface="virtual", can_channel=self.channel, **fields)
 
     def open(self, **fields: object) -> Session:
-        """A session on the doubles, torn down with the test."""
-        return open_session(plan_session(self.options(**fields)), self.stack)
+        """A session on the doubles, torn down with the test; with ``control_socket`` it claims that socket
+        first, as the commands do."""
+        plan = plan_session(self.options(**fields))
+        if plan.options.control_socket is not None:
+            claim_control_socket(plan, self.stack)
+        return open_session(plan, self.stack)

@@ -13,7 +13,7 @@ from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VE
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.run import close_impedance_while_ticking, run_loop
-from humanoid_prime.runtime.session import control_server, plan_session
+from humanoid_prime.runtime.session import claim_control_socket, plan_session
 from humanoid_prime.runtime.socket import request
 
 
@@ -62,19 +62,18 @@ def test_a_single_bus_session_runs_only_the_broadcaster_and_arms_nothing(doubled
 
 
 def test_the_control_socket_switches_modes_of_a_full_session(doubled, tmp_path):
-    session = doubled.open()
-    with control_server(session, tmp_path / "control.sock"):
-        assert request(tmp_path / "control.sock", {"op": "mode", "mode": "damping"})["mode"] == "DAMPING"
+    session = doubled.open(control_socket=tmp_path / "control.sock")
+    assert request(tmp_path / "control.sock", {"op": "mode", "mode": "damping"})["mode"] == "DAMPING"
     session.manager.tick()
     assert session.manager.active_mode is Mode.DAMPING
 
 
 def test_in_a_calibration_session_the_socket_marks_a_joint_limp_and_resets_its_gate_at_the_end(doubled, tmp_path):
-    session = doubled.open(backends="ec")
     path = tmp_path / "control.sock"
-    with control_server(session, path):
-        assert request(path, {"op": "limp", "position": 4, "limp": True})["joint"] == "left_wrist_yaw"
-        assert session.manager.resources.command.position[6] == 0.0  # a finite target: it follows the joint
+    session = doubled.open(backends="ec", control_socket=path)
+    assert request(path, {"op": "limp", "position": 4, "limp": True})["joint"] == "left_wrist_yaw"
+    assert session.manager.resources.command.position[6] == 0.0  # a finite target: it follows the joint
+    session.plan.control.detach()  # the run ends
     assert gate(doubled.master, 4) == 0
     assert any(f.key == "limp/ring4" and "still limp when the run ended" in f.text for f in session.faults)
 
@@ -141,3 +140,20 @@ def test_a_flag_that_cleared_stays_in_the_history_with_the_time_it_cleared(doubl
     run_ticks(session, 2)
     (record,) = session.faults
     assert record.until_s is not None and record.until_s >= record.since_s
+
+
+def test_a_second_instance_stops_at_the_socket_before_it_opens_a_bus(doubled, tmp_path):
+    path = tmp_path / "control.sock"
+    doubled.open(control_socket=path)
+    first_master = doubled.master
+    with pytest.raises(PrimeError, match="another prime instance already listens"):
+        doubled.open(control_socket=path)
+    assert doubled.master is first_master  # the second run built no EtherCAT component
+
+
+def test_until_the_session_is_up_the_socket_answers_not_ready(doubled, tmp_path):
+    path = tmp_path / "control.sock"
+    plan = plan_session(doubled.options(control_socket=path))
+    claim_control_socket(plan, doubled.stack)
+    with pytest.raises(PrimeError, match="starting up or shutting down"):
+        request(path, {"op": "mode", "mode": "STANDBY"})

@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.socket import default_socket_path
 
 
@@ -50,6 +52,22 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     if args.mailbox_latency is not None:
         options["mailbox_latency_s"] = args.mailbox_latency
     return options
+
+
+def output_file(text: str) -> Path:
+    """argparse type of an output file: refused at once if it could not be written at the end of the run."""
+    problem = output_problem(text)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"cannot write there: {problem}")
+    return Path(text).expanduser()
+
+
+def output_dir(text: str) -> Path:
+    """argparse type of an output folder, checked like ``output_file``."""
+    problem = output_problem(text, directory=True)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"cannot write there: {problem}")
+    return Path(text).expanduser()
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:

@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from humanoid_prime import bench as b
+from humanoid_prime.cli._common import output_file
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 
@@ -49,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description="Run the benchmarks and print each figure against its target. "
                                           "Suites: " + "; ".join(f"{k}: {v[2]}" for k, v in SUITES.items()))
     p.add_argument("--only", metavar="SUITE,...", help=f"run only these suites ({', '.join(SUITES)})")
-    p.add_argument("--output", metavar="FILE", help="also write every figure as JSON")
+    p.add_argument("--output", metavar="FILE", type=output_file, help="also write every figure as JSON")
     p.add_argument("--json", action="store_true", help="print every figure as JSON instead of the table")
     p.set_defaults(func=run)
 

@@ -15,13 +15,22 @@ from humanoid_prime.cli._common import (
     add_emulation_options,
     add_json_option,
     add_socket_option,
+    output_dir,
+    output_file,
     ring_options,
 )
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.run import run_loop
-from humanoid_prime.runtime.session import BACKENDS, BringupOptions, Session, control_server, open_session, plan_session
+from humanoid_prime.runtime.session import (
+    BACKENDS,
+    BringupOptions,
+    Session,
+    claim_control_socket,
+    open_session,
+    plan_session,
+)
 from humanoid_prime.runtime.signals import stop_on_signals
 
 
@@ -55,9 +64,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--load-test", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) measure realised eRob stiffness in STANDBY: push each joint with a known "
                         "torque in the plant and read the deflection; prints nominal vs realised kp")
-    p.add_argument("--erob-config-dir", metavar="DIR", help="keep the folded per-slave eRob configs here")
+    p.add_argument("--erob-config-dir", metavar="DIR", type=output_dir,
+                   help="keep the folded per-slave eRob configs here")
     add_socket_option(p)
-    p.add_argument("--summary", metavar="FILE", help="write the run's figures as JSON")
+    p.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
     p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
     add_json_option(p)
     p.set_defaults(func=run)
@@ -102,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
     emulator: dict = {}
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
         plan = plan_session(options)
+        claim_control_socket(plan, stack)
         virtual = None
         if options.emulated:
             from humanoid_prime.virtual.harness import attach_virtual_prime
@@ -118,7 +129,6 @@ def run(args: argparse.Namespace) -> int:
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
             report(f"  {name:<28} {seconds * 1e3:9.1f} ms")
-        stack.enter_context(control_server(session, options.control_socket))
         load_test = None
         if args.load_test:
             joints = (session.robot.hardware.erob_joints if args.load_test == "all"

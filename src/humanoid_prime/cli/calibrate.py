@@ -32,6 +32,7 @@ from humanoid_prime.cli._common import (
     add_emulation_options,
     add_json_option,
     add_socket_option,
+    output_file,
     ring_options,
 )
 from humanoid_prime.config.calibration import load_calibration
@@ -43,7 +44,7 @@ from humanoid_prime.runtime.session import (
     BACKENDS,
     BringupOptions,
     Session,
-    control_server,
+    claim_control_socket,
     open_session,
     plan_session,
 )
@@ -61,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "Sito wrists are limp already). Ctrl-C (or q) computes the offsets and writes a complete "
                     "14-joint file atomically, carrying the prior through for joints not swept.")
     p.add_argument("--backends", choices=BACKENDS, default="all", help="which buses to bring up (default all)")
-    p.add_argument("--output", metavar="FILE", default="prime_calibration.yaml",
+    p.add_argument("--output", metavar="FILE", type=output_file, default="prime_calibration.yaml",
                    help="calibration file to write (default ./prime_calibration.yaml)")
     p.add_argument("--prior", metavar="FILE",
                    help="calibration carried through for joints not swept, and the source of the directions "
@@ -76,7 +77,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "at a stop reads that stop's limit (driven on the emulator, by you on the robot)")
     p.add_argument("--calibration", metavar="FILE", help="(with --verify) the calibration to check (default --output)")
     p.add_argument("--joints", metavar="JOINT,...", help="(with --verify) check only these joints")
-    p.add_argument("--plot", metavar="PNG", help="also draw each joint's sweep against its limits")
+    p.add_argument("--plot", metavar="PNG", type=output_file, help="also draw each joint's sweep against its limits")
     p.add_argument("--any-order", action="store_true",
                    help="the stops were swept in any order: skip the direction check that relies on sweeping "
                         "each joint to its lower stop first")
@@ -114,6 +115,7 @@ def _open(args: argparse.Namespace, calibration: Any, ring: dict[str, Any],
                              emulated=args.emulate, hardware_file=args.hardware,
                              controllers_file=args.controllers, control_socket=args.socket)
     plan = plan_session(options)
+    claim_control_socket(plan, stack)
     virtual = None
     if args.emulate:
         from humanoid_prime.virtual.harness import attach_virtual_prime
@@ -165,7 +167,6 @@ def _calibrate(args: argparse.Namespace, prior: Any, ring: dict[str, Any]) -> in
             check_joint_names(robot, scripted, joints, "--scripted")
         tracker = SweepTracker(robot, joints)
         tracker.attach(session.manager.topics)
-        stack.enter_context(control_server(session, args.socket))
         if not args.json:
             console.print(f"Prime up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
                           f"{len(joints)} joints ({args.backends}).")
@@ -235,7 +236,6 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
         joints = tracked_joints(robot, args.backends)
         chosen = tuple(_joint_list(args.joints)) or joints
         check_joint_names(robot, chosen, joints, "--joints")
-        stack.enter_context(control_server(session, args.socket))
         worker = threading.Thread(target=_verify_joints, args=(session, virtual, chosen, rows, errors, stop),
                                   name="verify", daemon=True)
         worker.start()

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._common import add_config_options, add_json_option, output_dir, print_json
 from humanoid_prime.config.calibration import load_calibration, save_calibration
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.ethercat.fold import write_folded_configs
@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "slave config with direction and homing_offset folded into the PDO "
                                           "factors and offsets (no drive NVM is written).")
     add_config_options(fold, calibration=True)
-    fold.add_argument("--out", required=True, metavar="DIR", help="folder for the per-slave configs")
+    fold.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="folder for the per-slave configs")
     add_json_option(fold)
     fold.set_defaults(func=_fold)
 

@@ -17,7 +17,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._common import add_config_options, add_json_option, output_file, print_json
 from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fast", action="store_true", help="run as fast as possible instead of in real time")
     p.add_argument("--viewer", action="store_true", help="show the MuJoCo viewer (needs a display)")
     p.add_argument("--mode", metavar="MODE", help="stay in MODE instead of running the demonstration")
-    p.add_argument("--summary", metavar="FILE", help="write a JSON summary of the run to FILE")
+    p.add_argument("--summary", metavar="FILE", type=output_file, help="write a JSON summary of the run to FILE")
     p.add_argument("--model", metavar="FILE", help="MuJoCo model (default: the bundled prime.xml)")
     p.add_argument("--hil", choices=HIL_CHOICES, default="none",
                    help="hardware in the loop: 'can' drives the Sito wrists through SitoSystem and emulated motors "

@@ -83,12 +83,20 @@ class Plan:
     broadcaster_only: bool
     began: float
     stages: list[tuple[str, float]] = field(default_factory=list)
+    control: ControlServer | None = None  # the run's control socket, claimed before any bus
 
     def stage(self, name: str, since: float) -> float:
         """Record a bring-up stage that started at ``since``; returns now."""
         now = time.monotonic()
         self.stages.append((name, now - since))
         return now
+
+
+def claim_control_socket(plan: Plan, stack: contextlib.ExitStack) -> ControlServer:
+    """Bind the run's control socket before anything touches a bus: a second instance stops here, with the
+    reason, instead of after it has opened the NIC. ``open_session`` attaches the running session to it."""
+    plan.control = stack.enter_context(ControlServer(path=plan.options.control_socket))
+    return plan.control
 
 
 def plan_session(options: BringupOptions) -> Plan:
@@ -284,12 +292,15 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         # The bus is ready and joint states have flowed (the first tick); arm the gate and follow the mode.
         impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0)
         plan.stage("impedance manager armed", t)
+    if plan.control is not None:
+        serve(session, plan.control)
+        stack.callback(plan.control.detach)  # answering stops, and limp joints are reset, before teardown
     return session
 
 
-def control_server(session: Session, path: str | Path | None) -> ControlServer:
-    """The control socket: mode requests (full runs), SDO through this process's EtherCAT master, and in
-    broadcaster-only runs the limp marker of ``prime limp``."""
+def serve(session: Session, server: ControlServer) -> None:
+    """Answer on ``server`` for ``session``: mode requests (full runs), SDO through this process's EtherCAT
+    master, and in broadcaster-only runs the limp marker of ``prime limp``."""
     manager = session.manager
     request = None if manager.broadcaster_only else manager.request_mode
     sdo = session.ethercat.master if session.ethercat is not None else None
@@ -315,4 +326,4 @@ def control_server(session: Session, path: str | Path | None) -> ControlServer:
                 session.record_fault(f"limp/ring{position}", f"{ring_joints[position]} (ring {position}) was still "
                                      "limp when the run ended; its gate was reset to 0", Level.WARN)
 
-    return ControlServer(request, path, sdo=sdo, joint_limp=joint_limp, on_close=on_close)
+    server.attach(request_mode=request, sdo=sdo, joint_limp=joint_limp, on_close=on_close)

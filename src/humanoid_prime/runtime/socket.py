@@ -38,16 +38,23 @@ def default_socket_path() -> Path:
 
 
 class ControlServer:
-    """Serves mode requests (handed to ``request_mode``) and, if given an ``sdo`` client, SDO requests."""
+    """Serves mode requests (handed to ``request_mode``) and, if given an ``sdo`` client, SDO requests.
 
-    def __init__(self, request_mode: Callable[[Mode], None] | None, path: str | Path | None = None, *,
+    A run claims its socket first, before it touches a bus (a second instance stops there), and attaches
+    what it serves once it is up; until then, and after ``detach``, requests are answered "not ready".
+    """
+
+    def __init__(self, request_mode: Callable[[Mode], None] | None = None, path: str | Path | None = None, *,
                  sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None,
                  on_close: Callable[[], None] | None = None) -> None:
-        self.request_mode = request_mode
-        self.sdo = sdo
-        self.joint_limp = joint_limp
-        self.on_close = on_close  # runs once no request can arrive any more
         self.path = Path(path) if path is not None else default_socket_path()
+        self.ready = False
+        self.request_mode: Callable[[Mode], None] | None = None
+        self.sdo: SdoClient | None = None
+        self.joint_limp: Callable[[int, bool], str] | None = None
+        self.on_close: Callable[[], None] | None = None  # runs once no request can arrive any more
+        if request_mode is not None or sdo is not None or joint_limp is not None or on_close is not None:
+            self.attach(request_mode=request_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close)
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -66,6 +73,21 @@ class ControlServer:
         self._thread = threading.Thread(target=self._serve, name="control-socket", daemon=True)
         self._thread.start()
         return self
+
+    def attach(self, *, request_mode: Callable[[Mode], None] | None = None, sdo: SdoClient | None = None,
+               joint_limp: Callable[[int, bool], str] | None = None,
+               on_close: Callable[[], None] | None = None) -> None:
+        """Start answering with these handlers (the run is up)."""
+        self.request_mode, self.sdo, self.joint_limp, self.on_close = request_mode, sdo, joint_limp, on_close
+        self.ready = True
+
+    def detach(self) -> None:
+        """Stop answering for the run (it is tearing down) and run its ``on_close`` once."""
+        self.ready = False
+        self.request_mode = self.sdo = self.joint_limp = None
+        if self.on_close is not None:
+            on_close, self.on_close = self.on_close, None
+            on_close()
 
     def _serve(self) -> None:
         assert self._sock is not None
@@ -96,6 +118,8 @@ class ControlServer:
         try:
             if op == "ping":
                 return {"ok": True}
+            if not self.ready:
+                return {"ok": False, "error": "this prime instance is starting up or shutting down; try again"}
             if op == "mode":
                 if self.request_mode is None:
                     return {"ok": False, "error": "this prime instance runs no mode controllers"}
@@ -132,9 +156,7 @@ class ControlServer:
             self._thread = None
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
-        if self.on_close is not None:
-            on_close, self.on_close = self.on_close, None
-            on_close()
+        self.detach()
 
     def __enter__(self) -> ControlServer:
         return self.start()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import subprocess
@@ -41,12 +42,11 @@ def wait_until_up(proc: subprocess.Popen, socket: Path) -> None:
     """Until the running bringup answers on its control socket, then a second of steady running."""
     deadline = time.monotonic() + 60
     while True:
-        try:
-            request(socket, {"op": "ping"}, timeout=0.5)
-            break
-        except PrimeError:
-            assert proc.poll() is None and time.monotonic() < deadline, "bringup did not come up"
-            time.sleep(0.1)
+        with contextlib.suppress(PrimeError):
+            if request(socket, {"op": "ping"}, timeout=0.5)["ready"]:
+                break
+        assert proc.poll() is None and time.monotonic() < deadline, "bringup did not come up"
+        time.sleep(0.1)
     time.sleep(1.0)
 
 

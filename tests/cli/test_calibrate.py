@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import random
 import signal
@@ -45,21 +46,15 @@ def truth(robot, tmp_path_factory) -> tuple[Calibration, Path]:
 
 @pytest.fixture(scope="module")
 def calibrated(robot, truth, tmp_path_factory) -> tuple[dict, Path, Path]:
-    """The documented procedure with the bundled (all +1) directions: the ten eRob on EtherCAT alone, then
-    the four wrists on CAN alone carrying the eRob result through as the prior."""
+    """The default procedure with the bundled (all +1) directions: one command sweeps the ten eRob on
+    EtherCAT alone, then the four wrists on CAN alone with the eRob result as their prior."""
     tmp = tmp_path_factory.mktemp("calibrate")
-    erob, output, plot = tmp / "erob.yaml", tmp / "prime_calibration.yaml", tmp / "sweeps.png"
-    reports = {}
-    for backends, prior, out in (("ec", None, erob), ("can", erob, output)):
-        args = ["calibrate", "--emulate", "--backends", backends, "--truth", str(truth[1]), "--scripted",
-                "--output", str(out), "--socket", str(tmp / "control.sock"), "--json"]
-        if prior is not None:
-            args += ["--prior", str(prior), "--plot", str(plot)]
-        proc = prime(*args)
-        assert proc.returncode == 0, proc.stderr
-        joints = json.loads(proc.stdout)["joints"]
-        reports.update({j: r for j, r in joints.items() if r["status"] != "carried"})
-    return {"joints": reports}, output, plot
+    output, plot = tmp / "prime_calibration.yaml", tmp / "sweeps.png"
+    proc = prime("calibrate", "--emulate", "--truth", str(truth[1]), "--scripted", "--output", str(output),
+                 "--plot", str(plot), "--socket", str(tmp / "control.sock"), "--json")
+    assert proc.returncode == 0, proc.stderr
+    joints = json.loads(proc.stdout)["joints"]
+    return {"joints": {j: r for j, r in joints.items() if r["status"] != "carried"}}, output, plot
 
 
 def test_every_correctly_wired_offset_is_recovered_within_1_mrad(robot, truth, calibrated):
@@ -129,14 +124,13 @@ def _start(tmp_path: Path, output: Path, *extra: str) -> tuple[subprocess.Popen,
                              "--no-live", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while True:
-        try:
-            request(socket, {"op": "ping"}, timeout=0.5)
-            return proc, socket
-        except PrimeError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
-                raise AssertionError(proc.stderr.read()) from None
-            time.sleep(0.1)
+        with contextlib.suppress(PrimeError):
+            if request(socket, {"op": "ping"}, timeout=0.5)["ready"]:
+                return proc, socket
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise AssertionError(proc.stderr.read())
+        time.sleep(0.1)
 
 
 @pytest.mark.parametrize("signals", [1, 2])

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from humanoid_prime.calibration.math import JointReport, MirrorRow, calibrate_from_sweeps, mirror_check
+from humanoid_prime.calibration.math import JointReport, MirrorRow, Status, calibrate_from_sweeps, mirror_check
 from humanoid_prime.calibration.tracker import SweepRow, SweepTracker
 from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
 from humanoid_prime.config.description import BACKEND_BLOCKS
@@ -50,6 +50,12 @@ class CalibrationResult:
     reports: list[JointReport]
     mirror: list[MirrorRow]
     rows: list[SweepRow]
+    robot: Robot
+
+    @property
+    def swept(self) -> bool:
+        """Some joint was swept far enough to compute its offset (calibrated, or flagged as a probable flip)."""
+        return any(r.status in (Status.CALIBRATED, Status.PROBABLE_FLIP) for r in self.reports)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -68,7 +74,19 @@ def compute(tracker: SweepTracker, prior: Calibration, robot: Robot, *, lower_fi
     whose reading reached its maximum first is flagged as a probable direction flip."""
     max_first = {j for j, first in tracker.order().items() if first == "max"} if lower_first else set()
     calibration, reports = calibrate_from_sweeps(tracker.sweeps(), prior, robot, max_first=max_first)
-    return CalibrationResult(calibration, reports, mirror_check(calibration, robot), tracker.rows())
+    return CalibrationResult(calibration, reports, mirror_check(calibration, robot), tracker.rows(), robot)
+
+
+def merge_phases(results: Sequence[CalibrationResult]) -> CalibrationResult:
+    """One result of a run in phases, each on its own joints with the previous one's calibration as its prior:
+    the last calibration, each joint's report from the phase that saw it, the sweeps of every phase."""
+    last = results[-1]
+    reports = {r.joint: r for r in last.reports}
+    for result in results[:-1]:
+        reports.update({r.joint: r for r in result.reports if r.status is not Status.CARRIED})
+    rows = {row.joint: row for result in results for row in result.rows}
+    return CalibrationResult(last.calibration, [reports[j] for j in last.robot.names], last.mirror,
+                             list(rows.values()), last.robot)
 
 
 def write(path: str | Path, result: CalibrationResult, robot: Robot) -> None:
@@ -101,7 +119,8 @@ def plot_sweeps(path: str | Path, result: CalibrationResult, robot: Robot) -> No
     ax.invert_yaxis()
     ax.set_xlabel("joint angle (rad)")
     ax.set_title("Prime calibration: sweeps against the description's limits")
-    ax.legend(loc="lower right", fontsize="small")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.6 / (0.45 * len(rows) + 1.2)), ncol=2, fontsize="small",
+              frameon=False)  # below the axes, where it hides no bar
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     import io

@@ -128,9 +128,10 @@ class ModeKeys:
     """
 
     def __init__(self, on_mode: Callable[[Mode], None], on_quit: Callable[[], None], *,
-                 stream: TextIO | None = None) -> None:
+                 stream: TextIO | None = None, extra: dict[str, Callable[[], None]] | None = None) -> None:
         self.on_mode = on_mode
         self.on_quit = on_quit
+        self.extra = dict(extra or {})  # further keys of the command (e.g. n: next phase)
         self.stream = stream if stream is not None else sys.stdin
         self.active = False
         self._saved: list[Any] | None = None
@@ -193,4 +194,6 @@ class ModeKeys:
             self.on_quit()
         elif key in MODE_KEYS:
             self.on_mode(MODE_KEYS[key])
+        elif key in self.extra:
+            self.extra[key]()
 

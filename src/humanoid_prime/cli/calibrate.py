@@ -8,13 +8,15 @@ import json
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
-from rich.console import Console
+from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from humanoid_prime.calibration.math import MIN_SWEEP_RAD
 from humanoid_prime.calibration.tracker import SweepTracker
 from humanoid_prime.calibration.workflow import (
     VERIFY_TOLERANCE_RAD,
@@ -23,6 +25,7 @@ from humanoid_prime.calibration.workflow import (
     check_joint_names,
     compute,
     identity_from,
+    merge_phases,
     plot_sweeps,
     tracked_joints,
     write,
@@ -35,7 +38,8 @@ from humanoid_prime.cli._common import (
     output_file,
     ring_options,
 )
-from humanoid_prime.config.calibration import load_calibration
+from humanoid_prime.cli._live import ModeKeys, flag_lines
+from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
@@ -44,11 +48,11 @@ from humanoid_prime.runtime.session import (
     BACKENDS,
     BringupOptions,
     Session,
-    claim_control_socket,
     open_session,
     plan_session,
 )
 from humanoid_prime.runtime.signals import stop_on_signals
+from humanoid_prime.runtime.socket import ControlServer
 
 READOUT_HZ = 5.0
 
@@ -91,12 +95,21 @@ def _joint_list(text: str | None) -> list[str]:
     return [j.strip() for j in (text or "").split(",") if j.strip()]
 
 
+# The documented procedure (DESIGN §5): the eRob arms on EtherCAT first, then the wrists on CAN alone, since
+# limp wrists flop while an arm is swept. --backends ec or can runs one of the two phases.
+PHASES = {"all": ("ec", "can"), "ec": ("ec",), "can": ("can",)}
+PHASE_NAMES = {"ec": "the eRob arms on EtherCAT", "can": "the Sito wrists on CAN"}
+
+
 def run(args: argparse.Namespace) -> int:
     emulator = ring_options(args, **{"--scripted": args.scripted})
     if args.plot and args.verify:
         raise PrimeError("--plot draws a calibration run's sweeps; it does not go with --verify")
     hardware = load_hardware(args.hardware)
-    prior = load_calibration(hardware, args.prior)
+    output = Path(args.output)
+    # The prior is the file being replaced, never identity: a run cannot weaken what it did not sweep.
+    prior_path = args.prior or (output if output.is_file() else None)
+    prior = load_calibration(hardware, prior_path)
     checked = load_calibration(hardware, args.calibration or args.output) if args.verify else None
     if args.emulate:
         from humanoid_prime.virtual.harness import enter_private_netns
@@ -107,38 +120,40 @@ def run(args: argparse.Namespace) -> int:
     return _calibrate(args, prior, emulator)
 
 
-def _open(args: argparse.Namespace, calibration: Any, ring: dict[str, Any],
-          stack: contextlib.ExitStack) -> tuple[Session, Any]:
-    """A broadcaster-only session on the chosen buses with ``calibration``, on the virtual Prime with
-    --emulate; returns the session and the virtual Prime (None on the robot)."""
-    options = BringupOptions(backends=args.backends, calibration=calibration, broadcaster_only=True,
-                             emulated=args.emulate, hardware_file=args.hardware,
-                             controllers_file=args.controllers, control_socket=args.socket)
-    plan = plan_session(options)
-    claim_control_socket(plan, stack)
-    virtual = None
-    if args.emulate:
-        from humanoid_prime.virtual.harness import attach_virtual_prime
+def _virtual(args: argparse.Namespace, ring: dict[str, Any], stack: contextlib.ExitStack) -> Any:
+    """The virtual Prime for the whole run with --emulate (None on the robot)."""
+    if not args.emulate:
+        return None
+    from humanoid_prime.virtual.harness import attach_virtual_prime
 
-        t = time.monotonic()
-        virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring)
+    return attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring)
+
+
+def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: Any, server: ControlServer,
+          stack: contextlib.ExitStack) -> Session:
+    """A broadcaster-only session on ``backends`` with ``calibration``, answering on ``server``."""
+    options = BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True,
+                             emulated=virtual is not None, hardware_file=args.hardware,
+                             controllers_file=args.controllers, control_socket=args.socket)
+    if virtual is not None:
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
-        plan.stage("virtual prime", t)
-    return open_session(plan, stack), virtual
+    plan = plan_session(options)
+    plan.control = server
+    return open_session(plan, stack)
 
 
 class _Readout:
     """The live table: position, min, max, sweep and range coverage per joint, redrawn in place at 5 Hz."""
 
-    def __init__(self, tracker: SweepTracker, console: Console) -> None:
+    def __init__(self, tracker: SweepTracker, console: Console, session: Session, title: str) -> None:
         self.tracker = tracker
         self.console = console
+        self.session = session
+        self.title = title
 
-    def __rich__(self) -> Table:
-        table = Table(title="prime calibrate: sweep each joint to its LOWER stop first, then the upper; "
-                            "Ctrl-C or q writes the file",
-                      title_justify="left", box=None, header_style="bold")
+    def __rich__(self) -> Group:
+        table = Table(title=self.title, title_justify="left", box=None, header_style="bold")
         for column in ("joint", "q rad", "min", "max", "sweep", "range covered"):
             table.add_column(column, justify="left" if column == "joint" else "right")
         for row in self.tracker.rows():
@@ -149,47 +164,80 @@ class _Readout:
             table.add_row(row.joint, f"{row.position:+.3f}" if seen else "-",
                           f"{row.minimum:+.3f}" if seen else "-", f"{row.maximum:+.3f}" if seen else "-",
                           Text(f"{sweep:.3f}", style=style), f"{bar:<10} {100 * row.coverage:3.0f}%")
-        return table
+        return Group(*flag_lines(self.session.manager), table)
 
 
-def _calibrate(args: argparse.Namespace, prior: Any, ring: dict[str, Any]) -> int:
+def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]) -> int:
+    """Every phase of the procedure in turn, each on its own bus with the previous phase's result as its
+    prior; the file is written after each phase that swept something. Enter or n ends a phase and goes on;
+    q, Ctrl-C or SIGTERM ends the run (after writing what the phase swept)."""
     hardware = load_hardware(args.hardware)
-    stop = threading.Event()
     console = Console()
-    result: CalibrationResult | None = None
-    with stop_on_signals(stop), contextlib.ExitStack() as stack:
-        session, virtual = _open(args, identity_from(prior), ring, stack)
+    output = Path(args.output)
+    phases = PHASES[args.backends]
+    finish = threading.Event()
+    results: list[CalibrationResult] = []
+    faults: list[dict[str, Any]] = []
+    calibration = prior
+    with stop_on_signals(finish), contextlib.ExitStack() as run_stack:
+        server = run_stack.enter_context(ControlServer(path=args.socket))  # a second instance stops here
+        virtual = _virtual(args, ring, run_stack)
+        for number, backends in enumerate(phases, start=1):
+            if finish.is_set():
+                break
+            result, phase_faults = _phase(args, backends, calibration, virtual, server, finish, console,
+                                          f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}")
+            faults += phase_faults
+            if result.swept:
+                write(output, result, result.robot)
+                calibration = result.calibration
+                results.append(result)
+    if not results:
+        raise PrimeError(f"nothing was swept (no joint moved {MIN_SWEEP_RAD} rad or more); "
+                         f"{output} was not written" + (" and is as it was" if output.exists() else ""))
+    merged = merge_phases(results)
+    if args.plot:
+        plot_sweeps(args.plot, merged, merged.robot)
+    if args.json:
+        print(json.dumps({"output": str(output), **merged.as_dict(), "faults": faults}, indent=2))
+    else:
+        _report(console, merged, str(output), hardware.path.name)
+    return 0
+
+
+def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: Any, server: ControlServer,
+           finish: threading.Event, console: Console, title: str) -> tuple[CalibrationResult, list[dict[str, Any]]]:
+    """One phase: bring its bus up with identity calibration, track its joints until it ends, compute."""
+    stop = threading.Event()  # this phase ends (the whole run ends too when ``finish`` is set)
+    with contextlib.ExitStack() as stack:
+        session = _open(args, backends, identity_from(prior), virtual, server, stack)
         robot = session.robot
-        joints = tracked_joints(robot, args.backends)
+        joints = tracked_joints(robot, backends)
         scripted = None
         if args.scripted:
-            scripted = joints if args.scripted == "all" else tuple(_joint_list(args.scripted))
-            check_joint_names(robot, scripted, joints, "--scripted")
+            every = {j for b in PHASES[args.backends] for j in tracked_joints(robot, b)}
+            named = [j for j in robot.names if j in every] if args.scripted == "all" else _joint_list(args.scripted)
+            check_joint_names(robot, named, tuple(j for j in robot.names if j in every), "--scripted")
+            scripted = tuple(j for j in named if j in joints)
         tracker = SweepTracker(robot, joints)
         tracker.attach(session.manager.topics)
+        keys = "Enter or n: done, go on; q or Ctrl-C: write and stop" if backends != PHASES[args.backends][-1] \
+            else "Enter, n, q or Ctrl-C: write and stop"
         if not args.json:
-            console.print(f"Prime up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
-                          f"{len(joints)} joints ({args.backends}).")
+            console.print(f"{title}: up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
+                          f"{len(joints)} joints. Sweep each to its LOWER stop first, then the upper. {keys}.")
         worker = _start_scripted(session, virtual, scripted, stop) if scripted is not None else None
         if console.is_terminal and not args.no_live and not args.json:
-            stack.enter_context(Live(_Readout(tracker, console), console=console, refresh_per_second=READOUT_HZ))
+            stack.enter_context(Live(_Readout(tracker, console, session, f"prime calibrate, {title}"),
+                                     console=console, refresh_per_second=READOUT_HZ))
             if sys.stdin.isatty():
-                from humanoid_prime.cli._live import ModeKeys
-
-                stack.enter_context(ModeKeys(lambda mode: None, stop.set))
-        run_loop(session, stop)
+                stack.enter_context(ModeKeys(lambda mode: None, lambda: (finish.set(), stop.set()),
+                                             extra={"n": stop.set, "\n": stop.set}))
+        run_loop(session, stop, on_tick=lambda manager: stop.set() if finish.is_set() else None)
         if worker is not None:
             worker.join(timeout=30.0)  # the operator lets go and restores its limp joint before teardown
         result = compute(tracker, prior, robot, lower_first=not args.any_order)
-    write(args.output, result, robot)
-    if args.plot:
-        plot_sweeps(args.plot, result, robot)
-    if args.json:
-        faults = [f.as_dict() for f in session.faults]
-        print(json.dumps({"output": str(args.output), **result.as_dict(), "faults": faults}, indent=2))
-    else:
-        _report(console, result, args.output, hardware.path.name)
-    return 0
+    return result, [f.as_dict() for f in session.faults]
 
 
 def _start_scripted(session: Session, virtual: Any, joints: tuple[str, ...], stop: threading.Event) -> threading.Thread:
@@ -231,7 +279,9 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
     rows: list[VerifyRow] = []
     errors: list[str] = []
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
-        session, virtual = _open(args, calibration, ring, stack)
+        server = stack.enter_context(ControlServer(path=args.socket))
+        virtual = _virtual(args, ring, stack)
+        session = _open(args, args.backends, calibration, virtual, server, stack)
         robot = session.robot
         joints = tracked_joints(robot, args.backends)
         chosen = tuple(_joint_list(args.joints)) or joints

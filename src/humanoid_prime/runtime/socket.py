@@ -117,7 +117,7 @@ class ControlServer:
         op = request["op"]
         try:
             if op == "ping":
-                return {"ok": True}
+                return {"ok": True, "ready": self.ready}
             if not self.ready:
                 return {"ok": False, "error": "this prime instance is starting up or shutting down; try again"}
             if op == "mode":

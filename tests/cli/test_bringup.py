@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from doubles.process import popen
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.drivers.erob.gains import gains_to_registers
 from humanoid_prime.errors import PrimeError
@@ -157,7 +158,7 @@ def test_parallel_sdo_overlaps_the_drives_mailbox_service_and_sequential_sdo_nev
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_gate_is_zero_on_every_slave_after_a_signal(tmp_path, sig):
     summary, socket = tmp_path / "summary.json", tmp_path / "control.sock"
-    proc = subprocess.Popen([*PRIME, "bringup", "--emulate", "--no-live", "--summary", str(summary),
+    proc = popen([*PRIME, "bringup", "--emulate", "--no-live", "--summary", str(summary),
                              "--socket", str(socket), "--mode", "STANDBY", "--dwell", "1000"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -205,7 +206,7 @@ def test_ctrl_c_at_a_terminal_still_resets_every_gate(tmp_path):
     import os
 
     summary, socket = tmp_path / "summary.json", tmp_path / "control.sock"
-    proc = subprocess.Popen([*PRIME, "bringup", "--emulate", "--no-live", "--summary", str(summary),
+    proc = popen([*PRIME, "bringup", "--emulate", "--no-live", "--summary", str(summary),
                              "--socket", str(socket), "--mode", "DAMPING"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from doubles.process import popen
 from humanoid_prime.calibration.math import flip_direction
 from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration, save_calibration
 from humanoid_prime.errors import PrimeError
@@ -120,7 +121,7 @@ def test_an_unswept_joint_keeps_its_prior_and_is_listed(robot, truth, tmp_path):
 
 def _start(tmp_path: Path, output: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
     socket = tmp_path / "control.sock"
-    proc = subprocess.Popen([*PRIME, "calibrate", "--emulate", "--output", str(output), "--socket", str(socket),
+    proc = popen([*PRIME, "calibrate", "--emulate", "--output", str(output), "--socket", str(socket),
                              "--no-live", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while True:
@@ -163,7 +164,7 @@ def test_prime_limp_leaves_the_registers_as_it_found_them(tmp_path, how):
                                   capture_output=True, text=True, timeout=60)
             assert limp.returncode == 0, limp.stderr
         else:
-            limp = subprocess.Popen([*PRIME, "limp", "3", "--socket", str(socket)], stdin=subprocess.PIPE,
+            limp = popen([*PRIME, "limp", "3", "--socket", str(socket)], stdin=subprocess.PIPE,
                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             deadline = time.monotonic() + 30
             while int.from_bytes(sdo.sdo_read(3, 0x2382, 1)[:4], "little") != 0:

@@ -9,6 +9,7 @@ import time
 import pytest
 
 from doubles.mailboxes import DriveMailboxes
+from doubles.process import popen
 from humanoid_prime.cli import main
 from humanoid_prime.runtime.socket import ControlServer
 
@@ -71,7 +72,7 @@ def test_unknown_ring_position_is_one_line_error(served, capsys):
 def test_signal_while_waiting_restores_the_snapshot(served, sig):
     srv, drives = served
     before = dict(drives.values[6])
-    proc = subprocess.Popen([sys.executable, "-m", "humanoid_prime", "limp", "6", "--socket", str(srv.path)],
+    proc = popen([sys.executable, "-m", "humanoid_prime", "limp", "6", "--socket", str(srv.path)],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 20
     while drives.values[6]["pos_reg"] != 0 and time.monotonic() < deadline:

@@ -17,6 +17,7 @@ from pathlib import Path
 import can
 import pytest
 
+from doubles.process import popen
 from doubles.sito import SITO_IDS, wait_until
 from humanoid_prime.virtual.sito import SitoEmulator
 
@@ -38,7 +39,7 @@ def emulated_robot(robot) -> Iterator[tuple[SitoEmulator, str, int]]:
 
 def run_child(emulated_robot, how: str, send_signal: int | None = None) -> subprocess.CompletedProcess:
     emulator, group, port = emulated_robot
-    child = subprocess.Popen([sys.executable, str(CHILD), group, str(port), how],
+    child = popen([sys.executable, str(CHILD), group, str(port), how],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         if send_signal is not None:

@@ -20,22 +20,57 @@ def bundled(name: str) -> Path:
     return Path(str(resources.files("humanoid_prime") / "data" / name))
 
 
-def load_yaml(path: str | Path) -> Any:
-    """Parse a YAML file; a missing, unreadable or malformed file raises ConfigError naming it."""
-    path = Path(path)
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, except that a key given twice in one mapping is an error (YAML says so; PyYAML
+    would silently keep the last one)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, yaml.Node] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (first at line {seen[key].start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node
+        return super().construct_mapping(node, deep=deep)
+
+
+def config_path(path: str | Path) -> Path:
+    """A configuration file's path as every message names it: absolute, so it does not depend on where the
+    file is read from (the robot description resolves its includes against its own folder)."""
+    return Path(path).expanduser().absolute()
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Parse a YAML configuration file whose top level is a mapping; a missing, unreadable, binary, empty or
+    malformed file, a duplicate key or another top level raises ConfigError naming the file."""
+    path = config_path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(path, "", "file not found", "check the path") from None
+    except IsADirectoryError:
+        raise ConfigError(path, "", "is a folder, not a file", "give the path of the YAML file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(path, "", f"not UTF-8 text (byte {exc.start}); a binary file?",
+                          "give the YAML file") from None
     except OSError as exc:
         raise ConfigError(path, "", f"cannot read: {exc.strerror}") from None
     try:
-        return yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or "invalid YAML"
+        if problem.startswith("duplicate key"):
+            raise ConfigError(path, where, problem, "give each key once") from None
         raise ConfigError(path, where, f"malformed YAML: {problem}", "fix the syntax") from None
+    if data is None:
+        raise ConfigError(path, "", "the file is empty", "give the YAML document")
+    if not isinstance(data, dict):
+        raise ConfigError(path, "", f"expected a mapping of keys to values at the top, got a {type(data).__name__}")
+    return data
 
 
 def output_problem(path: str | Path, *, directory: bool = False) -> str | None:

@@ -15,7 +15,22 @@ _REASON = netns_unavailable_reason()
 def test_master_command_runs_against_the_master_end_and_its_exit_status_is_returned(capsys):
     script = 'test "$PRIME_EC_INTERFACE" = "{iface}" && test -e "/sys/class/net/{iface}" && test -S "$PRIME_EC_CONTROL"'
     assert main(["emulate", "ec", "--veth", "--slaves", "2", "--", "sh", "-c", script + " && exit 7"]) == 7
-    assert "master interface: ecm" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "master interface: ecm" in err and out == ""  # stdout is the master command's alone
+
+
+@pytest.mark.netns
+@pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
+def test_a_json_master_command_leaves_valid_json_on_stdout():
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "emulate", "ec", "--veth", "--", sys.executable,
+                           "-m", "humanoid_prime", "ec", "scan", "--interface", "{iface}", "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert len(json.loads(proc.stdout)["slaves"]) == 10
 
 
 def test_the_robots_ethercat_nic_is_refused(capsys):

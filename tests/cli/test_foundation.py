@@ -112,9 +112,9 @@ def test_gains_use_the_per_joint_kt_of_the_hardware_file(capsys, tmp_path):
     (["--kp", "20", "--kd", "0"], "stiffness needs damping"),
     (["--kp", "20", "--kd", "2", "--joint", "left_wrist_roll"], "left_wrist_roll is a Sito joint"),
     (["--kp", "20", "--kd", "2", "--joint", "nose"], "unknown joint 'nose'"),
-    (["--kp", "20", "--kd", "2", "--efficiency", "2"], "efficiency must be"),
-    (["--kp", "twenty", "--kd", "2"], "invalid float value"),
-    (["--kp", "nan", "--kd", "2"], "finite number >= 0"),
+    (["--kp", "20", "--kd", "2", "--efficiency", "2"], "argument --efficiency: must be at most 1, got 2"),
+    (["--kp", "twenty", "--kd", "2"], "argument --kp: 'twenty' is not a number"),
+    (["--kp", "nan", "--kd", "2"], "argument --kp: nan is not a finite number"),
 ])
 def test_gains_bad_arguments_are_one_line(capsys, argv, fragment):
     code, _, err = prime(capsys, "gains", *argv)

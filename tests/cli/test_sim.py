@@ -81,8 +81,10 @@ def test_an_unknown_mode_is_one_line_and_exit_1(tmp_path, capsys):
 
 
 def test_a_non_positive_duration_is_refused(tmp_path, capsys):
-    assert run_sim(tmp_path, "--duration", "0") == 1
-    assert "--duration must be a positive number of seconds" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        run_sim(tmp_path, "--duration", "0")
+    assert exit_.value.code == 2
+    assert "argument --duration: must be above 0, got 0" in capsys.readouterr().err
 
 
 def test_viewer_without_a_display_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch):

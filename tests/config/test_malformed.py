@@ -187,7 +187,7 @@ def _params(d, node):
 
 STANDBY = "standby_controller.ros__parameters"
 CONTROLLER_CASES = [
-    ("top level not a mapping", lambda d: [1, 2], "", "expected a mapping of node names"),
+    ("top level not a mapping", lambda d: [1, 2], "", "expected a mapping of keys to values at the top"),
     ("node without ros__parameters", lambda d: drop(d, "damping_controller"), "damping_controller.ros__parameters",
      "missing or not a mapping"),
     ("controller not declared", lambda d: drop(_params(d, "controller_manager"), "remote_policy_controller"),

@@ -1,6 +1,7 @@
 """The ``prime`` command. Each module in this package that defines ``register(subparsers)`` adds
 one or more subcommands; a subcommand sets ``func(args) -> int``. Errors meant for people
-(PrimeError, ValueError from parsing) print one line to stderr and exit non-zero."""
+(PrimeError, and argparse's own) print one line to stderr and exit non-zero; anything else is a bug,
+reported as one line too (exit 70), with the traceback only under PRIME_DEBUG=1."""
 
 from __future__ import annotations
 
@@ -54,6 +55,16 @@ def main(argv: list[str] | None = None) -> int:
         # The reader (e.g. `| head`) went away; silence the flush at exit as well.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # the system refused (a device gone, a permission): say what, where it was known
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"prime {args.command}: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug of ours still ends in one line; PRIME_DEBUG=1 shows the traceback
+        if os.environ.get("PRIME_DEBUG"):
+            raise
+        print(f"prime {args.command}: internal error, {type(exc).__name__}: {exc} (PRIME_DEBUG=1 shows where; "
+              "please report it)", file=sys.stderr)
+        return 70
 
 
 if __name__ == "__main__":

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from rich.console import Console
 
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import output_problem
@@ -33,8 +37,9 @@ def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) ->
     parser.add_argument("--emulate", action="store_true", help=emulate_help)
     parser.add_argument("--truth", metavar="FILE",
                         help="(with --emulate) the virtual robot's wiring and factory offsets, as a calibration file")
-    parser.add_argument("--dc-lock-cycles", type=int, metavar="N", help="(with --emulate) DC lock cycles per drive")
-    parser.add_argument("--mailbox-latency", type=float, metavar="S",
+    parser.add_argument("--dc-lock-cycles", type=whole(at_least=0, at_most=1_000_000), metavar="N",
+                        help="(with --emulate) DC lock cycles per drive")
+    parser.add_argument("--mailbox-latency", type=real(at_least=0.0, below=1.0), metavar="S",
                         help="(with --emulate) time each emulated drive takes to answer an SDO (default 0.0005)")
 
 
@@ -54,6 +59,42 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     return options
 
 
+def real(*, above: float | None = None, at_least: float | None = None, at_most: float | None = None,
+         below: float | None = None) -> Callable[[str], float]:
+    """argparse type of a finite number within bounds; a bad value is one line naming the option."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text} is not a finite number")
+        for bound, holds, words in ((above, lambda b: value > b, "above"), (at_least, lambda b: value >= b, "at least"),
+                                    (at_most, lambda b: value <= b, "at most"), (below, lambda b: value < b, "below")):
+            if bound is not None and not holds(bound):
+                raise argparse.ArgumentTypeError(f"must be {words} {bound:g}, got {text}")
+        return value
+    return parse
+
+
+def whole(*, at_least: int | None = None, at_most: int | None = None) -> Callable[[str], int]:
+    """argparse type of an integer within bounds (decimal or 0x hex)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if (at_least is not None and value < at_least) or (at_most is not None and value > at_most):
+            span = f"{at_least if at_least is not None else '...'}..{at_most if at_most is not None else ''}"
+            raise argparse.ArgumentTypeError(f"must be in {span}, got {text}")
+        return value
+    return parse
+
+
+SECONDS = real(above=0.0)  # a duration that must pass
+SECONDS_OR_ZERO = real(at_least=0.0)
+
+
 def output_file(text: str) -> Path:
     """argparse type of an output file: refused at once if it could not be written at the end of the run."""
     problem = output_problem(text)
@@ -68,6 +109,12 @@ def output_dir(text: str) -> Path:
     if problem is not None:
         raise argparse.ArgumentTypeError(f"cannot write there: {problem}")
     return Path(text).expanduser()
+
+
+def console(*, stderr: bool = False) -> Console:
+    """A rich console; piped or redirected, wide enough that tables and reports are never wrapped."""
+    out = Console(stderr=stderr)
+    return out if out.is_terminal else Console(stderr=stderr, width=200)
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:

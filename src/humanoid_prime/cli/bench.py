@@ -1,4 +1,4 @@
-"""``prime bench`` (and ``make bench``): measure the DESIGN §6 targets and print them against their goals."""
+"""``prime bench`` (and ``make bench``): measure the performance targets and print them against their goals."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from rich.console import Console
 from rich.table import Table
 
 from humanoid_prime import bench as b
+from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import output_file
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
@@ -46,7 +46,7 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("bench", help="measure the performance targets (DESIGN §6)",
+    p = subparsers.add_parser("bench", help="measure the performance targets",
                               description="Run the benchmarks and print each figure against its target. "
                                           "Suites: " + "; ".join(f"{k}: {v[2]}" for k, v in SUITES.items()))
     p.add_argument("--only", metavar="SUITE,...", help=f"run only these suites ({', '.join(SUITES)})")
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     unknown = [s for s in chosen if s not in SUITES]
     if unknown:
         raise PrimeError(f"unknown suite {unknown[0]!r}; suites: {', '.join(SUITES)}")
-    console = Console(stderr=args.json)
+    console = make_console(stderr=args.json)
     results: dict[str, Any] = {}
     for suite in chosen:
         module, function, what = SUITES[suite]
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(results, indent=2))
         return 0
-    table = Table(title="Prime performance targets (DESIGN §6)", title_justify="left", header_style="bold")
+    table = Table(title="Prime performance targets", title_justify="left", header_style="bold")
     for column in ("target", "measured", "goal", "met"):
         table.add_column(column, justify="left" if column == "target" else "right")
     for suite, path, op, goal, what in TARGETS:

@@ -11,14 +11,18 @@ import time
 from pathlib import Path
 
 from humanoid_prime.cli._common import (
+    SECONDS,
     add_config_options,
     add_emulation_options,
     add_json_option,
     add_socket_option,
     output_dir,
     output_file,
+    real,
     ring_options,
 )
+from humanoid_prime.config.controllers import MAX_BRINGUP_RATE_HZ
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
@@ -51,16 +55,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--interface", metavar="NIC", help="EtherCAT interface (default: from the hardware file)")
     p.add_argument("--can-interface", metavar="NAME", help="python-can interface (default: from the hardware file)")
     p.add_argument("--can-channel", metavar="NAME", help="python-can channel (default: from the hardware file)")
-    p.add_argument("--sync0-period", type=float, metavar="S",
+    p.add_argument("--sync0-period", type=SECONDS, metavar="S",
                    help="cross-check: must equal 1/update_rate (it is derived from it); a different value is "
                         "refused with the reason")
-    p.add_argument("--bringup-rate", type=float, metavar="HZ", help="EtherCAT bring-up loop rate (default: 1000)")
+    p.add_argument("--bringup-rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ",
+                   help="EtherCAT bring-up loop rate (default: 1000; at most 2000, the eRob's minimum cycle)")
     p.add_argument("--sequential-sdo", action="store_true",
                    help="write the eRob gains one slave after another (the slow baseline) instead of in parallel")
     p.add_argument("--mode", metavar="MODE", help="switch to MODE once up")
     p.add_argument("--sequence", metavar="MODE,...", help="visit these modes, one every --dwell seconds, then stop")
-    p.add_argument("--dwell", type=float, default=2.0, metavar="S", help="seconds per mode of --sequence")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of control loop")
+    p.add_argument("--dwell", type=SECONDS, default=2.0, metavar="S", help="seconds per mode of --sequence")
+    p.add_argument("--duration", type=SECONDS, metavar="S", help="stop after S seconds of control loop")
     p.add_argument("--load-test", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) measure realised eRob stiffness in STANDBY: push each joint with a known "
                         "torque in the plant and read the deflection; prints nominal vs realised kp")
@@ -73,20 +78,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _modes(text: str | None) -> list[Mode]:
-    if not text:
+def _modes(text: str | None, option: str) -> list[Mode]:
+    if text is None:
         return []
+    names = [item for item in text.split(",") if item.strip()]
+    if not names:
+        raise PrimeError(f"{option}: no mode given; name one or more of {', '.join(m.value for m in Mode)}")
     try:
-        return [Mode.parse(item) for item in text.split(",") if item.strip()]
+        return [Mode.parse(item) for item in names]
     except ValueError as exc:
-        raise PrimeError(str(exc)) from None
+        raise PrimeError(f"{option}: {exc}") from None
 
 
 def options_from_args(args: argparse.Namespace) -> BringupOptions:
-    if args.duration is not None and not args.duration > 0:
-        raise PrimeError(f"--duration must be > 0 seconds, got {args.duration}")
-    sequence = _modes(args.sequence)
-    initial = _modes(args.mode)
+    sequence = _modes(args.sequence, "--sequence")
+    initial = _modes(args.mode, "--mode")
     if len(initial) > 1:
         raise PrimeError("--mode takes one mode; use --sequence for several")
     if (sequence or initial) and args.backends != "all":
@@ -100,9 +106,23 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         erob_config_dir=args.erob_config_dir, control_socket=args.socket)
 
 
+def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:
+    """The eRob joints --load-test names (all of them for a bare --load-test)."""
+    if args.load_test == "all":
+        return list(robot.hardware.erob_joints)
+    joints = [j.strip() for j in args.load_test.split(",") if j.strip()]
+    for joint in joints:
+        if joint not in robot.hardware.erob_slaves:
+            raise PrimeError(f"--load-test: {joint!r} is not an eRob joint "
+                             f"(eRob joints: {', '.join(robot.hardware.erob_joints)})")
+    return joints
+
+
 def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     ring = ring_options(args, **{"--load-test": args.load_test})
+    # Everything is checked before anything opens, and before a private namespace is entered.
+    load_test_joints = _load_test_joints(args, plan_session(options).robot) if args.load_test else []
     if options.emulated:
         from humanoid_prime.virtual.harness import enter_private_netns
 
@@ -129,11 +149,7 @@ def run(args: argparse.Namespace) -> int:
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
             report(f"  {name:<28} {seconds * 1e3:9.1f} ms")
-        load_test = None
-        if args.load_test:
-            joints = (session.robot.hardware.erob_joints if args.load_test == "all"
-                      else [j.strip() for j in args.load_test.split(",") if j.strip()])
-            load_test = _start_load_test(session, virtual, joints, stop)
+        load_test = _start_load_test(session, virtual, load_test_joints, stop) if load_test_joints else None
         if sys.stdout.isatty() and not args.no_live and not args.json:
             from humanoid_prime.cli._live import LiveTable, ModeKeys
 

@@ -38,6 +38,7 @@ from humanoid_prime.cli._common import (
     output_file,
     ring_options,
 )
+from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.hardware import load_hardware
@@ -111,6 +112,10 @@ def run(args: argparse.Namespace) -> int:
     prior_path = args.prior or (output if output.is_file() else None)
     prior = load_calibration(hardware, prior_path)
     checked = load_calibration(hardware, args.calibration or args.output) if args.verify else None
+    robot = plan_session(BringupOptions(hardware_file=args.hardware, controllers_file=args.controllers,
+                                        calibration=checked or prior)).robot  # everything checked before a bus
+    if args.scripted and args.scripted != "all":
+        check_joint_names(robot, _joint_list(args.scripted), _run_joints(robot, args.backends), "--scripted")
     if args.emulate:
         from humanoid_prime.virtual.harness import enter_private_netns
 
@@ -118,6 +123,12 @@ def run(args: argparse.Namespace) -> int:
     if args.verify:
         return _verify(args, checked, emulator)
     return _calibrate(args, prior, emulator)
+
+
+def _run_joints(robot: Robot, backends: str) -> tuple[str, ...]:
+    """The joints every phase of a run on ``backends`` tracks, in canonical order."""
+    tracked = {joint for phase in PHASES[backends] for joint in tracked_joints(robot, phase)}
+    return tuple(joint for joint in robot.names if joint in tracked)
 
 
 def _virtual(args: argparse.Namespace, ring: dict[str, Any], stack: contextlib.ExitStack) -> Any:
@@ -172,7 +183,7 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any
     prior; the file is written after each phase that swept something. Enter or n ends a phase and goes on;
     q, Ctrl-C or SIGTERM ends the run (after writing what the phase swept)."""
     hardware = load_hardware(args.hardware)
-    console = Console()
+    console = make_console()
     output = Path(args.output)
     phases = PHASES[args.backends]
     finish = threading.Event()
@@ -215,9 +226,7 @@ def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual:
         joints = tracked_joints(robot, backends)
         scripted = None
         if args.scripted:
-            every = {j for b in PHASES[args.backends] for j in tracked_joints(robot, b)}
-            named = [j for j in robot.names if j in every] if args.scripted == "all" else _joint_list(args.scripted)
-            check_joint_names(robot, named, tuple(j for j in robot.names if j in every), "--scripted")
+            named = _run_joints(robot, args.backends) if args.scripted == "all" else _joint_list(args.scripted)
             scripted = tuple(j for j in named if j in joints)
         tracker = SweepTracker(robot, joints)
         tracker.attach(session.manager.topics)

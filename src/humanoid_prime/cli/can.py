@@ -14,7 +14,7 @@ from collections import Counter
 
 import can
 
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._common import SECONDS, add_config_options, add_json_option, print_json, whole
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
@@ -94,23 +94,15 @@ def _ids(text: str) -> list[int]:
     ids: list[int] = []
     try:
         for part in text.split(","):
-            low, _, high = part.strip().partition("-")
+            low, dash, high = part.strip().partition("-")
+            if dash and not high:
+                raise ValueError(part)
             ids.extend(range(int(low), int(high or low) + 1))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a list of CAN ids such as 22,23,38-39") from None
     if not ids or any(not 1 <= i <= 255 for i in ids):
         raise argparse.ArgumentTypeError(f"{text!r}: CAN ids are 1..255")
     return sorted(set(ids))
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text} must be positive")
-    return value
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -129,15 +121,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                        "no calibration). Read-only. Stops after --count frames, --seconds, "
                                        "or Ctrl-C.")
     bus_options(m)
-    m.add_argument("--seconds", type=_positive, help="stop after this long")
-    m.add_argument("--count", type=int, help="stop after this many frames")
+    m.add_argument("--seconds", type=SECONDS, help="stop after this long")
+    m.add_argument("--count", type=whole(at_least=1), help="stop after this many frames")
     m.set_defaults(func=_monitor)
 
     d = actions.add_parser("discover", help="list the Sito CAN ids heard",
                            description="Listen and list the Sito ids heard. Read-only unless --probe, which "
                                        "enables feedback with zero gains (limp) and disables again.")
     bus_options(d)
-    d.add_argument("--seconds", type=_positive, default=1.0, help="how long to listen (default 1 s)")
+    d.add_argument("--seconds", type=SECONDS, default=1.0, help="how long to listen (default 1 s)")
     d.add_argument("--probe", action="store_true",
                    help="enable feedback (zero gains) on the probed ids, listen, then disable them")
     d.add_argument("--ids", type=_ids, help="ids to probe, e.g. 22,23,38-39 (default: joints.mit_joints)")
@@ -151,7 +143,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                        "239.74.163.2, or a vcan channel; never the robot's bus. Stops after --seconds "
                                        "or Ctrl-C.")
     bus_options(e)
-    e.add_argument("--seconds", type=_positive, help="stop after this long")
+    e.add_argument("--seconds", type=SECONDS, help="stop after this long")
     e.set_defaults(func=_emulate)
 
 

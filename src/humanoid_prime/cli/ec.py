@@ -11,7 +11,7 @@ import argparse
 import time
 from typing import Any
 
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._common import add_config_options, add_json_option, print_json, whole
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.drivers.erob.cia402 import describe_al_status_code, describe_error, drive_state
@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                            description="Download one value, e.g. `prime ec sdo write 3 0x2383:0 1 --type u8`, "
                                        "then read it back. Without --type the object's current size is kept.")
     for p in (read, write):
-        p.add_argument("ring", type=int, metavar="RING", help="ring position of the slave (0 = first)")
+        p.add_argument("ring", type=whole(at_least=0), metavar="RING", help="ring position of the slave (0 = first)")
         p.add_argument("address", metavar="INDEX:SUB", help="object index and subindex in hex, e.g. 0x2382:01")
         if p is write:
             p.add_argument("value", metavar="VALUE", help="integer value (0x prefix for hex)")
@@ -263,6 +263,9 @@ def run_sdo_write(args: argparse.Namespace) -> int:
     except ValueError:
         raise PrimeError(f"VALUE {args.value!r} is not an integer (use 0x for hex)") from None
     type_name = _type(args)
+    if value < 0 and (type_name is None or not IGH_TYPES[type_name][1]):
+        raise PrimeError(f"VALUE {value} is negative; give --type with a signed type (int8, int16, int32) for a "
+                         "signed object")
     with _session(args) as sdo:
         if args.backend == "igh":
             if type_name is None:

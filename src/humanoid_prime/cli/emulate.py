@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import subprocess
+import sys
 import tempfile
 import time
 
@@ -31,8 +32,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ec = kinds.add_parser(
         "ec", help="an EtherCAT ring of eRob drives on a veth pair or an interface",
         description="An EtherCAT ring of emulated eRob drives answering a real master frame by frame. --veth "
-                    "creates a veth pair (root, or user namespaces) and prints the master's end; --interface "
-                    "serves an existing interface. Runs until Ctrl-C, or until the command after -- exits.")
+                    "creates a veth pair (root, or user namespaces) and names the master's end on stderr; "
+                    "--interface serves an existing interface. Runs until Ctrl-C, or until the command after -- "
+                    "exits: in that command {iface} stands for the master's interface (also in $PRIME_EC_INTERFACE, "
+                    "the control socket in $PRIME_EC_CONTROL), e.g. `prime emulate ec --veth -- prime ec scan "
+                    "--interface {iface} --json`; its stdout is its own.")
     where = ec.add_mutually_exclusive_group(required=True)
     where.add_argument("--veth", action="store_true", help="create a veth pair in a private network namespace")
     where.add_argument("--interface", "--iface", metavar="IF", help="serve this existing interface (needs root)")
@@ -40,7 +44,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     RingOptions.add_arguments(ec)
     add_config_options(ec)
     ec.add_argument("master_command", nargs=argparse.REMAINDER, metavar="-- CMD",
-                    help="run this master command against the ring, then stop")
+                    help="run this master command against the ring, then stop; {iface} is replaced by the master's "
+                         "interface")
     ec.set_defaults(func=run_ec)
 
 
@@ -74,14 +79,14 @@ def run_ec(args: argparse.Namespace) -> int:
         raise PrimeError(f"{reason}")
     with EmulatedRing(**vars(options)) as ring:
         print(f"emulating {options.slaves} eRob; master interface: {ring.master_interface}; "
-              f"control socket: {ring.control.path}", flush=True)
+              f"control socket: {ring.control.path}", file=sys.stderr, flush=True)
         if command:
             return _run_master(command, ring.master_interface, ring.control.path)
         try:
             while ring.running:
                 time.sleep(0.2)
         except KeyboardInterrupt:
-            print("stopped", flush=True)
+            print("stopped", file=sys.stderr, flush=True)
             return 0
     raise PrimeError("the emulator stopped unexpectedly")
 
@@ -105,7 +110,8 @@ def _serve_interface(args: argparse.Namespace, options: RingOptions, command: li
         raise PrimeError(f"refusing to emulate on {robot_nic}, the robot's EtherCAT NIC (buses.ethercat.interface); "
                          "use --veth or another interface")
     control = args.control or os.path.join(tempfile.gettempdir(), f"prime-ec-{os.getpid()}.sock")
-    print(f"emulating {options.slaves} eRob on {args.interface}; control socket: {control}", flush=True)
+    print(f"emulating {options.slaves} eRob on {args.interface}; control socket: {control}", file=sys.stderr,
+          flush=True)
     status = emulator_main.main(["--iface", args.interface, "--control", control, *options.to_args()])
     if status:
         raise PrimeError(f"the emulator could not serve {args.interface} (see the message above)")

@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import argparse
 
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._common import add_config_options, add_json_option, print_json, real
 from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.config.robot import load_robot
-from humanoid_prime.drivers.erob.gains import gains_to_registers, pos_reg_exact, registers_to_gains, vel_reg_exact
+from humanoid_prime.drivers.erob.gains import (
+    check_mode_gains,
+    gains_to_registers,
+    pos_reg_exact,
+    registers_to_gains,
+    vel_reg_exact,
+)
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
@@ -18,18 +25,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Convert stiffness kp (Nm/rad) and damping kd (Nm*s/rad), or a mode's gains, to the eRob "
                     "loop-gain registers of each eRob joint (its Kt and gear from the hardware file), and show "
                     "the kp and kd the drive realises with the rounded registers.")
-    p.add_argument("--kp", type=float, metavar="KP", help="stiffness in Nm/rad")
-    p.add_argument("--kd", type=float, metavar="KD", help="damping in Nm*s/rad")
+    p.add_argument("--kp", type=real(at_least=0.0), metavar="KP", help="stiffness in Nm/rad")
+    p.add_argument("--kd", type=real(at_least=0.0), metavar="KD", help="damping in Nm*s/rad")
     p.add_argument("--mode", metavar="MODE", help="take kp and kd from this mode (controllers file)")
     p.add_argument("--joint", metavar="NAME", help="one eRob joint (default: every eRob joint)")
-    p.add_argument("--efficiency", type=float, metavar="E",
+    p.add_argument("--efficiency", type=real(above=0.0, at_most=1.0), metavar="E",
                    help="realised/nominal torque efficiency, 0 < E <= 1 (default: the hardware file's)")
     add_config_options(p, controllers=True)
     add_json_option(p)
     p.set_defaults(func=run)
 
 
-def _requested_gains(args: argparse.Namespace, joints: tuple[str, ...]) -> tuple[float, float, str | None]:
+def _requested_gains(args: argparse.Namespace, hardware: HardwareConfig) -> tuple[float, float, str | None]:
     if args.mode is not None:
         if args.kp is not None or args.kd is not None:
             raise PrimeError("give either --mode or --kp/--kd, not both")
@@ -37,7 +44,9 @@ def _requested_gains(args: argparse.Namespace, joints: tuple[str, ...]) -> tuple
             mode = Mode.parse(args.mode)
         except ValueError as exc:
             raise PrimeError(str(exc)) from None
-        kp, kd = load_controllers(joints, args.controllers).mode_gains()[mode]
+        config = load_controllers(hardware.all_joints, args.controllers)
+        check_mode_gains(config, hardware)
+        kp, kd = config.mode_gains()[mode]
         return kp, kd, mode.value
     if args.kp is None or args.kd is None:
         raise PrimeError("give --kp and --kd (or --mode)")
@@ -47,7 +56,7 @@ def _requested_gains(args: argparse.Namespace, joints: tuple[str, ...]) -> tuple
 def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     hardware = robot.hardware
-    kp, kd, mode = _requested_gains(args, robot.names)
+    kp, kd, mode = _requested_gains(args, hardware)
     efficiency = hardware.torque_efficiency if args.efficiency is None else args.efficiency
     joints = hardware.erob_joints
     if args.joint is not None:

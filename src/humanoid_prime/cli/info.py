@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from rich.console import Console
 from rich.table import Table
 
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
+from humanoid_prime.cli._common import add_config_options, add_json_option, console, print_json
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.robot import load_robot
 
@@ -44,8 +43,5 @@ def run(args: argparse.Namespace) -> int:
         table.add_row(str(r["index"]), r["joint"], r["family"], r["bus"], r["address"], f"{r['lower']:+.3f}",
                       f"{r['upper']:+.3f}", f"{r['effort_limit']:g}", f"{r['direction']:+d}",
                       f"{r['homing_offset']:+.4f}")
-    console = Console()
-    if not console.is_terminal:  # piped: no terminal width to fit, print the table whole
-        console = Console(width=160)
-    console.print(table)
+    console().print(table)
     return 0

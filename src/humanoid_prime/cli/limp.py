@@ -9,9 +9,17 @@ import time
 from types import FrameType
 
 from humanoid_prime.calibration.limp import DampedLimp
-from humanoid_prime.cli._common import add_config_options, add_json_option, add_socket_option, print_json
+from humanoid_prime.cli._common import (
+    SECONDS_OR_ZERO,
+    add_config_options,
+    add_json_option,
+    add_socket_option,
+    print_json,
+    real,
+    whole,
+)
 from humanoid_prime.config.hardware import load_hardware
-from humanoid_prime.drivers.erob.gains import registers_to_gains, vel_reg_exact
+from humanoid_prime.drivers.erob.gains import gains_to_registers, registers_to_gains
 from humanoid_prime.drivers.ethercat.sdo import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SocketSdoClient
@@ -24,14 +32,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "gain 0, integral 0, keep (or set) the damping, read back Kp = 0, wait, and restore the "
                     "snapshot on every exit path. The other joints keep holding. Needs a running "
                     "`prime calibrate` or `prime bringup` (or --backend igh where an IgH master runs).")
-    p.add_argument("ring_position", type=int, metavar="RING_POS", help="EtherCAT ring position of the eRob")
-    p.add_argument("damping", type=float, nargs="?", metavar="DAMPING",
+    p.add_argument("ring_position", type=whole(at_least=0), metavar="RING_POS",
+                   help="EtherCAT ring position of the eRob")
+    p.add_argument("damping", type=real(above=0.0), nargs="?", metavar="DAMPING",
                    help="damping during the limp in Nm*s/rad (default: keep the drive's velocity gain)")
     add_config_options(p)
     p.add_argument("--backend", choices=("socket", "igh"), default="socket",
                    help="socket: through the running prime process (default); igh: the `ethercat` tool")
     add_socket_option(p)
-    p.add_argument("--seconds", type=float, metavar="S",
+    p.add_argument("--seconds", type=SECONDS_OR_ZERO, metavar="S",
                    help="stay limp for S seconds instead of waiting for Enter (scripted sweeps)")
     add_json_option(p)
     p.set_defaults(func=run)
@@ -59,9 +68,11 @@ def run(args: argparse.Namespace) -> int:
     kt, gear = hardware.erob_kt[joint], hardware.erob_gear[joint]
     vel_reg = None
     if args.damping is not None:
-        if not args.damping > 0:
-            raise PrimeError(f"DAMPING must be > 0 Nm*s/rad (it slows the fall), got {args.damping}")
-        vel_reg = round(vel_reg_exact(args.damping, kt=kt, gear=gear, efficiency=hardware.torque_efficiency))
+        try:
+            vel_reg = gains_to_registers(0.0, args.damping, kt=kt, gear=gear,
+                                         efficiency=hardware.torque_efficiency).vel_reg
+        except ValueError as exc:
+            raise PrimeError(f"DAMPING {args.damping:g} Nm*s/rad cannot be set on {joint}: {exc}") from None
     sdo = _sdo(args)
     marker = sdo if isinstance(sdo, SocketSdoClient) else None
     previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}

@@ -15,12 +15,14 @@ import threading
 import time
 import warnings
 from collections.abc import Callable
+from itertools import groupby
 from typing import Any
 
-from humanoid_prime.cli._common import add_config_options, add_json_option, output_file, print_json
+from humanoid_prime.cli._common import SECONDS, add_config_options, add_json_option, output_file, print_json
 from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
+from humanoid_prime.drivers.erob.gains import check_mode_gains
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
@@ -40,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Bring up the simulated Prime (MuJoCo, MIT law at the physics rate) with the staged start and "
                     f"run the {DEMO_SECONDS:g} s demonstration: ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION, REMOTE "
                     "(a scripted command stream), DAMPING. On a terminal, keys 1-5 switch modes and q quits.")
-    p.add_argument("--duration", type=float, metavar="S",
+    p.add_argument("--duration", type=SECONDS, metavar="S",
                    help=f"simulated seconds to run (default: {DEMO_SECONDS:g}; with --mode, until q or Ctrl-C)")
     p.add_argument("--fast", action="store_true", help="run as fast as possible instead of in real time")
     p.add_argument("--viewer", action="store_true", help="show the MuJoCo viewer (needs a display)")
@@ -107,11 +109,16 @@ def _viewer_sync(viewer: Any, stop: threading.Event) -> Callable[[], None]:
     return sync
 
 
+def _visits(modes: list[str]) -> str:
+    """``A -> B x2 -> C``: a mode entered again while active (a repeated request) counts, it does not repeat."""
+    return " -> ".join(mode if (n := len(list(run))) == 1 else f"{mode} x{n}" for mode, run in groupby(modes))
+
+
 def _format_line(summary: dict[str, Any]) -> str:
     median, p99 = summary["tick_us"]["median"], summary["tick_us"]["p99"]
     rtf = summary["realtime_factor"]
     tick = f"tick {median:.0f}/{p99:.0f} us median/p99" if median is not None else "no ticks"
-    return (f"visited {' -> '.join(summary['modes_visited'])} | {summary['ticks']} ticks, "
+    return (f"visited {_visits(summary['modes_visited'])} | {summary['ticks']} ticks, "
             f"{summary['sim_seconds']:.2f} s simulated in {summary['wall_seconds']:.2f} s"
             f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks"
             + (f" | CAN {summary['can']['host_frames_sent']} frames sent, {summary['can']['host_frames_received']} "
@@ -146,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
 
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
+    check_mode_gains(config, robot.hardware)  # a configuration tried in simulation must run on the robot
     hil = None
     if args.hil == "can":
         hil = build_hil_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)

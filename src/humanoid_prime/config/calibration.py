@@ -14,7 +14,7 @@ import numpy as np
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.files import atomic_write_yaml, bundled, load_yaml
+from humanoid_prime.files import atomic_write_yaml, bundled, config_path, load_yaml
 
 CALIBRATION_FILE = "prime_calibration.yaml"
 HEADER = (
@@ -57,9 +57,9 @@ def identity_calibration(hardware: HardwareConfig, directions: dict[str, int] | 
 
 def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -> Calibration:
     """Load a calibration file for every joint of ``hardware`` and check it names exactly those joints."""
-    path = Path(path) if path is not None else bundled(CALIBRATION_FILE)
+    path = config_path(path) if path is not None else bundled(CALIBRATION_FILE)
     data = load_yaml(path)
-    joints = data.get("joints") if isinstance(data, dict) else None
+    joints = data.get("joints")
     if not isinstance(joints, dict):
         raise ConfigError(path, "joints", "missing or not a mapping",
                           "one entry per joint with direction and homing_offset")

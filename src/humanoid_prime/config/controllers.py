@@ -8,10 +8,21 @@ from pathlib import Path
 from typing import Any
 
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.files import bundled, load_yaml
+from humanoid_prime.files import bundled, config_path, load_yaml
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
 
 CONTROLLERS_FILE = "prime_controllers.yaml"
+# This stack has one controller class per mode; a file naming another type means another stack's file.
+CONTROLLER_TYPES = {
+    JOINT_STATE_BROADCASTER: "joint_state_broadcaster/JointStateBroadcaster",
+    "zero_torque_controller": "prime_controllers/ZeroTorqueController",
+    "damping_controller": "prime_controllers/DampingController",
+    "standby_controller": "prime_controllers/StandbyController",
+    "locomotion_controller": "prime_controllers/LocomotionController",
+    "remote_policy_controller": "prime_controllers/RemotePolicyController",
+}
+MAX_ACTION_SCALE_RAD = 1.0  # rad per unit action: beyond it every action a policy outputs saturates at a limit
+MAX_BRINGUP_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2): faster frames gain nothing
 
 
 @dataclass(frozen=True)
@@ -64,6 +75,18 @@ class ControllersConfig:
     remote: RemoteParams
     impedance: ImpedanceParams
 
+    def mode_gain_keys(self) -> dict[Mode, tuple[str | None, str | None]]:
+        """Where each mode's eRob (kp, kd) is set in the file (None: fixed at 0 by the mode)."""
+        return {
+            Mode.ZERO_TORQUE: (None, None),
+            Mode.DAMPING: (None, "damping_controller.ros__parameters.kd"),
+            Mode.STANDBY: ("standby_controller.ros__parameters.kp", "standby_controller.ros__parameters.kd"),
+            Mode.LOCOMOTION: ("locomotion_controller.ros__parameters.erob_kp",
+                              "locomotion_controller.ros__parameters.erob_kd"),
+            Mode.REMOTE: ("remote_policy_controller.ros__parameters.erob_kp",
+                          "remote_policy_controller.ros__parameters.erob_kd"),
+        }
+
     def mode_gains(self) -> dict[Mode, tuple[float, float]]:
         """Per-mode eRob (kp, kd), derived from the mode controllers' own parameters."""
         return {
@@ -78,9 +101,7 @@ class ControllersConfig:
 class _Reader:
     def __init__(self, path: Path, data: Any) -> None:
         self.path = path
-        self.data = data if isinstance(data, dict) else None
-        if self.data is None:
-            raise ConfigError(path, "", "expected a mapping of node names to ros__parameters")
+        self.data = data
 
     def params(self, node: str) -> dict[str, Any]:
         block = self.data.get(node)
@@ -91,7 +112,7 @@ class _Reader:
         return params
 
     def number(self, node: str, key: str, *, minimum: float = 0.0, allow_equal: bool = True,
-               default: float | None = None) -> float:
+               default: float | None = None, maximum: float = math.inf) -> float:
         value = self.params(node).get(key, default)
         where = f"{node}.ros__parameters.{key}"
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -99,6 +120,8 @@ class _Reader:
         if value < minimum or (value == minimum and not allow_equal):
             bound = ">=" if allow_equal else ">"
             raise ConfigError(self.path, where, f"must be {bound} {minimum}, got {value}")
+        if value > maximum:
+            raise ConfigError(self.path, where, f"must be <= {maximum:g}, got {value:g}")
         return float(value)
 
     def text(self, node: str, key: str, default: str | None = None) -> str:
@@ -110,14 +133,22 @@ class _Reader:
 
 def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) -> ControllersConfig:
     """Load the controllers file; pose joint names are checked against ``joints``."""
-    path = Path(path) if path is not None else bundled(CONTROLLERS_FILE)
+    path = config_path(path) if path is not None else bundled(CONTROLLERS_FILE)
     r = _Reader(path, load_yaml(path))
 
     cm = r.params("controller_manager")
-    for name in (JOINT_STATE_BROADCASTER, *MODE_CONTROLLERS.values()):
+    for name, kind in CONTROLLER_TYPES.items():
         if not isinstance(cm.get(name), dict):
             raise ConfigError(path, f"controller_manager.ros__parameters.{name}", "controller not declared",
-                              f"add '{name}: {{type: ...}}'")
+                              f"add '{name}: {{type: {kind}}}'")
+        if cm[name].get("type", kind) != kind:
+            raise ConfigError(path, f"controller_manager.ros__parameters.{name}.type",
+                              f"{cm[name]['type']!r} is not a controller of this stack", f"use {kind}")
+    for mode, name in MODE_CONTROLLERS.items():
+        given = r.params(name).get("mode", mode.value)
+        if given != mode.value:
+            raise ConfigError(path, f"{name}.ros__parameters.mode", f"{given!r}, but {name} implements {mode.value}",
+                              f"set mode: {mode.value} or leave it out")
 
     raw_poses = r.params("standby_controller").get("poses")
     if not isinstance(raw_poses, dict) or not raw_poses:
@@ -145,7 +176,8 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
     )
     locomotion = LocomotionParams(
         policy=r.text("locomotion_controller", "policy"),
-        action_scale=r.number("locomotion_controller", "action_scale"),
+        action_scale=r.number("locomotion_controller", "action_scale", allow_equal=False,
+                              maximum=MAX_ACTION_SCALE_RAD),
         default_pose=r.text("locomotion_controller", "default_pose"),
         erob_kp=r.number("locomotion_controller", "erob_kp"),
         erob_kd=r.number("locomotion_controller", "erob_kd"),
@@ -182,12 +214,20 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
         raise ConfigError(path, "erob_impedance_manager.ros__parameters.sdo_retries",
                           f"expected an integer 0..20, got {retries!r}")
 
+    sim_update_rate = r.number("mujoco_simulation", "update_rate", allow_equal=False)
+    physics_rate = r.number("mujoco_simulation", "physics_rate", allow_equal=False)
+    ratio = physics_rate / sim_update_rate
+    if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+        raise ConfigError(path, "mujoco_simulation.ros__parameters.physics_rate",
+                          f"{physics_rate:g} Hz is not a whole multiple of the simulation update_rate "
+                          f"{sim_update_rate:g} Hz", "physics steps a whole number of times per control tick")
     return ControllersConfig(
         path=path,
         update_rate=r.number("controller_manager", "update_rate", allow_equal=False),
-        bringup_rate=r.number("controller_manager", "bringup_rate", allow_equal=False, default=1000.0),
-        sim_update_rate=r.number("mujoco_simulation", "update_rate", allow_equal=False),
-        physics_rate=r.number("mujoco_simulation", "physics_rate", allow_equal=False),
+        bringup_rate=r.number("controller_manager", "bringup_rate", allow_equal=False, default=1000.0,
+                              maximum=MAX_BRINGUP_RATE_HZ),
+        sim_update_rate=sim_update_rate,
+        physics_rate=physics_rate,
         joint_states_topic=r.text("joint_state_broadcaster", "topic", "/prime/joint_states"),
         damping_kd=r.number("damping_controller", "kd"),
         standby=standby,

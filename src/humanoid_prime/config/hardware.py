@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.files import bundled, load_yaml
+from humanoid_prime.files import bundled, config_path, load_yaml
 
 HARDWARE_FILE = "prime_hardware.yaml"
 CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
@@ -83,10 +83,8 @@ def _str(value: Any, path: Path, key: str) -> str:
 
 def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     """Load and validate a hardware file (default: the bundled one)."""
-    path = Path(path) if path is not None else bundled(HARDWARE_FILE)
+    path = config_path(path) if path is not None else bundled(HARDWARE_FILE)
     data = load_yaml(path)
-    if not isinstance(data, dict):
-        raise ConfigError(path, "", "expected a mapping with 'buses' and 'joints'")
     buses = _section(data, path, "buses")
     ec = _section(buses, path, "buses.ethercat")
     can = _section(buses, path, "buses.can")
@@ -94,6 +92,9 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         interface=_str(ec.get("interface"), path, "buses.ethercat.interface"),
         master=_int(ec.get("master", 0), path, "buses.ethercat.master"),
     )
+    if ethercat.master < 0:
+        raise ConfigError(path, "buses.ethercat.master", f"must be >= 0, got {ethercat.master}",
+                          "the IgH master index, 0 for the first")
     can_bus = CanBus(
         interface=_str(can.get("interface", "socketcan"), path, "buses.can.interface"),
         channel=_str(can.get("channel"), path, "buses.can.channel"),
@@ -153,6 +154,12 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         owner_of_id[can_id] = joint
         mit_joints[joint] = can_id
 
+    if sorted(owner_of_ring) != list(range(len(owner_of_ring))):
+        far = [f"{owner_of_ring[p]}: {p}" for p in sorted(owner_of_ring) if p >= len(owner_of_ring)]
+        key = f"joints.erob_slaves.{far[0].split(':')[0]}" if len(far) == 1 else "joints.erob_slaves"
+        raise ConfigError(path, key, f"ring positions must be 0..{len(owner_of_ring) - 1}, each once (a ring of "
+                          f"{len(owner_of_ring)} eRob has no gaps); beyond it: {', '.join(far)}",
+                          "number the eRob in cabling order from 0")
     for name in names:
         if name not in erob_slaves and name not in mit_joints:
             raise ConfigError(

@@ -33,10 +33,12 @@ from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
+from humanoid_prime.drivers.erob.gains import check_mode_gains
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
+from humanoid_prime.drivers.ethercat.fold import check_foldable
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
@@ -99,6 +101,17 @@ def claim_control_socket(plan: Plan, stack: contextlib.ExitStack) -> ControlServ
     return plan.control
 
 
+def check_robot_config(robot: Robot, config: ControllersConfig, calibration: Calibration) -> None:
+    """What only the drive facts can check, before anything opens, each naming the file and key: every mode's
+    eRob gains realisable, the loop rate within the eRob's minimum cycle, the calibration foldable."""
+    check_mode_gains(config, robot.hardware)
+    try:
+        sync0_period_ns(config.update_rate)
+    except PrimeError as exc:
+        raise ConfigError(config.path, "controller_manager.ros__parameters.update_rate", str(exc)) from None
+    check_foldable(robot, calibration)
+
+
 def plan_session(options: BringupOptions) -> Plan:
     """Load and cross-check the configuration for ``options``; nothing is opened."""
     if options.backends not in BACKEND_BLOCKS:
@@ -107,6 +120,7 @@ def plan_session(options: BringupOptions) -> Plan:
     robot = load_robot(options.hardware_file)
     config = load_controllers(robot.names, options.controllers_file)
     calibration = options.calibration or load_calibration(robot.hardware, options.calibration_file)
+    check_robot_config(robot, config, calibration)
     sync0_period_ns(config.update_rate, sync0_period_s=options.sync0_period_s)  # refuse a mismatch before the bus
     broadcaster_only = options.backends != "all" if options.broadcaster_only is None else options.broadcaster_only
     plan = Plan(options, robot, config, calibration, update_rate=config.update_rate,

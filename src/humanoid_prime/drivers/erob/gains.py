@@ -10,8 +10,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from humanoid_prime.config.hardware import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA
+from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.config.hardware import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA, HardwareConfig
 from humanoid_prime.drivers.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
+from humanoid_prime.errors import ConfigError
 
 KD_PER_VEL_REG_NM_S_PER_RAD = 0.1063  # damping of one vel_reg step, eRob70 Kt at 50:1; measured, see DESIGN §2
 POS_REG_PER_RATIO_S = 51.47  # pos_reg per unit kp/kd (1/s); model-independent, see DESIGN §2
@@ -119,3 +121,18 @@ def write_order(old: ErobRegisters | None, new: ErobRegisters) -> list[tuple[tup
     gains = [vel, pos] if new.vel_reg < old.vel_reg else [pos, vel]
     changed = {POS_LOOP_GAIN: new.pos_reg != old.pos_reg, VEL_LOOP_GAIN: new.vel_reg != old.vel_reg}
     return writes + [write for write in gains if changed[write[0]]]
+
+
+def check_mode_gains(config: ControllersConfig, hardware: HardwareConfig) -> None:
+    """Every mode's eRob (kp, kd) must be realisable on every eRob joint with its Kt, gear and the torque
+    efficiency; ConfigError names the controllers file and the key otherwise."""
+    keys = config.mode_gain_keys()
+    for mode, (kp, kd) in config.mode_gains().items():
+        kp_key, kd_key = keys[mode]
+        for joint in hardware.erob_joints:
+            try:
+                gains_to_registers(kp, kd, kt=hardware.erob_kt[joint], gear=hardware.erob_gear[joint],
+                                   efficiency=hardware.torque_efficiency)
+            except ValueError as exc:
+                key = kp_key if str(exc).startswith("pos_reg") else kd_key  # pos_reg carries kp/kd, vel_reg kd
+                raise ConfigError(config.path, key or "", f"{mode.value} on {joint}: {exc}") from None

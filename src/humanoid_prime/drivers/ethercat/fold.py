@@ -25,6 +25,7 @@ from humanoid_prime.drivers.ethercat.slave_config import (
     STATUS_WORD,
     TYPE_OF_FORMAT,
 )
+from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import atomic_write_text
 
 ASSIGN_ACTIVATE_DC_SYNC0 = 0x0300  # DC unit: cyclic operation with SYNC0; Prime keeps DC on (DESIGN §3)
@@ -44,6 +45,21 @@ def _channels(entries: tuple[PdoEntry, ...], scaled: dict[str, dict[str, Any]]) 
         channels.append({"index": entry.index, "sub_index": entry.sub_index, "type": TYPE_OF_FORMAT[entry.fmt],
                          **scaled[entry.name]})
     return channels
+
+
+def check_foldable(robot: Robot, calibration: Calibration) -> None:
+    """Every eRob joint's raw position over its whole range must fit the drive's 32-bit position (0x6064,
+    0x607A); ConfigError names the calibration file and the joint's key otherwise."""
+    reach = 2**31 / COUNTS_PER_RAD
+    for spec in robot.joints:
+        if spec.family != "erob":
+            continue
+        offset = calibration.joints[spec.name].homing_offset
+        farthest = abs(offset) + max(abs(spec.lower), abs(spec.upper))
+        if farthest >= reach:
+            raise ConfigError(calibration.path or "calibration", f"joints.{spec.name}.homing_offset",
+                              f"{offset:g} rad puts the joint's range beyond the eRob's 32-bit position "
+                              f"(+-{reach:.0f} rad)", "re-run prime calibrate")
 
 
 def fold_slave_config(spec: JointSpec, cal: JointCalibration) -> dict[str, Any]:
@@ -132,6 +148,7 @@ def _header(spec: JointSpec, cal: JointCalibration, source: Path | None) -> str:
 
 def write_folded_configs(robot: Robot, calibration: Calibration, out_dir: str | Path) -> list[Path]:
     """Write ``<joint>.yaml`` for every eRob joint of ``robot`` into ``out_dir``, each atomically."""
+    check_foldable(robot, calibration)
     out_dir = Path(out_dir)
     written = []
     for spec in robot.joints:

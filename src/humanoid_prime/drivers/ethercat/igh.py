@@ -138,7 +138,7 @@ class IghSdo:
         names = ", ".join(sorted(_state_name(s) for s in states)) or "no slaves"
         raise SdoRefused(position, index, sub_index,
                          f"refused: the IgH ring is not settled (slaves in {names}); mailbox traffic while slaves "
-                         "are activated faults a drive with 0xA000 (DESIGN §3); retry when every slave is in OP")
+                         "are activated faults a drive with 0xA000; retry when every slave is in OP")
 
     # -------------------------------------------------------------------------------- SDO
     def upload(self, position: int, index: int, sub_index: int, type_name: str | None = None) -> tuple[int, int]:

@@ -411,7 +411,7 @@ class EthercatMaster(ABC):
             why = "no process data has flowed yet"
         raise SdoRefused(position, index, sub_index,
                          f"refused: {why}; mailbox traffic before every slave is in OP with joint states flowing "
-                         "faults a drive with 0xA000 (DESIGN §3); retry once bring-up has finished")
+                         "faults a drive with 0xA000; retry once bring-up has finished")
 
     def sdo_read(self, position: int, index: int, sub_index: int, *, unsafe_before_op: bool = False) -> bytes:
         """Upload one object entry from the slave at ``position``.

@@ -50,7 +50,7 @@ from humanoid_prime.drivers.erob.objects import (
     VELOCITY_ACTUAL,
     VELOCITY_OFFSET,
 )
-from humanoid_prime.drivers.ethercat.fold import fold_slave_config, write_folded_configs
+from humanoid_prime.drivers.ethercat.fold import check_foldable, fold_slave_config, write_folded_configs
 from humanoid_prime.drivers.ethercat.master import (
     RX_DTYPE,
     TX_DTYPE,
@@ -163,6 +163,7 @@ class EthercatSystem(HardwareComponent):
         """Fold the calibration into one per-slave config per joint, in memory (``config_dir`` also gets the
         files, for the C++ stack and for people), take every channel's factor and offset from it, then open
         the master and check the ring against the hardware file."""
+        check_foldable(self.robot, self.calibration)
         if self.config_dir is not None:
             write_folded_configs(self.robot, self.calibration, self.config_dir)
         source = f"the calibration fold of {self.calibration.path or 'the calibration in memory'}"

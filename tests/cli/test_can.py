@@ -22,6 +22,7 @@ from humanoid_prime.drivers.sito.protocol import (
     Feedback2,
     FrameType,
     Gains,
+    UndecodedFeedback,
     pack_frame,
 )
 from humanoid_prime.virtual.sito import SitoEmulator
@@ -69,9 +70,20 @@ def test_describe_enable_and_disable():
 
 
 def test_describe_feedback():
-    assert "current 100 mA (+0.459 Nm) vel -5215 (-0.5000 rad/s)" in describe(
+    assert "current(4-5) 100 mA (+0.459 Nm) current(2-3) 0 mA (+0.000 Nm) vel -5215 (-0.5000 rad/s)" in describe(
         message(22, Feedback1(240, 0, 100, -5215)), TA40_50, JOINTS)
     assert "output 10430 (+1.0000 rad)" in describe(message(22, Feedback2(531930, 10430)), TA40_50, JOINTS)
+
+
+def test_describe_shows_both_readings_of_the_phase_current():
+    # the peer's newest driver reads bytes 2-3, its older one and ours bytes 4-5: a real motor settles it
+    text = describe(message(22, Feedback1(240, -200, 100, 0)), TA40_50, JOINTS)
+    assert "current(4-5) 100 mA (+0.459 Nm) current(2-3) -200 mA (-0.918 Nm)" in text
+
+
+def test_describe_undocumented_feedback():
+    text = describe(message(22, UndecodedFeedback(0xB3, bytes(range(8)))), TA40_50, JOINTS)
+    assert text.endswith("feedback 0xB3 (layout undocumented, ignored by the driver): 00 01 02 03 04 05 06 07")
 
 
 def test_describe_flags_a_protocol_breaking_frame():

@@ -31,6 +31,7 @@ from humanoid_prime.drivers.sito.protocol import (
     Gains,
     InvalidFrame,
     SitoModel,
+    UndecodedFeedback,
     counts_to_position,
     counts_to_velocity,
     current_mA_to_torque,
@@ -81,11 +82,16 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
             text = (f"gains Kp {kp_fw:.6g} ({firmware_to_kp(kp_fw, model):.3f} Nm/rad) "
                     f"Kd {kd_fw:.6g} ({firmware_to_kd(kd_fw, model):.3f} Nm·s/rad)")
         case Feedback1(voltage, pwm, current, velocity):
-            text = (f"feedback-1 voltage {voltage} pwm {pwm} current {current} mA "
-                    f"({current_mA_to_torque(current, model):+.3f} Nm) "
+            # Sources disagree on where the phase current sits (protocol.FEEDBACK1): both readings, so a
+            # motor under a known load shows which is right.
+            text = (f"feedback-1 voltage {voltage} current(4-5) {current} mA "
+                    f"({current_mA_to_torque(current, model):+.3f} Nm) current(2-3) {pwm} mA "
+                    f"({current_mA_to_torque(pwm, model):+.3f} Nm) "
                     f"vel {velocity} ({counts_to_velocity(velocity):+.4f} rad/s)")
         case Feedback2(motor, output):
             text = f"feedback-2 motor {motor} output {output} ({counts_to_position(output):+.4f} rad)"
+        case UndecodedFeedback(kind, payload):
+            text = f"feedback 0x{kind:02X} (layout undocumented, ignored by the driver): {payload.hex(' ')}"
     return f"{who} {text}"
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import queue
 import random
+import struct
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -37,6 +38,7 @@ from humanoid_prime.drivers.sito.protocol import (
     INT32_MAX,
     MODE_MIT,
     MOTOR_FRAME_TYPES,
+    UNDECODED_FEEDBACK_TYPES,
     Command,
     Disable,
     Enable,
@@ -86,11 +88,13 @@ class SitoMotor:
         self.drop_fraction = 0.0  # of frames lost in either direction
         self.silent = False  # obeys commands but sends no feedback
         self.garbage = False  # a protocol-breaking frame after every feedback frame
+        self.undocumented_feedback = False  # 0xB0 and 0xB3 frames besides 0xB1/0xB2, as a Sito may send
         # Counters a test can assert on.
         self.received: dict[FrameType, int] = {t: 0 for t in FrameType}
         self.invalid_received = 0
         self.disables = 0
         self.feedback_sent = 0
+        self.undocumented_sent = 0
         self.garbage_sent = 0
         self._garbage_kind = 0
         self.reset()
@@ -160,8 +164,12 @@ class SitoMotor:
         if not self.enabled:
             return
         for frame_type, interval_ms in ((FrameType.FEEDBACK1, self.feedback_ms[0]),
-                                        (FrameType.FEEDBACK2, self.feedback_ms[1])):
+                                        (FrameType.FEEDBACK2, self.feedback_ms[1]),
+                                        (FrameType.FEEDBACK3, self.feedback_ms[2])):
             if interval_ms and self._tick % max(1, round(interval_ms * self.rate_hz / 1000.0)) == 0:
+                self._send_feedback(frame_type, send)
+        if self.undocumented_feedback and self._tick % max(1, round(0.01 * self.rate_hz)) == 0:
+            for frame_type in (FrameType.FEEDBACK0, FrameType.FEEDBACK3):  # every 10 ms, unasked
                 self._send_feedback(frame_type, send)
         self._tick += 1
 
@@ -169,6 +177,11 @@ class SitoMotor:
         if self.silent or (self.drop_fraction and self._rng.random() < self.drop_fraction):
             return
         q, qd = float(self.plant.q[self.index]), float(self.plant.qd[self.index])
+        if frame_type in UNDECODED_FEEDBACK_TYPES:  # no source documents the layout: a counter and zeros
+            send(can.Message(arbitration_id=self.ids[frame_type], is_extended_id=True,
+                             data=struct.pack(">I4x", self._tick & 0xFFFFFFFF)))
+            self.undocumented_sent += 1
+            return
         if frame_type == FrameType.FEEDBACK1:
             current, _ = torque_to_current_mA(self.torque, self.model)
             pwm = _saturate(1000.0 * self.torque / self.torque_limit, INT16_MIN, INT16_MAX)

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from humanoid_prime.drivers.sito.protocol import (
     COUNTS_PER_RAD,
+    MOTOR_FRAME_TYPES,
     SITO_MODELS,
     Command,
     Disable,
@@ -20,6 +21,7 @@ from humanoid_prime.drivers.sito.protocol import (
     FrameType,
     Gains,
     InvalidFrame,
+    UndecodedFeedback,
     arbitration_id,
     counts_to_position,
     counts_to_velocity,
@@ -165,6 +167,19 @@ def test_parse_feedback2():
 def test_parse_refuses_wrong_length():
     with pytest.raises(InvalidFrame, match="5 data bytes"):
         parse(0xB2, bytes(5))
+
+
+@pytest.mark.parametrize("frame_type", [0xB0, 0xB3])
+def test_feedback_0_and_3_parse_as_undecoded_frames(frame_type):
+    data = bytes(range(8))
+    assert parse(frame_type, data) == UndecodedFeedback(frame_type, data)
+    assert pack(UndecodedFeedback(frame_type, data)) == (frame_type, data)
+    assert frame_type in MOTOR_FRAME_TYPES
+
+
+def test_undecoded_feedback_packs_only_as_0xb0_or_0xb3():
+    with pytest.raises(ValueError, match="0xB0/0xB3"):
+        pack(UndecodedFeedback(0xB1, bytes(8)))
 
 
 def test_parse_refuses_unknown_type():

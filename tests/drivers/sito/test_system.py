@@ -285,6 +285,19 @@ def test_invalid_frame_flag_clears_after_200_ms_without_one(rig):
     assert rig.system.flags == {}
 
 
+def test_undocumented_feedback_is_counted_and_ignored_not_flagged(rig):
+    for can_id in SITO_IDS:
+        rig.motor(can_id).undocumented_feedback = True  # 0xB0 and 0xB3, as a Sito may send
+    standby(rig, position=0.1)
+    rig.tick(5)
+    sent = sum(rig.motor(can_id).undocumented_sent for can_id in SITO_IDS)
+    assert sent >= 2 * len(SITO_IDS)
+    assert rig.system.undecoded_frames == sent
+    assert rig.system.invalid_frames == 0 and rig.system.flags == {}
+    truth = np.array([rig.plant.q[rig.slot(name)] for name in rig.system.joints])
+    assert np.abs(rig.state.position[rig.idx] - truth).max() < 0.02
+
+
 def test_a_garbled_frame_never_reaches_a_controller(rig):
     for can_id in SITO_IDS:
         rig.motor(can_id).garbage = True

@@ -32,7 +32,11 @@ GAINS_DTYPE = np.dtype([("kp", ">f4"), ("kd", ">f4")])  # firmware units
 COMMAND = struct.Struct(">" + "".join(COMMAND_DTYPE[f].char for f in COMMAND_DTYPE.names))
 GAINS = struct.Struct(">" + "".join(GAINS_DTYPE[f].char for f in GAINS_DTYPE.names))
 ENABLE = struct.Struct(">BBBB4x")  # mode, feedback-1/2/3 interval ms
-FEEDBACK1 = struct.Struct(">hhhh")  # voltage, pwm, phase current mA, velocity counts/s
+# 0xB1: voltage, pwm, phase current mA, velocity counts/s, as the peer's older Python and C++ drivers read it.
+# Its newest (Rust) driver reads the phase current from bytes 2-3 (our pwm) instead, with no reason given
+# (Berkeley-Humanoids/Actuator-Control, src/sito.rs); `prime can monitor` shows both readings, so a real
+# motor settles it: the one that follows a known load is the current.
+FEEDBACK1 = struct.Struct(">hhhh")
 FEEDBACK2 = struct.Struct(">ii")  # motor position counts, output position counts
 
 
@@ -41,12 +45,15 @@ class FrameType(IntEnum):
     ENABLE = 0x01  # "select mode", used as enable
     COMMAND = 0x09
     GAINS = 0x45
+    FEEDBACK0 = 0xB0  # a Sito may send it (the peer driver lists FEEDBACK_0); content undocumented
     FEEDBACK1 = 0xB1
     FEEDBACK2 = 0xB2
+    FEEDBACK3 = 0xB3  # likewise (FEEDBACK_3; its interval is ENABLE's third byte, which Prime sends as 0)
 
 
 HOST_FRAME_TYPES = frozenset({FrameType.DISABLE, FrameType.ENABLE, FrameType.COMMAND, FrameType.GAINS})
-MOTOR_FRAME_TYPES = frozenset({FrameType.FEEDBACK1, FrameType.FEEDBACK2})
+UNDECODED_FEEDBACK_TYPES = frozenset({FrameType.FEEDBACK0, FrameType.FEEDBACK3})  # counted, not decoded
+MOTOR_FRAME_TYPES = frozenset({FrameType.FEEDBACK1, FrameType.FEEDBACK2, *UNDECODED_FEEDBACK_TYPES})
 
 
 @dataclass(frozen=True)
@@ -207,7 +214,15 @@ class Feedback2:
     output_position_counts: int
 
 
-Frame = Disable | Enable | Command | Gains | Feedback1 | Feedback2
+@dataclass(frozen=True)
+class UndecodedFeedback:
+    """0xB0 or 0xB3: a feedback frame whose layout no source documents; kept as bytes."""
+
+    frame_type: int
+    data: bytes
+
+
+Frame = Disable | Enable | Command | Gains | Feedback1 | Feedback2 | UndecodedFeedback
 
 _TYPE_OF: dict[type, FrameType] = {
     Disable: FrameType.DISABLE, Enable: FrameType.ENABLE, Command: FrameType.COMMAND,
@@ -233,6 +248,10 @@ def pack(frame: Frame) -> tuple[int, bytes]:
                 data = FEEDBACK1.pack(voltage, pwm, current, velocity)
             case Feedback2(motor, output):
                 data = FEEDBACK2.pack(motor, output)
+            case UndecodedFeedback(frame_type, payload):
+                if frame_type not in UNDECODED_FEEDBACK_TYPES or len(payload) != DATA_LENGTH:
+                    raise ValueError(f"{frame!r} is not an 8-byte 0xB0/0xB3 frame")
+                return frame_type, bytes(payload)
             case _:
                 raise TypeError(f"not a Sito frame: {frame!r}")
     except struct.error as exc:
@@ -255,6 +274,8 @@ def parse(frame_type: int, data: bytes | bytearray) -> Frame:
             return Feedback1(*FEEDBACK1.unpack(data))
         case FrameType.FEEDBACK2:
             return Feedback2(*FEEDBACK2.unpack(data))
+        case FrameType.FEEDBACK0 | FrameType.FEEDBACK3:
+            return UndecodedFeedback(frame_type, bytes(data))
         case FrameType.COMMAND:
             return Command(*COMMAND.unpack(data))
         case FrameType.GAINS:

@@ -48,6 +48,7 @@ from humanoid_prime.drivers.sito.protocol import (
     INT32_MAX,
     INT32_MIN,
     MODE_MIT,
+    UNDECODED_FEEDBACK_TYPES,
     FrameType,
     arbitration_id,
     feedback_interval_ms,
@@ -58,6 +59,7 @@ from humanoid_prime.errors import PrimeError
 _HOST_TYPES = frozenset(int(t) for t in HOST_FRAME_TYPES)
 _FEEDBACK1 = int(FrameType.FEEDBACK1)
 _FEEDBACK2 = int(FrameType.FEEDBACK2)
+_UNDECODED = frozenset(int(t) for t in UNDECODED_FEEDBACK_TYPES)
 _LIFECYCLE_SEND_TIMEOUT_S = 0.02  # gains, enable, disable may wait for queue space; per-tick frames never do
 _NOTIFIER_POLL_S = 0.05  # how long stop() can wait for the receive thread
 
@@ -82,6 +84,7 @@ class _FeedbackReceiver(can.Listener):
             self.raw[:] = 0.0
             self.stamp[:] = -np.inf
         self.invalid_frames = 0
+        self.undecoded_frames = 0  # 0xB0/0xB3 feedback: a Sito may send it; counted and ignored
         self.last_invalid_stamp = -np.inf
         self.last_invalid = ""
         self.bus_off = False
@@ -109,7 +112,10 @@ class _FeedbackReceiver(can.Listener):
         if frame_type in _HOST_TYPES:
             return  # a host frame: our own echo or another tool on the bus
         if frame_type != _FEEDBACK1 and frame_type != _FEEDBACK2:
-            self._invalid(msg, "unknown frame type")
+            if frame_type in _UNDECODED:
+                self.undecoded_frames += 1
+            else:
+                self._invalid(msg, "unknown frame type")
             return
         slot = self._slot[(ident >> 8) & 0xFF]
         if slot < 0:
@@ -272,6 +278,11 @@ class SitoSystem(HardwareComponent):
     @property
     def invalid_frames(self) -> int:
         return self._rx.invalid_frames
+
+    @property
+    def undecoded_frames(self) -> int:
+        """0xB0/0xB3 feedback frames received (valid, not decoded, ignored)."""
+        return self._rx.undecoded_frames
 
     @property
     def last_invalid_frame(self) -> str:

@@ -155,6 +155,27 @@ def test_parallel_sdo_overlaps_the_drives_mailbox_service_and_sequential_sdo_nev
     assert closest["sequential"] >= latency - 1e-6 and closest["parallel"] < latency, closest
 
 
+@pytest.mark.parametrize("variant, rated", [
+    ((), 23.0),  # ZeroErr's EDS: gains UNSIGNED16, nominal rated torque
+    (("--gain-bytes", "4"), 23.0),  # a drive that holds the gains in 32 bits (as one public host reads them)
+    (("--rated-torque", "31"), 31.0),  # an eRob80H120I
+])
+def test_mode_switches_succeed_on_each_vendor_variant(tmp_path, variant, rated):
+    """Each variant refuses an SDO of the wrong size, as a real CoE stack does, and powers up in ZeroErr's own
+    PDO mapping, so a clean run proves the remap, the sizes and the rated torque read at bring-up."""
+    run = bringup(tmp_path, "--sequence", "DAMPING,STANDBY,DAMPING", "--dwell", "0.4", *variant)
+    assert run["ok"] and run["problems"] == [], run["problems"]
+    switches = [s for s in run["mode_switches"] if s["mode"] in ("DAMPING", "STANDBY")]
+    assert len(switches) == 3 and all(s["ok"] for s in switches)
+    assert set(run["ethercat_bringup"]["rated_torque_nm"].values()) == {rated}
+    assert not any(f["key"].endswith("/rated_torque") for f in run["faults"])
+    standby = expected(Mode.STANDBY)
+    log = run["emulator"]["sdo_log"]
+    assert all(e["applied"] for e in log), [e for e in log if not e["applied"]]
+    for position in range(10):
+        assert standby in [(pos, vel) for gate, pos, vel in replay(log, position) if gate == 1]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_gate_is_zero_on_every_slave_after_a_signal(tmp_path, sig):
     summary, socket = tmp_path / "summary.json", tmp_path / "control.sock"

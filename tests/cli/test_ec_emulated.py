@@ -29,12 +29,19 @@ def test_scan_brings_the_ring_to_op_and_decodes_every_drive(ring, capsys):
         (592, "switch on disabled", "0x0000", "no error")}
     assert [s["joint"] for s in report["slaves"]][4] == "left_wrist_yaw"
     assert [s["error_history"] for s in report["slaves"]] == [[]] * 10
+    assert [s["rated_torque_nm"] for s in report["slaves"]] == [23.0] * 10  # 0x6076, read in PRE-OP
+
+
+def test_scan_names_each_drive_s_rated_torque(ring, capsys):
+    assert main(["ec", "scan", "--interface", ring.master_interface]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert all("rated 23 N*m" in line for line in lines if line.lstrip().startswith("ring"))
 
 
 def test_a_written_object_reads_back_in_a_later_session(ring, capsys):
-    assert main(["ec", "sdo", "write", "6", "0x2383:0", "1", "--type", "u8",
-                 "--interface", ring.master_interface]) == 0
-    assert capsys.readouterr().out == "ring 6 0x2383:00 <- 1; read back 1 (0x01)\n"
+    # no --type: written with the size the drive holds the gate in (UDINT)
+    assert main(["ec", "sdo", "write", "6", "0x2383:0", "1", "--interface", ring.master_interface]) == 0
+    assert capsys.readouterr().out == "ring 6 0x2383:00 <- 1; read back 1 (0x00000001)\n"
     assert main(["ec", "sdo", "read", "6", "0x2383:0", "--interface", ring.master_interface, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["value"] == 1
     assert ring.control.slave(6)["drive"]["gate"] == 1

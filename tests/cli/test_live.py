@@ -102,6 +102,22 @@ def test_live_table_shows_the_mode_every_joint_and_the_loop_timing(started, sim_
     assert "1 ZERO_TORQUE  2 DAMPING  3 STANDBY  4 LOCOMOTION  5 REMOTE  q quit" in text
 
 
+def test_the_keys_line_offers_the_fault_reset_where_faults_latch(started):
+    _, manager = started
+    console = Console(file=io.StringIO(), width=200)
+    console.print(LiveTable(manager, console=console, keys=True, reset_key=True).render())
+    assert "5 REMOTE  r reset faults  q quit" in console.file.getvalue()
+
+
+def test_r_asks_for_the_fault_reset():
+    resets = []
+    keys = ModeKeys(print, print, on_reset=lambda: resets.append(True))
+    keys.press("r")
+    keys.press("R")
+    assert resets == [True, True]
+    ModeKeys(print, print).press("r")  # where nothing latches, r does nothing
+
+
 def test_live_table_shows_a_fault_from_the_tick_it_is_raised(started):
     system, manager = started
     console = Console(file=io.StringIO(), width=200)

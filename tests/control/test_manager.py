@@ -108,6 +108,31 @@ def test_the_new_controller_activates_on_the_state_measured_in_the_switching_tic
     np.testing.assert_array_equal(plant.last[0], np.linspace(-0.5, 0.0, 14))
 
 
+def test_a_reset_clears_latched_faults_and_enters_the_active_mode_again_from_the_measured_state(
+        manager, plant, robot):
+    manager.request_mode(Mode.STANDBY)
+    manager.tick(0.0)
+    plant.faults.append("left_elbow_pitch (ring 3): fault")
+    rest = (robot.lower + robot.upper) / 2
+    plant.position[:] = rest  # where the limp joints came to rest
+    assert manager.request_reset() == ["left_elbow_pitch (ring 3): fault"]
+    assert "plant.reset_faults" not in plant.events  # nothing until the next tick
+    seen: list[ControlMode] = []
+    manager.topics.subscribe(CONTROL_MODE, seen.append)
+    manager.tick(0.01)
+    assert plant.events.count("plant.reset_faults") == 1 and plant.faults == []
+    assert [m.mode for m in seen] == ["STANDBY"]  # entered again ...
+    np.testing.assert_allclose(plant.last[0], rest, atol=1e-9)  # ... from the measured pose: no jump
+    assert manager.resets == 1
+
+
+def test_a_mode_requested_with_a_reset_is_the_mode_entered(manager, plant):
+    manager.request_reset()
+    manager.request_mode(Mode.DAMPING)
+    manager.tick(0.0)
+    assert manager.active_mode is Mode.DAMPING and "plant.reset_faults" in plant.events
+
+
 def test_requests_from_other_threads_land_between_ticks(manager):
     def press_keys(modes):
         for mode in modes * 100:

@@ -30,6 +30,7 @@ class Plant(HardwareComponent):
         self.events = events if events is not None else []
         self.inertia = inertia
         self.written: list[np.ndarray] = []
+        self.faults: list[str] = []  # latched faults; cleared by a reset
         self._last_write: float | None = None
 
     def on_configure(self) -> None:
@@ -43,6 +44,13 @@ class Plant(HardwareComponent):
 
     def on_shutdown(self) -> None:
         self.events.append(f"{self.name}.shutdown")
+
+    def latched_faults(self) -> list[str]:
+        return list(self.faults)
+
+    def reset_faults(self) -> None:
+        self.events.append(f"{self.name}.reset_faults")
+        self.faults.clear()
 
     def read(self, now, state) -> None:
         state.position[self.indices] = self.position

@@ -102,6 +102,7 @@ class FakeIgh:
         for k in range(10):
             self.set(k, 0x6041, 0, 5687, "uint16")
             self.set(k, 0x603F, 0, 0, "uint16")
+            self.set(k, 0x6076, 0, 23000, "uint32")
         self.save()
 
     def set(self, position: int, index: int, sub: int, value: int, type_name: str) -> None:

@@ -52,6 +52,7 @@ class FakeMaster(EthercatMaster):
         self.error_code = np.zeros(n, dtype=np.int64)
         self.sent = np.zeros(n, RX_DTYPE)  # the outputs of the last frame, as the drives got them
         self.wkc_override: int | None = None
+        self.rated_torque_mnm: list[int | None] = [23000] * n  # what each drive's 0x6076 answers (None: no reply)
         self.objects: dict[tuple[int, int, int], bytes] = {}
         self.sdo_log: list[tuple[str, int, int, int]] = []
         self.closed = False
@@ -66,6 +67,11 @@ class FakeMaster(EthercatMaster):
         self.inputs = np.zeros(n, TX_DTYPE)
         self.expected_wkc = 3 * n
         self.states = [AL_SAFE_OP] * n
+        for k, milli in enumerate(self.rated_torque_mnm):  # read in PRE-OP, as SoemMaster does
+            if milli is None:
+                self.rated_torque_problems[k] = "no reply (working counter 0)"
+            else:
+                self.store_rated_torque(k, struct.pack("<I", milli))
 
     def _request_op(self) -> None:
         self._op_requested_at = self.frames

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import struct
 
-from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
+from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RXPDO_STRUCT, TXPDO_STRUCT
 from humanoid_prime.virtual.ring.frames import Command, Datagram, build_frame, parse_frame
 from humanoid_prime.virtual.ring.mailbox import mailbox_message
 from humanoid_prime.virtual.ring.ring import Ring
@@ -81,12 +81,20 @@ class WireMaster:
         self.fpwr(station, 0x0600, struct.pack("<IHBBHBBBxxx", out_log, RXPDO_STRUCT.size, 0, 7, OUTPUTS, 0, 2, 1))
         self.fpwr(station, 0x0610, struct.pack("<IHBBHBBBxxx", in_log, TXPDO_STRUCT.size, 0, 7, INPUTS, 0, 1, 1))
 
-    def bring_to_safeop(self) -> None:
+    def map_pdos(self, station: int) -> None:
+        """Prime's PDO mapping over SDO, in PRE-OP (the drive powers up with ZeroErr's own)."""
+        for index, sub, data in MAPPING_WRITES:
+            reply = self.sdo_download(station, index, sub, data)
+            assert reply[8] == 0x60, f"0x{index:04X}:{sub:02X} refused: {reply[6:16].hex()}"  # download response
+
+    def bring_to_safeop(self, map_pdos: bool = True) -> None:
         self.set_station_addresses()
         for i in range(len(self.ring.reachable)):
             station = STATION_BASE + i
             self.program_mailbox(station)
             self.request_state(station, 0x12)
+            if map_pdos:
+                self.map_pdos(station)
             self.program_process_data(i)
             self.request_state(station, 0x04)
 
@@ -125,9 +133,24 @@ class WireMaster:
         return self.fprd(station, MAILBOX_IN, size).data
 
     def sdo_download(self, station: int, index: int, sub: int, data: bytes) -> bytes:
-        """An expedited download; the reply message (latency 0 assumed)."""
+        """An expedited download; the reply message."""
         command = 0x23 | ((4 - len(data)) << 2)
-        self.mailbox_write(station, struct.pack("<HBHB", 0x2000, command, index, sub) + data.ljust(4, b"\x00"))
-        reply = self.mailbox_read(station)
-        assert reply is not None, "no SDO reply"
-        return reply
+        return self.sdo_request(station, struct.pack("<HBHB", 0x2000, command, index, sub) + data.ljust(4, b"\x00"))
+
+    def sdo_upload(self, station: int, index: int, sub: int) -> bytes:
+        """An expedited upload; the object's bytes (asserts the drive answered with data, not an abort)."""
+        reply = self.sdo_request(station, struct.pack("<HBHB4x", 0x2000, 0x40, index, sub))
+        command = reply[8]
+        assert command & 0xE3 == 0x43, f"0x{index:04X}:{sub:02X} not an expedited upload reply: {reply[6:16].hex()}"
+        return reply[12:16 - ((command >> 2) & 3)]
+
+    def sdo_request(self, station: int, payload: bytes) -> bytes:
+        """One CoE request; the reply message, waited for one emulated millisecond at a time."""
+        self.mailbox_write(station, payload)
+        for _ in range(100):
+            reply = self.mailbox_read(station)
+            if reply is not None:
+                return reply
+            self.now_ns += 1_000_000
+            self.ring.advance(self.now_ns)
+        raise AssertionError(f"no SDO reply from station 0x{station:04X} in 100 emulated ms")

@@ -45,6 +45,26 @@ def test_controller_names_are_accepted(server):
     assert requested == [Mode.DAMPING]
 
 
+def test_prime_reset_asks_the_running_instance_and_lists_the_latched_faults(tmp_path, capsys):
+    asked = []
+
+    def reset():
+        asked.append(True)
+        return ["left_elbow_pitch (ring 3): fault, statusword 4616 (0x1208), error 0x8500"]
+
+    with ControlServer(path=tmp_path / "control.sock", reset=reset) as srv:
+        assert main(["reset", "--socket", str(srv.path)]) == 0
+    assert asked == [True]
+    out = capsys.readouterr().out
+    assert out.startswith("reset sent to 1 faulted drive:\n  left_elbow_pitch (ring 3): fault")
+
+
+def test_prime_reset_on_an_instance_without_latching_hardware_says_so(server, capsys):
+    srv, _, _ = server
+    assert main(["reset", "--socket", str(srv.path)]) == 1
+    assert "drives no hardware that latches faults" in capsys.readouterr().err
+
+
 def test_switch_without_a_running_instance_is_one_line_error(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "switch", "STANDBY",
                            "--socket", str(tmp_path / "none.sock")], capture_output=True, text=True)

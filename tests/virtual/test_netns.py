@@ -11,7 +11,7 @@ import pytest
 
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
+from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 from humanoid_prime.virtual.ring.control import ControlError
 
@@ -44,9 +44,19 @@ def exchange(master) -> int:
     return master.receive_processdata(2000)
 
 
+def map_prime_pdos(master) -> None:
+    """Prime's PDO mapping written in SOEM's PRE-OP -> SAFE-OP hook, as SoemMaster does."""
+    for slave in master.slaves:
+        def hook(position: int, slave=slave) -> None:
+            for index, sub, data in MAPPING_WRITES:
+                slave.sdo_write(index, sub, data)
+        slave.config_func = hook
+
+
 def to_op(master, max_cycles: int = 20_000) -> int:
-    """ec_config_map, ec_configdc, SYNC0 on every slave, then a 1 kHz loop until all slaves are in OP; returns
-    the cycles it took (bounded in cycles, not in wall time)."""
+    """Prime's mapping, ec_config_map, ec_configdc, SYNC0 on every slave, then a 1 kHz loop until all slaves are
+    in OP; returns the cycles it took (bounded in cycles, not in wall time)."""
+    map_prime_pdos(master)
     master.config_map()
     assert master.state_check(pysoem.SAFEOP_STATE, 500_000) == pysoem.SAFEOP_STATE
     assert master.config_dc()
@@ -70,10 +80,17 @@ def test_config_init_finds_every_erob_with_its_identity(master):
     assert master.state_check(pysoem.PREOP_STATE, 500_000) == pysoem.PREOP_STATE
 
 
-def test_config_map_maps_13_output_and_15_input_bytes_per_drive(master):
+def test_config_map_alone_finds_zeroerr_s_power_up_mapping(master):
     master.config_init()
+    assert master.config_map() == SLAVES * (10 + 10)  # 607A 60FE:01 6040 / 6064 60FD 6041
+    assert [(len(s.output), len(s.input)) for s in master.slaves] == [(10, 10)] * SLAVES
+
+
+def test_config_map_after_the_remap_maps_14_output_and_16_input_bytes_per_drive(master):
+    master.config_init()
+    map_prime_pdos(master)
     assert master.config_map() == SLAVES * (RXPDO_STRUCT.size + TXPDO_STRUCT.size)
-    assert [(len(s.output), len(s.input)) for s in master.slaves] == [(13, 15)] * SLAVES
+    assert [(len(s.output), len(s.input)) for s in master.slaves] == [(14, 16)] * SLAVES
     assert master.expected_wkc == 3 * SLAVES
 
 
@@ -87,9 +104,12 @@ def test_sdo_write_of_the_position_gain_round_trips(master, ring):
     master.config_init()
     slave = master.slaves[3]
     since = len(ring.control.sdo_log())
-    slave.sdo_write(0x2383, 0, struct.pack("<B", 1))
-    slave.sdo_write(0x2382, 1, struct.pack("<I", 777))
-    assert struct.unpack("<I", slave.sdo_read(0x2382, 1))[0] == 777
+    slave.sdo_write(0x2383, 0, struct.pack("<I", 1))  # UDINT
+    with pytest.raises(pysoem.SdoError) as error:
+        slave.sdo_write(0x2382, 1, struct.pack("<I", 777))  # four bytes into an UNSIGNED16: refused, not applied
+    assert error.value.abort_code == 0x06070010
+    slave.sdo_write(0x2382, 1, struct.pack("<H", 777))
+    assert slave.sdo_read(0x2382, 1) == struct.pack("<H", 777)
     log = ring.control.sdo_log(since)
     assert [(e["position"], e["index"], e["sub"], e["value"], e["applied"]) for e in log] == [
         (3, 0x2383, 0, 1, True), (3, 0x2382, 1, 777, True)]
@@ -101,6 +121,46 @@ def test_sdo_abort_reaches_the_master_with_its_code(master):
     with pytest.raises(pysoem.SdoError) as error:
         master.slaves[0].sdo_read(0x2999, 0)
     assert error.value.abort_code == 0x06020000
+
+
+def test_pysoem_reads_the_object_dictionary_through_sdo_information(master):
+    master.config_init()
+    od = {obj.index: obj for obj in master.slaves[1].od}
+    assert {0x1000, 0x1018, 0x2381, 0x2382, 0x2383, 0x6064, 0x6076, 0x6502} <= set(od)
+    gains = od[0x2382]
+    assert (gains.name, gains.object_code) == (b"Position Loop Gains", 8)
+    assert [(e.name, e.data_type, e.bit_length) for e in gains.entries] == [
+        (b"Number of entries", 5, 8), (b"Position Loop Proportional Gain", 6, 16),
+        (b"Position Loop integral Gain", 6, 16)]
+    assert (od[0x6076].data_type, od[0x6076].bit_length) == (7, 32)  # rated torque, UNSIGNED32
+    assert od[0x6076].obj_access & 0x0080  # TxPDO mappable
+
+
+def test_a_second_master_session_finds_the_mailbox_empty(ring):
+    """A session that leaves a reply behind (here: a repeat request after its last SDO) must not hand it to
+    the next master, which may not flush the mailbox before its first request."""
+    first = pysoem.Master()
+    first.open(ring.master_interface)
+    try:
+        first.config_init()
+        slave = first.slaves[2]
+        assert slave.sdo_read(0x1000, 0) == struct.pack("<I", 0x00020192)  # the last reply: device type
+        ack = slave._fprd(0x080E, 1)[0]
+        slave._fpwr(0x080E, bytes([ack ^ 0x02]))  # repeat request: the reply is offered again ...
+        for _ in range(1000):
+            if slave._fprd(0x080D, 1)[0] & 0x08:
+                break
+        assert slave._fprd(0x080D, 1)[0] & 0x08, "the repeated reply never arrived"
+    finally:
+        first.close()  # ... and left unread
+    second = pysoem.Master()
+    second.open(ring.master_interface)
+    try:
+        assert second.config_init() == SLAVES
+        assert not second.slaves[2]._fprd(0x080D, 1)[0] & 0x08  # SM1 empty
+        assert second.slaves[2].sdo_read(0x6502, 0) == struct.pack("<I", 0x38D)  # its own answer, not the old one
+    finally:
+        second.close()
 
 
 def next_controlword(statusword: int) -> int:

@@ -41,13 +41,20 @@ def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) ->
                         help="(with --emulate) DC lock cycles per drive")
     parser.add_argument("--mailbox-latency", type=real(at_least=0.0, below=1.0), metavar="S",
                         help="(with --emulate) time each emulated drive takes to answer an SDO (default 0.0005)")
+    parser.add_argument("--gain-bytes", type=int, choices=(2, 4),
+                        help="(with --emulate) size of the emulated eRob's loop-gain objects: 2 as ZeroErr's EDS "
+                             "declares them (default), 4 as one public host reads them")
+    parser.add_argument("--rated-torque", type=real(above=0.0, at_most=1000.0), metavar="NM",
+                        help="(with --emulate) what the emulated eRob report in 0x6076 (default 23, the nominal "
+                             "eRob70 figure; an eRob80H120I reports 31)")
 
 
 def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     """The emulator tunables given on the command line; any of them, or a truthy ``more`` option (named as on
     the command line), without --emulate is an error."""
     given = {"--truth": args.truth, "--dc-lock-cycles": args.dc_lock_cycles,
-             "--mailbox-latency": args.mailbox_latency, **more}
+             "--mailbox-latency": args.mailbox_latency, "--gain-bytes": args.gain_bytes,
+             "--rated-torque": args.rated_torque, **more}
     used = [name for name, value in given.items() if value is not None and value is not False]
     if used and not args.emulate:
         raise PrimeError(f"{', '.join(used)}: only with --emulate (these act on the virtual Prime)")
@@ -56,6 +63,10 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
         options["dc_lock_cycles"] = args.dc_lock_cycles
     if args.mailbox_latency is not None:
         options["mailbox_latency_s"] = args.mailbox_latency
+    if args.gain_bytes is not None:
+        options["gain_bytes"] = args.gain_bytes
+    if args.rated_torque is not None:
+        options["rated_torque_mnm"] = round(args.rated_torque * 1000)
     return options
 
 

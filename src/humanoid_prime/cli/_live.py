@@ -29,7 +29,13 @@ from humanoid_prime.modes import Mode
 MODE_KEYS: dict[str, Mode] = {"1": Mode.ZERO_TORQUE, "2": Mode.DAMPING, "3": Mode.STANDBY,
                               "4": Mode.LOCOMOTION, "5": Mode.REMOTE}
 QUIT_KEYS = ("q", "Q")
-KEY_HELP = "  ".join(f"{key} {mode.value}" for key, mode in MODE_KEYS.items()) + "  q quit"
+RESET_KEYS = ("r", "R")  # the operator's fault reset
+MODE_KEY_HELP = "  ".join(f"{key} {mode.value}" for key, mode in MODE_KEYS.items())
+
+
+def key_help(modes: bool, reset: bool) -> str:
+    """The keys line of the live table: the mode keys, the fault reset where faults latch, quit."""
+    return "  ".join([*([MODE_KEY_HELP] if modes else []), *(["r reset faults"] if reset else []), "q quit"])
 
 
 def _micros(value: float | None) -> str:
@@ -62,11 +68,13 @@ class LiveTable:
     """
 
     def __init__(self, manager: ControllerManager, *, console: Console | None = None,
-                 status: Callable[[], str] | None = None, keys: bool = False, refresh_per_second: float = 8.0) -> None:
+                 status: Callable[[], str] | None = None, keys: bool = False, reset_key: bool = False,
+                 refresh_per_second: float = 8.0) -> None:
         self.manager = manager
         self.console = console if console is not None else Console()
         self.status = status
         self.keys = keys
+        self.reset_key = reset_key
         self.note = ""
         self._live = Live(get_renderable=self.render, console=self.console, refresh_per_second=refresh_per_second,
                           redirect_stdout=False, redirect_stderr=False)
@@ -87,8 +95,9 @@ class LiveTable:
         if self.status is not None:
             header.append(f"   {self.status()}")
         parts: list[Any] = [header, Text(loop_line(manager)), *flag_lines(manager), table]
-        if self.keys:
-            parts.append(Text(f"keys: {KEY_HELP}" + (f"   [{self.note}]" if self.note else ""), style="dim"))
+        if self.keys or self.reset_key:
+            note = f"   [{self.note}]" if self.note else ""
+            parts.append(Text(f"keys: {key_help(self.keys, self.reset_key)}{note}", style="dim"))
         return Group(*parts)
 
     def __enter__(self) -> LiveTable:
@@ -128,9 +137,11 @@ class ModeKeys:
     """
 
     def __init__(self, on_mode: Callable[[Mode], None], on_quit: Callable[[], None], *,
-                 stream: TextIO | None = None, extra: dict[str, Callable[[], None]] | None = None) -> None:
+                 on_reset: Callable[[], object] | None = None, stream: TextIO | None = None,
+                 extra: dict[str, Callable[[], None]] | None = None) -> None:
         self.on_mode = on_mode
         self.on_quit = on_quit
+        self.on_reset = on_reset
         self.extra = dict(extra or {})  # further keys of the command (e.g. n: next phase)
         self.stream = stream if stream is not None else sys.stdin
         self.active = False
@@ -194,6 +205,8 @@ class ModeKeys:
             self.on_quit()
         elif key in MODE_KEYS:
             self.on_mode(MODE_KEYS[key])
+        elif key in RESET_KEYS and self.on_reset is not None:
+            self.on_reset()
         elif key in self.extra:
             self.extra[key]()
 

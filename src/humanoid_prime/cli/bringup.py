@@ -155,8 +155,9 @@ def run(args: argparse.Namespace) -> int:
 
             full = not session.manager.broadcaster_only
             if sys.stdin.isatty():
-                stack.enter_context(ModeKeys(session.manager.request_mode if full else _refuse, stop.set))
-            stack.enter_context(LiveTable(session.manager, keys=full))
+                stack.enter_context(ModeKeys(session.manager.request_mode if full else _refuse, stop.set,
+                                             on_reset=session.manager.request_reset))
+            stack.enter_context(LiveTable(session.manager, keys=full, reset_key=sys.stdin.isatty()))
         run_loop(session, stop)
         if load_test is not None:
             load_test.join(timeout=30.0)

@@ -232,6 +232,8 @@ def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual:
         tracker.attach(session.manager.topics)
         keys = "Enter or n: done, go on; q or Ctrl-C: write and stop" if backends != PHASES[args.backends][-1] \
             else "Enter, n, q or Ctrl-C: write and stop"
+        if "ec" in backends:
+            keys += "; r: reset a faulted drive"
         if not args.json:
             console.print(f"{title}: up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
                           f"{len(joints)} joints. Sweep each to its LOWER stop first, then the upper. {keys}.")
@@ -241,6 +243,7 @@ def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual:
                                      console=console, refresh_per_second=READOUT_HZ))
             if sys.stdin.isatty():
                 stack.enter_context(ModeKeys(lambda mode: None, lambda: (finish.set(), stop.set()),
+                                             on_reset=session.manager.request_reset,
                                              extra={"n": stop.set, "\n": stop.set}))
         run_loop(session, stop, on_tick=lambda manager: stop.set() if finish.is_set() else None)
         if worker is not None:

@@ -8,6 +8,7 @@ from pathlib import Path
 from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
 from humanoid_prime.cli._common import add_config_options, add_json_option, output_dir, print_json
 from humanoid_prime.config.calibration import load_calibration, save_calibration
+from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.ethercat.fold import write_folded_configs
 from humanoid_prime.errors import PrimeError
@@ -20,9 +21,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     fold = actions.add_parser("fold", help="write the per-slave eRob configs with the calibration folded in",
                               description="Write <joint>.yaml for every eRob joint into DIR: the generic CiA402 "
-                                          "slave config with direction and homing_offset folded into the PDO "
-                                          "factors and offsets (no drive NVM is written).")
-    add_config_options(fold, calibration=True)
+                                          "slave config of ethercat_driver_ros2 with direction and homing_offset "
+                                          "folded into the PDO factors and offsets (no drive NVM is written), and "
+                                          "the start-up SDOs that arm the bus gains with the controllers file's "
+                                          "standby stiffness. Drive faults latch (auto_fault_reset: false).")
+    add_config_options(fold, calibration=True, controllers=True)
     fold.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="folder for the per-slave configs")
     add_json_option(fold)
     fold.set_defaults(func=_fold)
@@ -49,11 +52,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _fold(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     calibration = load_calibration(robot.hardware, args.calibration)
+    controllers = load_controllers(robot.names, args.controllers)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise PrimeError(f"--out {out} exists and is not a folder")
     try:
-        paths = write_folded_configs(robot, calibration, out)
+        paths = write_folded_configs(robot, calibration, out, controllers)
     except OSError as exc:
         raise PrimeError(f"cannot write into {out}: {exc.strerror}") from None
     rows = [{"joint": j.name, "ring_position": j.ring_position, "path": str(path)}

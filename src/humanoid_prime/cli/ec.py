@@ -8,6 +8,7 @@ hardware file, brings it to OP before any SDO. ``--backend igh`` asks a running 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from typing import Any
 
@@ -15,7 +16,7 @@ from humanoid_prime.cli._common import add_config_options, add_json_option, prin
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.drivers.erob.cia402 import describe_al_status_code, describe_error, drive_state
-from humanoid_prime.drivers.erob.objects import ERROR_CODE, STATUSWORD
+from humanoid_prime.drivers.erob.objects import ERROR_CODE, RATED_TORQUE, STATUSWORD
 from humanoid_prime.drivers.ethercat.igh import IGH_TYPES, SHORT_TYPES
 from humanoid_prime.drivers.ethercat.master import (
     RingError,
@@ -99,7 +100,7 @@ def _row(slave: SlaveInfo, joints: dict[int, str]) -> dict[str, Any]:
         "revision": f"0x{slave.revision:08X}", "is_erob": slave.is_erob,
         "al_state": slave.state_text, "al_status_code": f"0x{slave.al_status_code:04X}",
         "al_status": describe_al_status_code(slave.al_status_code),
-        "statusword": None, "drive_state": None, "error_code": None, "error": None,
+        "statusword": None, "drive_state": None, "error_code": None, "error": None, "rated_torque_nm": None,
     }
 
 
@@ -138,6 +139,8 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
             row.update(_row(slave, joints))
             _drive(row, int(master.inputs["statusword"][slave.position]),
                    int(master.inputs["error_code"][slave.position]))
+            rated = float(master.rated_torque_nm[slave.position])
+            row["rated_torque_nm"] = rated if math.isfinite(rated) else None
         if args.history:
             for row in rows:
                 row["error_history"] = [f"0x{c:04X}" for c in master.error_history(row["ring"])]
@@ -160,6 +163,10 @@ def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) ->
         statusword, _ = sdo.upload(position, STATUSWORD, 0, "uint16")
         error_code, _ = sdo.upload(position, ERROR_CODE, 0, "uint16")
         _drive(row, statusword, error_code)
+        try:
+            row["rated_torque_nm"] = sdo.upload(position, RATED_TORQUE, 0, "uint32")[0] / 1000.0
+        except SdoError:
+            row["rated_torque_nm"] = None  # reported as unknown; the drive answered the rest
         if args.history:
             row["error_history"] = [f"0x{code:04X}" for code in read_error_history(sdo, position)]
 
@@ -196,6 +203,8 @@ def _print_scan(report: dict[str, Any]) -> None:
             line += f" AL status {r['al_status_code']} {r['al_status']}"
         if r["statusword"] is not None:
             line += f" statusword {r['statusword']} ({r['drive_state']})  error {r['error_code']} {r['error']}"
+        if r["rated_torque_nm"] is not None:
+            line += f"  rated {r['rated_torque_nm']:g} N*m"
         if "error_history" in r:
             line += f"  history [{', '.join(r['error_history'])}]"
         print(line.rstrip())

@@ -92,6 +92,14 @@ class HardwareComponent(SafetyFlags, ABC):
     def write(self, now: float, command: CommandArrays) -> None:
         """Send ``command`` at ``self.indices`` to the devices (joint frame in, device frame out)."""
 
+    def latched_faults(self) -> list[str]:
+        """Devices of this component in a fault that waits for the operator's reset, one line each."""
+        return []
+
+    def reset_faults(self) -> None:
+        """Clear latched faults with the next ``write`` (called from the control loop's thread); a device
+        whose cause persists faults again. Default: this component's devices latch no faults."""
+
     def __enter__(self) -> HardwareComponent:
         return self
 

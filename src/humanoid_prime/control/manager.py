@@ -136,12 +136,14 @@ class ControllerManager:
         self.stages: list[tuple[str, float]] = []
         self.flags = SafetyFlags("controller_manager")
         self.tick_count = 0
+        self.resets = 0  # operator fault resets applied
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
         self._flag_sources: tuple[SafetyFlags, ...] = (*self.resources.components, *self.controllers.values(),
                                                         self.flags)
         self._flags_seen = -1
         self._lock = threading.Lock()
         self._request: Mode | None = None
+        self._reset = False
         self._started = False
         self._closed = False
         self._last_now: float | None = None
@@ -234,9 +236,25 @@ class ControllerManager:
         with self._lock:
             self._request = mode
 
+    def request_reset(self) -> list[str]:
+        """Ask for the operator's fault reset (thread-safe), applied at the start of the next tick: every
+        hardware component clears its latched faults with that tick's write, and the active mode is entered
+        again from the measured state, so a drive that comes back holds where its joint is. Returns the
+        latched faults at the time of the request."""
+        faults = self.resources.latched_faults()
+        with self._lock:
+            self._reset = True
+        return faults
+
     def _apply_request(self, now: float) -> None:
         with self._lock:
             mode, self._request = self._request, None
+            reset, self._reset = self._reset, False
+        if reset:
+            self.resources.reset_faults()
+            self.resets += 1
+            if mode is None:
+                mode = self.active_mode  # None in a broadcaster-only run: nothing to re-enter
         if mode is not None:
             self.flags.clear_flag("fallback")
             self._activate(mode, now)
@@ -302,7 +320,7 @@ class ControllerManager:
         self._last_now = now
         resources = self.resources
         resources.read(now)
-        if self._request is not None:
+        if self._request is not None or self._reset:
             self._apply_request(now)
         self._broadcast(now, dt)
         if self.active is not None:

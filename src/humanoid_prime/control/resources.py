@@ -50,6 +50,13 @@ class ResourceManager:
         for component in self.components:
             component.write(now, self.command)
 
+    def latched_faults(self) -> list[str]:
+        return [fault for component in self.components for fault in component.latched_faults()]
+
+    def reset_faults(self) -> None:
+        for component in self.components:
+            component.reset_faults()
+
     def configure(self) -> None:
         for component in self.components:
             component.configure()

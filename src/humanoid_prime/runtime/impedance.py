@@ -34,8 +34,7 @@ from dataclasses import dataclass, field, replace
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, TopicBus
-from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
-from humanoid_prime.drivers.erob.gains import ErobRegisters, gains_to_registers, write_order
+from humanoid_prime.drivers.erob.gains import ErobRegisters, following_window_counts, gains_to_registers, write_order
 from humanoid_prime.drivers.erob.objects import (
     BUS_GAIN_GATE,
     FOLLOWING_ERROR_WINDOW,
@@ -86,7 +85,6 @@ class SwitchReport:
 RETRY_BACKOFF_S = 0.005
 # The following-error window admits this much more than the sag of a joint holding its effort limit at the
 # stiffest mode's nominal kp: the drive realises about 0.7x the nominal stiffness (DESIGN §2), 1/0.7 = 1.43.
-FOLLOWING_WINDOW_MARGIN = 2.0
 WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
 
 _NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral"}
@@ -104,15 +102,6 @@ class _Slave:
     gate_armed: bool = False
     factory_window: int | None = None  # the drive's own window, put back on close
     lock: threading.Lock = field(default_factory=threading.Lock)
-
-
-def following_window_counts(effort_limit: float, mode_gains: Mapping[Mode, tuple[float, float]]) -> int | None:
-    """The following-error window (counts) a joint needs: the margin times its sag when holding its effort
-    limit at the smallest non-zero kp of the modes; None when no mode is stiff (every target follows)."""
-    stiff = [kp for kp, _ in mode_gains.values() if kp > 0]
-    if not stiff:
-        return None
-    return round(FOLLOWING_WINDOW_MARGIN * effort_limit / min(stiff) * COUNTS_PER_RAD)
 
 
 class ImpedanceManager(SafetyFlags):

@@ -18,6 +18,7 @@ Everything opened is registered on the caller's ExitStack; ``runtime.run`` runs 
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -247,6 +248,9 @@ class Session:
         ec_bringup = None
         if self.ethercat is not None and self.ethercat.bringup is not None:
             ec_bringup = self.ethercat.bringup.as_dict()
+            ec_bringup["rated_torque_nm"] = {  # 0x6076 of each drive; null: unread, nominal used
+                joint: (float(r) if math.isfinite(r) else None)
+                for joint, r in zip(self.ethercat.joints, self.ethercat.rated_torque_nm, strict=True)}
         problems = self.problems
         return {
             "ok": not problems,
@@ -313,8 +317,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
 
 
 def serve(session: Session, server: ControlServer) -> None:
-    """Answer on ``server`` for ``session``: mode requests (full runs), SDO through this process's EtherCAT
-    master, and in broadcaster-only runs the limp marker of ``prime limp``."""
+    """Answer on ``server`` for ``session``: mode requests (full runs), the operator's fault reset, SDO through
+    this process's EtherCAT master, and in broadcaster-only runs the limp marker of ``prime limp``."""
     manager = session.manager
     request = None if manager.broadcaster_only else manager.request_mode
     sdo = session.ethercat.master if session.ethercat is not None else None
@@ -340,4 +344,5 @@ def serve(session: Session, server: ControlServer) -> None:
                 session.record_fault(f"limp/ring{position}", f"{ring_joints[position]} (ring {position}) was still "
                                      "limp when the run ended; its gate was reset to 0", Level.WARN)
 
-    server.attach(request_mode=request, sdo=sdo, joint_limp=joint_limp, on_close=on_close)
+    server.attach(request_mode=request, sdo=sdo, joint_limp=joint_limp, on_close=on_close,
+                  reset=manager.request_reset)

@@ -4,7 +4,8 @@ A second terminal uses it to switch modes (``prime switch MODE``) and, when the 
 EtherCAT master, to reach the drives' mailboxes (``prime limp``, ``prime ec sdo``): with SOEM the
 master lives inside that process, so SDO from another process goes through here.
 
-One JSON request per connection, one JSON answer: ``{"op": "mode", "mode": "STANDBY"}``,
+One JSON request per connection, one JSON answer: ``{"op": "mode", "mode": "STANDBY"}``, ``{"op": "reset"}``
+(the operator's fault reset; answers the faults that were latched),
 ``{"op": "sdo_read", "position": 3, "index": 9090, "sub_index": 1}``,
 ``{"op": "sdo_write", ..., "data": "1e000000"}``; answers carry ``"ok": true`` or ``"error"``.
 """
@@ -46,15 +47,17 @@ class ControlServer:
 
     def __init__(self, request_mode: Callable[[Mode], None] | None = None, path: str | Path | None = None, *,
                  sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None,
-                 on_close: Callable[[], None] | None = None) -> None:
+                 on_close: Callable[[], None] | None = None,
+                 reset: Callable[[], list[str]] | None = None) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
         self.ready = False
         self.request_mode: Callable[[Mode], None] | None = None
+        self.reset: Callable[[], list[str]] | None = None
         self.sdo: SdoClient | None = None
         self.joint_limp: Callable[[int, bool], str] | None = None
         self.on_close: Callable[[], None] | None = None  # runs once no request can arrive any more
-        if request_mode is not None or sdo is not None or joint_limp is not None or on_close is not None:
-            self.attach(request_mode=request_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close)
+        if any(h is not None for h in (request_mode, sdo, joint_limp, on_close, reset)):
+            self.attach(request_mode=request_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close, reset=reset)
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -76,15 +79,16 @@ class ControlServer:
 
     def attach(self, *, request_mode: Callable[[Mode], None] | None = None, sdo: SdoClient | None = None,
                joint_limp: Callable[[int, bool], str] | None = None,
-               on_close: Callable[[], None] | None = None) -> None:
+               on_close: Callable[[], None] | None = None, reset: Callable[[], list[str]] | None = None) -> None:
         """Start answering with these handlers (the run is up)."""
         self.request_mode, self.sdo, self.joint_limp, self.on_close = request_mode, sdo, joint_limp, on_close
+        self.reset = reset
         self.ready = True
 
     def detach(self) -> None:
         """Stop answering for the run (it is tearing down) and run its ``on_close`` once."""
         self.ready = False
-        self.request_mode = self.sdo = self.joint_limp = None
+        self.request_mode = self.sdo = self.joint_limp = self.reset = None
         if self.on_close is not None:
             on_close, self.on_close = self.on_close, None
             on_close()
@@ -126,6 +130,10 @@ class ControlServer:
                 mode = Mode.parse(str(request["mode"]))
                 self.request_mode(mode)
                 return {"ok": True, "mode": mode.value}
+            if op == "reset":
+                if self.reset is None:
+                    return {"ok": False, "error": "this prime instance drives no hardware that latches faults"}
+                return {"ok": True, "faults": self.reset()}
             if op == "limp":
                 if self.joint_limp is None:
                     return {"ok": False, "error": "prime limp needs a running `prime calibrate` (or a single-bus "
@@ -210,6 +218,11 @@ def _answers(path: Path) -> bool:
 def send_mode_request(mode: Mode, path: str | Path | None = None) -> str:
     """Ask the running instance to switch to ``mode``; returns the mode it accepted."""
     return str(request(path, {"op": "mode", "mode": mode.value})["mode"])
+
+
+def send_reset_request(path: str | Path | None = None) -> list[str]:
+    """The operator's fault reset on the running instance; the faults latched when it was asked."""
+    return [str(fault) for fault in request(path, {"op": "reset"})["faults"]]
 
 
 class SocketSdoClient:

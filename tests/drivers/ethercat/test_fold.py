@@ -9,12 +9,15 @@ from hypothesis import strategies as st
 
 from humanoid_prime.calibration.math import calibrate_from_sweeps
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
+from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
+from humanoid_prime.drivers.erob.gains import following_window_counts, gains_to_registers
 from humanoid_prime.drivers.erob.objects import RXPDO, TXPDO
 from humanoid_prime.drivers.ethercat.fold import fold_slave_config, render_slave_config, write_folded_configs
 from humanoid_prime.drivers.ethercat.slave_config import Channel, load_slave_config, parse_slave_config
 from humanoid_prime.errors import ConfigError
+from humanoid_prime.modes import Mode
 
 C = 524288 / (2 * math.pi)
 
@@ -47,11 +50,13 @@ def test_identity_and_dc_sync0(elbow):
     assert (doc["vendor_id"], doc["product_id"]) == (0x5A65726F, 0x00029252)
 
 
-def test_channels_follow_the_pdo_layout(elbow):
+def test_channels_follow_the_pdo_layout_without_its_pad_byte(elbow):
     doc = fold_slave_config(elbow, JointCalibration(1, 0.0))
     assert doc["rpdo"][0]["index"] == 0x1600 and doc["tpdo"][0]["index"] == 0x1A00
-    assert [c["index"] for c in doc["rpdo"][0]["channels"]] == [e.index for e in RXPDO]
-    assert [c["index"] for c in doc["tpdo"][0]["channels"]] == [e.index for e in TXPDO]
+    assert RXPDO[-1].index == TXPDO[-1].index == 0  # Prime's own mapping ends in a pad byte ...
+    # ... which a gap channel would carry into ICube's position-indexed channel list: left out
+    assert [c["index"] for c in doc["rpdo"][0]["channels"]] == [e.index for e in RXPDO[:-1]]
+    assert [c["index"] for c in doc["tpdo"][0]["channels"]] == [e.index for e in TXPDO[:-1]]
     assert [c["type"] for c in doc["rpdo"][0]["channels"]] == ["uint16", "int32", "int32", "int16", "int8"]
     assert [c["type"] for c in doc["tpdo"][0]["channels"]] == ["uint16", "int32", "int32", "int16", "uint16", "int8"]
 
@@ -83,10 +88,57 @@ def test_effort_is_per_mille_of_rated_torque(folded):
     assert folded.command("effort").index == 0x60B2
 
 
-def test_sync_managers_feed_the_output_watchdog(folded):
-    assert [(s.index, s.type, s.pdo, s.watchdog) for s in folded.sm] == [
-        (0, "output", None, "disable"), (1, "input", None, "disable"),
-        (2, "output", "rpdo", "enable"), (3, "input", "tpdo", "disable")]
+def test_no_sync_manager_block_is_generated(elbow):
+    # ethercat_driver_ros2's default sync managers are the same, and older yaml-cpp cannot read `pdo: ~`
+    assert "sm" not in fold_slave_config(elbow, JointCalibration(1, 0.0))
+    assert "sm:" not in render_slave_config(fold_slave_config(elbow, JointCalibration(1, 0.0)))
+
+
+def test_a_drive_fault_latches_in_the_generated_config(folded):
+    assert folded.auto_fault_reset is False
+
+
+# ethercat_driver_ros2's keys and types for a start-up SDO (ec_sdo_manager.hpp): index as<uint16_t>,
+# sub_index as<uint8_t>, type one of its buffer_write types, value as<int> (signed 32-bit).
+ICUBE_SDO_KEYS = ["index", "sub_index", "type", "value"]
+ICUBE_SDO_TYPES = {"uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64"}
+
+
+def test_fold_with_controllers_lists_the_startup_sdos_icube_writes(robot, tmp_path):
+    controllers = load_controllers(robot.names)
+    write_folded_configs(robot, identity_calibration(robot.hardware), tmp_path, controllers)
+    text = (tmp_path / "left_elbow_pitch.yaml").read_text()
+    raw = yaml.safe_load(text)["sdo"]
+    assert all(list(entry) == ICUBE_SDO_KEYS for entry in raw)
+    assert all(entry["type"] in ICUBE_SDO_TYPES and -(1 << 31) <= entry["value"] < 1 << 31 for entry in raw)
+    assert all(isinstance(entry["index"], int) and 0 <= entry["sub_index"] <= 0xFF for entry in raw)
+    assert "index: 0x2383" in text  # hex, as yaml-cpp reads it (no leading zero: that would be octal)
+    elbow = robot.joints[robot.index("left_elbow_pitch")]
+    kp, kd = controllers.mode_gains()[Mode.STANDBY]
+    regs = gains_to_registers(kp, kd, kt=robot.hardware.erob_kt[elbow.name], gear=robot.hardware.erob_gear[elbow.name],
+                              efficiency=robot.hardware.torque_efficiency)
+    window = following_window_counts(elbow.effort_limit, controllers.mode_gains())
+    assert [(e["index"], e["sub_index"], e["type"], e["value"]) for e in raw] == [
+        (0x6065, 0, "int32", window),  # first, so the standby stiffness cannot trip 0x8500
+        (0x2381, 2, "uint16", 0),  # integral off
+        (0x2382, 1, "uint16", regs.pos_reg),
+        (0x2381, 1, "uint16", regs.vel_reg),
+        (0x2383, 0, "uint32", 1),  # last: the drive takes the bus gains only once they are written
+    ]
+    loaded = load_slave_config(tmp_path / "left_elbow_pitch.yaml").sdo
+    assert [(e.index, e.sub_index, e.data) for e in loaded][-1] == (0x2383, 0, b"\x01\x00\x00\x00")
+
+
+def test_fold_without_controllers_has_no_sdo_list(robot, tmp_path):
+    write_folded_configs(robot, identity_calibration(robot.hardware), tmp_path)
+    assert "sdo" not in yaml.safe_load((tmp_path / "left_elbow_pitch.yaml").read_text())
+
+
+def test_the_header_says_how_the_cpp_stack_differs(robot, tmp_path):
+    write_folded_configs(robot, identity_calibration(robot.hardware), tmp_path)
+    header = (tmp_path / "left_elbow_pitch.yaml").read_text().split("vendor_id")[0]
+    assert "truncates" in header and "one count" in header
+    assert "fault latches" in header
 
 
 def test_rendered_text_reads_back_as_the_document(elbow):
@@ -197,7 +249,14 @@ def _write(tmp_path, elbow, edit):
     (lambda d: d["rpdo"][0]["channels"][1].update(state_interface="position"),
      "rpdo[0].channels[1].state_interface", "not allowed here"),
     (lambda d: d["tpdo"][0].update(channels=[]), "tpdo[0].channels", "missing or empty"),
-    (lambda d: d["sm"][2].update(type="sideways"), "sm[2].type", "expected one of"),
+    (lambda d: d.update(sm=[{"index": 2, "type": "sideways"}]), "sm[0].type", "expected one of"),
+    (lambda d: d.update(sdo=[{"index": 0x2383, "sub_index": 0, "type": "uint32"}]), "sdo[0].value", "missing"),
+    (lambda d: d.update(sdo=[{"index": 0x2383, "sub_index": 0, "type": "uint32", "value": 0x80000000}]),
+     "sdo[0].value", "0x0..0x7FFFFFFF"),
+    (lambda d: d.update(sdo=[{"index": 0x2383, "sub_index": 0, "type": "bool", "value": 1}]), "sdo[0].type",
+     "unknown type"),
+    (lambda d: d.update(sdo=[{"index": 0x6065, "sub_index": 0, "type": "int16", "value": -40000}]),
+     "sdo[0].value", "-32768..32767"),
     (lambda d: d["rpdo"][0]["channels"][0].update(index=0x10000), "rpdo[0].channels[0].index", "0x0..0xFFFF"),
 ])
 def test_malformed_slave_config_names_file_and_key(tmp_path, elbow, edit, key, problem):

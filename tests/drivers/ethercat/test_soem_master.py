@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import struct
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -16,6 +15,7 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
+from humanoid_prime.drivers.ethercat.sdo import SizedSdo
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
@@ -208,12 +208,13 @@ def test_gains_written_over_sdo_read_back(system, ring, robot):
     with Loop(system, robot.n):
         wait_for(lambda: system.bus_ready, what="SDO gate open")
 
+        sized = SizedSdo(master)
+
         def write(position: int) -> tuple[int, int]:
-            master.sdo_write(position, *BUS_GAIN_GATE, struct.pack("<B", 1))
-            master.sdo_write(position, *POS_LOOP_GAIN, struct.pack("<I", 400 + position))
-            master.sdo_write(position, *VEL_LOOP_GAIN, struct.pack("<I", 20 + position))
-            return (struct.unpack("<I", master.sdo_read(position, *POS_LOOP_GAIN)[:4])[0],
-                    struct.unpack("<I", master.sdo_read(position, *VEL_LOOP_GAIN)[:4])[0])
+            sized.write(position, BUS_GAIN_GATE, 1)
+            sized.write(position, POS_LOOP_GAIN, 400 + position)
+            sized.write(position, VEL_LOOP_GAIN, 20 + position)
+            return sized.read(position, POS_LOOP_GAIN), sized.read(position, VEL_LOOP_GAIN)
 
         with ThreadPoolExecutor(max_workers=10) as pool:
             read_back = list(pool.map(write, range(10)))

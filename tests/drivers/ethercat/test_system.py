@@ -11,6 +11,7 @@ import pytest
 
 from doubles.master import OPERATION_ENABLED, FakeMaster, erob_ring
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
 from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_SAFE_OP, SdoRefused
@@ -227,8 +228,17 @@ def test_a_drive_fault_raises_a_flag_with_the_decoded_statusword_and_error(rig):
                            "error 0x8500 position (following) error over limit")
 
 
-def test_a_faulted_drive_gets_a_fault_reset_then_the_enable_sequence(rig):
-    rig.master.fault(3, 0xA000)
+def test_a_drive_fault_latches_until_the_operator_resets_it(rig):
+    rig.master.fault(3, 0x8500)
+    controlwords = []
+    for _ in range(5):
+        rig.tick()
+        controlwords.append(int(rig.master.sent["controlword"][3]))
+    assert controlwords == [0x00] * 5  # disable voltage; no fault reset of its own
+    rig.system.read(0.0, rig.state)
+    assert "latched" in rig.system.flags["ethercat/ring3/fault"]
+    assert rig.system.latched_faults() == [rig.system.flags["ethercat/ring3/fault"].split(" (latched")[0]]
+    rig.system.reset_faults()
     controlwords = []
     for _ in range(5):
         rig.tick()
@@ -236,19 +246,23 @@ def test_a_faulted_drive_gets_a_fault_reset_then_the_enable_sequence(rig):
     assert controlwords == [0x80, 0x06, 0x07, 0x0F, 0x0F]
     assert rig.master.statusword[3] == OPERATION_ENABLED
     rig.system.read(0.0, rig.state)
-    assert "ethercat/ring3/fault" not in rig.system.flags
+    assert "ethercat/ring3/fault" not in rig.system.flags and rig.system.latched_faults() == []
 
 
-def test_a_drive_that_stays_in_fault_gets_fault_reset_as_a_rising_edge_every_other_cycle(rig):
+def test_a_reset_is_one_rising_edge_and_a_drive_whose_cause_persists_stays_latched(rig):
     rig.master.fault(3, 0x730F)
+    rig.master.fault(5, 0x8500)
     step = rig.master._step_drives
-    rig.master._step_drives = lambda cw: None  # the drive refuses the reset (latched error)
+    rig.master._step_drives = lambda cw: None  # the drives refuse the reset (the cause persists)
+    rig.tick()
+    rig.system.reset_faults()
     controlwords = []
     for _ in range(4):
         rig.tick()
-        controlwords.append(int(rig.master.sent["controlword"][3]))
+        controlwords.append((int(rig.master.sent["controlword"][3]), int(rig.master.sent["controlword"][5])))
     rig.master._step_drives = step
-    assert controlwords == [0x80, 0x00, 0x80, 0x00]
+    assert controlwords == [(0x80, 0x80), (0x00, 0x00), (0x00, 0x00), (0x00, 0x00)]
+    assert {int(rig.master.sent["controlword"][k]) for k in (0, 1, 2, 4)} == {0x0F}  # the others stay enabled
 
 
 def test_a_lost_slave_raises_a_flag_naming_the_joint_and_its_state(rig):
@@ -338,13 +352,86 @@ def test_read_and_write_keep_no_memory_per_tick(rig):
     assert retained < 1024  # NumPy's one-off caches only; one array kept per tick would be 2000 times more
 
 
-def test_a_drive_stuck_in_fault_fails_activation_with_its_state(robot, tmp_path):
+def test_a_drive_that_never_enables_fails_activation_with_its_state(robot, tmp_path):
     master = FakeMaster()
-    master.fault(7, 0x730F)
     master._step_drives = lambda cw: None  # drives ignore every controlword
     r = Rig(robot, tmp_path, master=master)
     r.system.enable_timeout_s = 0.05
     r.system.configure()
-    with pytest.raises(Exception, match=r"right_shoulder_yaw \(ring 7\): fault, statusword 4616 \(0x1208\), "
-                                        r"error 0x730F multi-turn battery low"):
+    with pytest.raises(Exception, match=r"right_shoulder_yaw \(ring 7\): switch on disabled, statusword 592"):
         r.system.activate()
+    r.system.shutdown()
+
+
+def test_the_bringup_dc_fault_clears_by_itself(robot, tmp_path):
+    master = FakeMaster()
+    master.fault(4, 0xA000)  # raised while the drive's DC locked
+    r = Rig(robot, tmp_path, master=master)
+    r.system.configure()
+    r.system.activate()
+    assert r.system.enabled.all()
+    r.system.shutdown()
+
+
+def test_a_drive_in_another_fault_at_bringup_stays_latched_and_the_rest_enable(robot, tmp_path):
+    master = FakeMaster()
+    master.fault(7, 0x730F)
+    r = Rig(robot, tmp_path, master=master)
+    r.system.configure()
+    r.system.activate()  # does not wait out the enable timeout for a latched drive
+    joint = r.robot.hardware.erob_joints.index("right_shoulder_yaw")
+    assert r.system.faulted[joint] and not r.system.enabled[joint]
+    assert r.system.enabled.sum() == 9
+    r.system.read(0.0, r.state)
+    assert r.system.flags["ethercat/ring7/fault"].startswith(
+        "right_shoulder_yaw (ring 7): fault, statusword 4616 (0x1208), error 0x730F multi-turn battery low")
+    r.system.shutdown()
+
+
+def test_efforts_scale_with_the_rated_torque_each_drive_reports(robot, tmp_path):
+    master = FakeMaster()
+    master.rated_torque_mnm[0] = 31000  # an eRob80H120I
+    r = Rig(robot, tmp_path, master=master)
+    r.system.configure()
+    r.system.activate()
+    j = robot.index("left_shoulder_pitch")
+    r.command.effort[j] = 3.1
+    r.command.stiffness[j] = 20.0
+    r.master.torque_per_mille[0] = 500
+    r.tick()
+    assert r.master.sent["torque_offset"][0] == 100  # per mille of 31 N*m, not of the nominal 23
+    r.tick()
+    assert r.state.effort[j] == pytest.approx(15.5)
+    assert r.system.rated_torque_nm[0] == 31.0 and r.system.rated_torque_nm[1] == 23.0
+    assert "ethercat/ring0/rated_torque" not in r.system.flags
+    r.system.shutdown()
+
+
+def test_an_unread_rated_torque_falls_back_to_nominal_with_a_warning(robot, tmp_path):
+    master = FakeMaster()
+    master.rated_torque_mnm[2] = None
+    r = Rig(robot, tmp_path, master=master)
+    r.system.configure()
+    r.system.activate()
+    assert r.system.flags["ethercat/ring2/rated_torque"] == (
+        "left_shoulder_yaw (ring 2): rated torque (0x6076) unknown (no reply (working counter 0)); efforts "
+        f"scaled with the nominal {RATED_TORQUE_NM:g} N*m")
+    assert r.system.levels["ethercat/ring2/rated_torque"] is Level.WARN
+    assert math.isnan(r.system.rated_torque_nm[2])
+    j = robot.index("left_shoulder_yaw")
+    r.command.effort[j] = 2.3
+    r.command.stiffness[j] = 20.0
+    r.tick()
+    assert r.master.sent["torque_offset"][2] == 100
+    r.system.shutdown()
+
+
+def test_the_torque_offset_is_clamped_to_the_drive_s_range(rig):
+    j = rig.robot.index("left_shoulder_pitch")
+    rig.command.stiffness[j] = 20.0
+    rig.command.effort[j] = 1e4
+    rig.tick()
+    assert rig.master.sent["torque_offset"][0] == 3000  # +-3000 per mille (ZeroErr EDS), not the int16 range
+    rig.command.effort[j] = -1e4
+    rig.tick()
+    assert rig.master.sent["torque_offset"][0] == -3000

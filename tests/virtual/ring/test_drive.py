@@ -18,6 +18,7 @@ from humanoid_prime.virtual.ring.drive import (
     Cia402State,
     ErobDrive,
 )
+from humanoid_prime.virtual.ring.od import ABORT_LENGTH, SdoAbort
 
 
 def command(drive: ErobDrive, controlword: int, mode: int = 8) -> None:
@@ -31,8 +32,10 @@ def enable(drive: ErobDrive) -> None:
         command(drive, controlword)
 
 
-def write(drive: ErobDrive, address: tuple[int, int], value: int, fmt: str = "<I") -> None:
-    drive.od.download(address[0], address[1], struct.pack(fmt, value))
+def write(drive: ErobDrive, address: tuple[int, int], value: int) -> None:
+    """Download ``value`` with the size the drive holds the object in (as SizedSdo does)."""
+    entry = drive.od.entry(*address)
+    drive.od.download(address[0], address[1], value.to_bytes(entry.size, "little", signed=entry.fmt.islower()))
 
 
 def run(drive: ErobDrive, plant: InertiaPlant, seconds: float, dt: float = 0.001) -> None:
@@ -159,7 +162,7 @@ def test_factory_gains_hold_stiffly():
 def test_bus_gains_realise_0_7_of_the_nominal_stiffness():
     drive = ErobDrive()
     registers = gains_to_registers(20.0, 2.0)  # STANDBY, torque_efficiency 1.0
-    write(drive, (0x2383, 0), 1, "<B")
+    write(drive, (0x2383, 0), 1)
     write(drive, (0x2382, 1), registers.pos_reg)
     write(drive, (0x2381, 1), registers.vel_reg)
     write(drive, (0x2381, 2), 0)
@@ -169,7 +172,7 @@ def test_bus_gains_realise_0_7_of_the_nominal_stiffness():
 def test_efficiency_corrected_registers_realise_the_nominal_stiffness():
     drive = ErobDrive()
     registers = gains_to_registers(20.0, 2.0, efficiency=0.7)
-    write(drive, (0x2383, 0), 1, "<B")
+    write(drive, (0x2383, 0), 1)
     write(drive, (0x2382, 1), registers.pos_reg)
     write(drive, (0x2381, 1), registers.vel_reg)
     assert stiffness_under(drive, 5.0) == pytest.approx(20.0, rel=0.03)
@@ -177,15 +180,15 @@ def test_efficiency_corrected_registers_realise_the_nominal_stiffness():
 
 def test_closing_the_gate_restores_factory_registers():
     drive = ErobDrive()
-    write(drive, (0x2383, 0), 1, "<B")
+    write(drive, (0x2383, 0), 1)
     write(drive, (0x2382, 1), 0)
-    write(drive, (0x2383, 0), 0, "<B")
+    write(drive, (0x2383, 0), 0)
     assert drive.pos_reg.value == FACTORY_POS_REG
 
 
 def test_zero_registers_leave_the_joint_limp():
     drive = ErobDrive()
-    write(drive, (0x2383, 0), 1, "<B")
+    write(drive, (0x2383, 0), 1)
     write(drive, (0x2382, 1), 0)
     write(drive, (0x2381, 1), 0)
     plant = InertiaPlant(np.array([0.3]))
@@ -232,3 +235,59 @@ def test_feedback_objects_use_encoder_counts_and_per_mille_torque():
     assert drive.position_actual.value == round(COUNTS_PER_RAD) == 83443
     assert drive.velocity_actual.value == round(-0.5 * COUNTS_PER_RAD)
     assert drive.torque_actual.value == 100  # 2.3 Nm of 23 Nm rated
+
+
+def test_by_default_the_loop_gains_are_unsigned16_as_the_eds_declares_and_a_4_byte_write_aborts():
+    drive = ErobDrive()
+    write(drive, (0x2383, 0), 1)
+    for address in ((0x2381, 1), (0x2381, 2), (0x2382, 1), (0x2382, 2)):
+        assert drive.od.entry(*address).size == 2
+        with pytest.raises(SdoAbort) as abort:
+            drive.od.download(*address, struct.pack("<I", 20))
+        assert abort.value.code == ABORT_LENGTH
+
+
+def test_the_u32_variant_holds_the_gains_in_4_bytes_and_aborts_a_2_byte_write():
+    drive = ErobDrive(gain_bytes=4)
+    assert drive.od.entry(0x2382, 1).size == 4
+    with pytest.raises(SdoAbort) as abort:
+        drive.od.download(0x2382, 1, struct.pack("<H", 20))
+    assert abort.value.code == ABORT_LENGTH
+
+
+@pytest.mark.parametrize("address, value", [((0x2382, 0), 2), ((0x2381, 0), 2), ((0x1003, 0), 0),
+                                            ((0x6502, 0), 0x38D)])
+def test_the_object_layout_of_the_eds(address, value):
+    assert ErobDrive().od.value(*address) == value
+
+
+def test_the_error_history_keeps_the_four_newest():
+    drive = ErobDrive()
+    for code in (0x8500, 0xA000, 0x8400, 0x8130, 0x730F):
+        drive.fault(code)
+    assert drive.error_history == [0x730F, 0x8130, 0x8400, 0xA000]
+
+
+@pytest.mark.parametrize("rated_mnm", [23000, 31000])
+def test_rated_torque_is_read_only_pdo_mappable_and_scales_torque_actual(rated_mnm):
+    drive = ErobDrive(rated_torque_mnm=rated_mnm)
+    entry = drive.od.entry(0x6076, 0)
+    assert (entry.value, entry.access, entry.pdo) == (rated_mnm, "ro", "tx")
+    with pytest.raises(SdoAbort):
+        drive.od.download(0x6076, 0, struct.pack("<I", 1000))
+    drive.torque_nm = 2.3
+    drive.update_feedback(0.0, 0.0)
+    assert drive.torque_actual.value == round(2.3 / (rated_mnm / 1000) * 1000)
+
+
+def test_the_torque_offset_takes_plus_minus_3000_per_mille():
+    drive = ErobDrive()
+    write(drive, (0x60B2, 0), 3000)
+    with pytest.raises(SdoAbort):
+        drive.od.download(0x60B2, 0, struct.pack("<h", 3001))
+
+
+def test_at_power_up_the_drive_maps_the_vendor_layout():
+    od = ErobDrive().od
+    assert [od.value(0x1600, s) for s in range(4)] == [3, 0x607A0020, 0x60FE0120, 0x60400010]
+    assert [od.value(0x1A00, s) for s in range(4)] == [3, 0x60640020, 0x60FD0020, 0x60410010]

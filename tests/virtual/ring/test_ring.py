@@ -9,7 +9,7 @@ import pytest
 
 from doubles.wire import STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
-from humanoid_prime.drivers.erob.objects import RXPDO_STRUCT, TXPDO_STRUCT
+from humanoid_prime.drivers.erob.objects import POWER_UP_RXPDO, POWER_UP_TXPDO, RXPDO_STRUCT, TXPDO_STRUCT
 from humanoid_prime.virtual.ring.frames import Command, Datagram
 from humanoid_prime.virtual.ring.mailbox import sdo_abort_code
 from humanoid_prime.virtual.ring.options import RingOptions
@@ -368,6 +368,28 @@ def in_preop(**options: object) -> tuple[Ring, WireMaster]:
     return ring, master
 
 
+def test_a_drive_powers_up_with_zeroerr_s_mapping_not_prime_s():
+    _ring, master = in_preop()
+
+    def entries(mapping: int) -> list[int]:
+        count = master.sdo_upload(0x1001, mapping, 0)[0]
+        return [struct.unpack("<I", master.sdo_upload(0x1001, mapping, sub))[0] for sub in range(1, count + 1)]
+
+    assert entries(0x1600) == [0x607A0020, 0x60FE0120, 0x60400010] == [e.mapping for e in POWER_UP_RXPDO]
+    assert entries(0x1A00) == [0x60640020, 0x60FD0020, 0x60410010] == [e.mapping for e in POWER_UP_TXPDO]
+
+
+def test_sm_sized_for_prime_s_layout_is_refused_until_the_pdos_are_remapped():
+    _ring, master = in_preop()
+    master.program_process_data(0)  # SM2/SM3 sized for Prime's 14/16 bytes
+    master.request_state(0x1001, 0x04)
+    assert master.al_status(0x1001) == (0x12, 0x001D)  # invalid output configuration
+    master.request_state(0x1001, 0x12)
+    master.map_pdos(0x1001)
+    master.request_state(0x1001, 0x04)
+    assert master.al_status(0x1001) == (0x04, 0)
+
+
 def test_mapping_entries_change_only_while_the_count_is_zero():
     _ring, master = in_preop()
     reply = master.sdo_download(0x1001, 0x1A00, 1, struct.pack("<I", 0x60410010))
@@ -392,7 +414,8 @@ def test_remapped_inputs_fill_sm3_in_the_new_order():
     master.sdo_download(0x1001, 0x1A00, 1, struct.pack("<I", 0x60640020))  # position actual first
     master.sdo_download(0x1001, 0x1A00, 2, struct.pack("<I", 0x60410010))
     master.sdo_download(0x1001, 0x1A00, 0, b"\x02")
-    master.fpwr(0x1001, 0x0810, struct.pack("<HHI", 0x1100, RXPDO_STRUCT.size, 0x00010064))
+    rx_size = sum(e.bits for e in POWER_UP_RXPDO) // 8  # the outputs still in ZeroErr's power-up layout
+    master.fpwr(0x1001, 0x0810, struct.pack("<HHI", 0x1100, rx_size, 0x00010064))
     master.fpwr(0x1001, 0x0818, struct.pack("<HHI", 0x1180, 6, 0x00010020))
     master.request_state(0x1001, 0x04)
     assert master.al_status(0x1001) == (0x04, 0)

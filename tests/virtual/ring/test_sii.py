@@ -7,7 +7,7 @@ import struct
 import pytest
 
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.drivers.erob.objects import RXPDO, RXPDO_STRUCT, TXPDO, TXPDO_STRUCT
+from humanoid_prime.drivers.erob.objects import POWER_UP_RXPDO, POWER_UP_TXPDO
 from humanoid_prime.virtual.ring import sii
 from humanoid_prime.virtual.ring.firmware import sii_content
 from humanoid_prime.virtual.ring.options import RingOptions
@@ -61,14 +61,14 @@ def test_sync_manager_category_lists_mailboxes_and_process_data(image):
     assert sms == [
         (0x1000, 128, 0x26, 0, 1, sii.SM_TYPE_MAILBOX_OUT),
         (0x1080, 128, 0x22, 0, 1, sii.SM_TYPE_MAILBOX_IN),
-        (0x1100, RXPDO_STRUCT.size, 0x64, 0, 1, sii.SM_TYPE_OUTPUTS),
-        (0x1180, TXPDO_STRUCT.size, 0x20, 0, 1, sii.SM_TYPE_INPUTS),
+        (0x1100, 10, 0x64, 0, 1, sii.SM_TYPE_OUTPUTS),  # ZeroErr's power-up mapping: 607A, 60FE:01, 6040
+        (0x1180, 10, 0x20, 0, 1, sii.SM_TYPE_INPUTS),  # 6064, 60FD, 6041
     ]
 
 
-def test_pdo_categories_hold_the_default_mapping(image):
-    for kind, pdo_index, entries, sm in ((sii.CATEGORY_RXPDO, 0x1600, RXPDO, 2),
-                                         (sii.CATEGORY_TXPDO, 0x1A00, TXPDO, 3)):
+def test_pdo_categories_hold_the_power_up_mapping(image):
+    for kind, pdo_index, entries, sm in ((sii.CATEGORY_RXPDO, 0x1600, POWER_UP_RXPDO, 2),
+                                         (sii.CATEGORY_TXPDO, 0x1A00, POWER_UP_TXPDO, 3)):
         data = sii.find_category(image, kind)
         index, count, sync_manager = struct.unpack_from("<HBB", data)
         assert (index, count, sync_manager) == (pdo_index, len(entries), sm)

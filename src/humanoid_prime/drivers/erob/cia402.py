@@ -74,6 +74,9 @@ ERROR_CODES: dict[int, str] = {
     0x8130: "CAN heartbeat error",
     0x730F: "multi-turn battery low (latched)",
 }
+# The one fault that clears by itself: a drive may raise it while its DC locks during bring-up.
+BRINGUP_TRANSIENT_FAULT = 0xA000
+
 ERROR_HINTS: dict[int, str] = {
     0xA000: "mailbox (SDO) traffic during DC activation, a starved output watchdog, or a SYNC0 cycle that differs "
             "from the frame period; keep SDOs off the bus until joint states flow",

@@ -8,16 +8,20 @@ ratio ``kp / kd``. kd = 0 sends both to 0 (true limp); stiffness without damping
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.hardware import DEFAULT_GEAR, DEFAULT_KT_NM_PER_MA, HardwareConfig
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL
 from humanoid_prime.errors import ConfigError
+from humanoid_prime.modes import Mode
 
 KD_PER_VEL_REG_NM_S_PER_RAD = 0.1063  # damping of one vel_reg step, eRob70 Kt at 50:1; measured, see DESIGN §2
 POS_REG_PER_RATIO_S = 51.47  # pos_reg per unit kp/kd (1/s); model-independent, see DESIGN §2
 REFERENCE_KT_GEAR_NM_PER_MA = DEFAULT_KT_NM_PER_MA * DEFAULT_GEAR  # the Kt*gear the 0.1063 was measured at
+FOLLOWING_WINDOW_MARGIN = 2.0  # the following-error window over the sag at the effort limit (see below)
 REGISTER_MAX = 0xFFFF  # the EDS declares the gain registers u16 (one ESI says u32; the narrower one binds)
 
 
@@ -136,3 +140,12 @@ def check_mode_gains(config: ControllersConfig, hardware: HardwareConfig) -> Non
             except ValueError as exc:
                 key = kp_key if str(exc).startswith("pos_reg") else kd_key  # pos_reg carries kp/kd, vel_reg kd
                 raise ConfigError(config.path, key or "", f"{mode.value} on {joint}: {exc}") from None
+
+
+def following_window_counts(effort_limit: float, mode_gains: Mapping[Mode, tuple[float, float]]) -> int | None:
+    """The following-error window (counts) a joint needs: the margin times its sag when holding its effort
+    limit at the smallest non-zero kp of the modes; None when no mode is stiff (every target follows)."""
+    stiff = [kp for kp, _ in mode_gains.values() if kp > 0]
+    if not stiff:
+        return None
+    return round(FOLLOWING_WINDOW_MARGIN * effort_limit / min(stiff) * COUNTS_PER_RAD)

@@ -6,18 +6,36 @@ EtherCAT component and the C++ ``ethercat_driver_ros2`` stack read. With c = cou
 state position ``direction/c * raw - direction*offset``; command position ``direction*c * q + offset*c``;
 velocity ``direction/c`` and ``direction*c``; effort per-mille of the rated torque, ``direction*rated/1000``
 and its inverse.
+
+For the C++ stack (ICube ``ethercat_driver_ros2``) a fold with the controllers file also carries an ``sdo:``
+start-up list: the following-error window, the standby gains and the bus-gain gate, which that stack writes
+once in PRE-OP. ``auto_fault_reset`` is false: a drive fault latches until the operator resets it.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from humanoid_prime.config.calibration import Calibration, JointCalibration
+from humanoid_prime.config.controllers import ControllersConfig
+from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.config.robot import JointSpec, Robot
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, MODE_CSP, PRODUCT_CODE, RATED_TORQUE_NM, VENDOR_ID
-from humanoid_prime.drivers.erob.objects import RXPDO, RXPDO_MAP, TXPDO, TXPDO_MAP, PdoEntry
+from humanoid_prime.drivers.erob.gains import check_mode_gains, following_window_counts, gains_to_registers, write_order
+from humanoid_prime.drivers.erob.objects import (
+    BUS_GAIN_GATE,
+    FOLLOWING_ERROR_WINDOW,
+    POS_LOOP_GAIN,
+    RXPDO,
+    RXPDO_MAP,
+    TXPDO,
+    TXPDO_MAP,
+    VEL_LOOP_GAIN,
+    PdoEntry,
+)
 from humanoid_prime.drivers.ethercat.slave_config import (
     CONTROL_WORD,
     ERROR_CODE,
@@ -27,21 +45,27 @@ from humanoid_prime.drivers.ethercat.slave_config import (
 )
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import atomic_write_text
+from humanoid_prime.modes import Mode
 
 ASSIGN_ACTIVATE_DC_SYNC0 = 0x0300  # DC unit: cyclic operation with SYNC0; Prime keeps DC on (DESIGN §3)
-AUTO_FAULT_RESET = True  # the drive recovers from transient bring-up faults without a reset command
-SYNC_MANAGERS = (  # mailbox out/in, then process data with the output watchdog on
-    {"index": 0, "type": "output", "pdo": None, "watchdog": "disable"},
-    {"index": 1, "type": "input", "pdo": None, "watchdog": "disable"},
-    {"index": 2, "type": "output", "pdo": "rpdo", "watchdog": "enable"},
-    {"index": 3, "type": "input", "pdo": "tpdo", "watchdog": "disable"},
-)
+# A fault latches: with true, ICube's CiA402 plugin would clear following-error faults every cycle and
+# re-enable with no operator action.
+AUTO_FAULT_RESET = False
+# ICube's start-up SDO types, by the size of each object (ZeroErr EDS V1.5 for the gains and 0x6065; the
+# gate is absent from the EDS and UDINT in ZeroErr's parameter table).
+SDO_TYPES = {FOLLOWING_ERROR_WINDOW: "int32", BUS_GAIN_GATE[0]: "uint32", POS_LOOP_GAIN[0]: "uint16",
+             VEL_LOOP_GAIN[0]: "uint16"}
 _HEX_KEYS = {"vendor_id": 8, "product_id": 8, "assign_activate": 4, "index": 4}
 
 
 def _channels(entries: tuple[PdoEntry, ...], scaled: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The channels of a PDO, without its pad byte: IgH maps exactly what the file lists (the eRob takes any
+    mapping of 0x1600/0x1A00 up to 76 bytes), and ICube's CiA402 plugin indexes its channels by domain
+    position, which a gap channel would shift."""
     channels = []
     for entry in entries:
+        if entry.fmt == "x":
+            continue
         channels.append({"index": entry.index, "sub_index": entry.sub_index, "type": TYPE_OF_FORMAT[entry.fmt],
                          **scaled[entry.name]})
     return channels
@@ -62,8 +86,28 @@ def check_foldable(robot: Robot, calibration: Calibration) -> None:
                               f"(+-{reach:.0f} rad)", "re-run prime calibrate")
 
 
-def fold_slave_config(spec: JointSpec, cal: JointCalibration) -> dict[str, Any]:
-    """The per-slave config document of eRob joint ``spec`` with ``cal`` folded into its channels."""
+def startup_sdos(spec: JointSpec, hardware: HardwareConfig,
+                 mode_gains: Mapping[Mode, tuple[float, float]]) -> list[dict[str, Any]]:
+    """The SDOs the C++ stack writes once in PRE-OP for eRob joint ``spec``, in order: the following-error
+    window this controllers file needs (as Prime's own impedance manager sets it), the standby gains, then
+    the gate that makes the drive use them. Values are plain integers, within ICube's signed 32-bit ``value``."""
+    kp, kd = mode_gains[Mode.STANDBY]
+    regs = gains_to_registers(kp, kd, kt=hardware.erob_kt[spec.name], gear=hardware.erob_gear[spec.name],
+                              efficiency=hardware.torque_efficiency)
+    writes: list[tuple[tuple[int, int], int]] = []
+    window = following_window_counts(spec.effort_limit, mode_gains)
+    if window is not None:
+        writes.append(((FOLLOWING_ERROR_WINDOW, 0), window))
+    writes += write_order(None, regs)
+    writes.append((BUS_GAIN_GATE, 1))
+    return [{"index": index, "sub_index": sub, "type": SDO_TYPES[index], "value": int(value)}
+            for (index, sub), value in writes]
+
+
+def fold_slave_config(spec: JointSpec, cal: JointCalibration,
+                      sdo: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The per-slave config document of eRob joint ``spec`` with ``cal`` folded into its channels (and the
+    start-up ``sdo`` list, when given)."""
     if spec.family != "erob":
         raise ValueError(f"{spec.name} is a Sito joint; only eRob joints have a slave config")
     d = float(cal.direction)
@@ -93,7 +137,7 @@ def fold_slave_config(spec: JointSpec, cal: JointCalibration) -> dict[str, Any]:
         "auto_fault_reset": AUTO_FAULT_RESET,
         "rpdo": [{"index": RXPDO_MAP, "channels": _channels(RXPDO, commands)}],
         "tpdo": [{"index": TXPDO_MAP, "channels": _channels(TXPDO, states)}],
-        "sm": [dict(sm) for sm in SYNC_MANAGERS],
+        **({"sdo": sdo} if sdo else {}),
     }
 
 
@@ -132,8 +176,9 @@ def render_slave_config(doc: dict[str, Any], header: str = "") -> str:
             lines.append(f"  - index: {_scalar('index', pdo['index'], _HEX_KEYS)}")
             lines.append("    channels:")
             lines.extend(f"      - {_flow(channel, _HEX_KEYS)}" for channel in pdo["channels"])
-    lines.append("sm:")
-    lines.extend(f"  - {_flow(sm, {})}" for sm in doc["sm"])  # sync manager numbers stay decimal
+    if doc.get("sdo"):
+        lines.append("sdo:")
+        lines.extend(f"  - {_flow(entry, _HEX_KEYS)}" for entry in doc["sdo"])
     return "\n".join(lines) + "\n"
 
 
@@ -143,12 +188,24 @@ def _header(spec: JointSpec, cal: JointCalibration, source: Path | None) -> str:
             f"`prime calibration fold`{origin}.\n"
             f"# Folded calibration: direction {cal.direction}, homing_offset {cal.homing_offset!r} rad. "
             "Regenerate, do not edit.\n"
-            "# Channels convert with value = factor * x + offset in both directions.\n")
+            "# Channels convert with value = factor * x + offset in both directions. ethercat_driver_ros2 truncates\n"
+            "# a command toward zero where Prime rounds it, so the two can differ by one count.\n"
+            "# auto_fault_reset is false: a drive fault latches until the operator resets it.\n"
+            "# The effort factors assume the nominal rated torque (0x6076) of "
+            f"{RATED_TORQUE_NM:g} N*m; Prime reads each drive's own.\n"
+            "# sdo: written once in PRE-OP (following-error window, standby gains, then the bus-gain gate);\n"
+            "# a drive that holds the gains in another size refuses them, and that stack only logs it.\n")
 
 
-def write_folded_configs(robot: Robot, calibration: Calibration, out_dir: str | Path) -> list[Path]:
-    """Write ``<joint>.yaml`` for every eRob joint of ``robot`` into ``out_dir``, each atomically."""
+def write_folded_configs(robot: Robot, calibration: Calibration, out_dir: str | Path,
+                         controllers: ControllersConfig | None = None) -> list[Path]:
+    """Write ``<joint>.yaml`` for every eRob joint of ``robot`` into ``out_dir``, each atomically; with
+    ``controllers``, each also gets its start-up ``sdo:`` list (standby gains)."""
     check_foldable(robot, calibration)
+    mode_gains = None
+    if controllers is not None:
+        check_mode_gains(controllers, robot.hardware)
+        mode_gains = controllers.mode_gains()
     out_dir = Path(out_dir)
     written = []
     for spec in robot.joints:
@@ -156,6 +213,8 @@ def write_folded_configs(robot: Robot, calibration: Calibration, out_dir: str | 
             continue
         cal = calibration.joints[spec.name]
         path = out_dir / f"{spec.name}.yaml"
-        atomic_write_text(path, render_slave_config(fold_slave_config(spec, cal), _header(spec, cal, calibration.path)))
+        sdo = startup_sdos(spec, robot.hardware, mode_gains) if mode_gains is not None else None
+        atomic_write_text(path, render_slave_config(fold_slave_config(spec, cal, sdo),
+                                                    _header(spec, cal, calibration.path)))
         written.append(path)
     return written

@@ -37,8 +37,8 @@ from humanoid_prime.errors import PrimeError
 if TYPE_CHECKING:
     from humanoid_prime.drivers.ethercat.sdo import SdoClient
 
-RX_DTYPE = np.dtype([(e.name, "<" + e.fmt) for e in RXPDO])  # 13 bytes per slave, packed
-TX_DTYPE = np.dtype([(e.name, "<" + e.fmt) for e in TXPDO])  # 15 bytes per slave, packed
+RX_DTYPE = np.dtype([(e.name, e.dtype) for e in RXPDO])  # 14 bytes per slave, packed
+TX_DTYPE = np.dtype([(e.name, e.dtype) for e in TXPDO])  # 16 bytes per slave, packed
 
 # AL states (register 0x0130, low nibble) and the error indication / acknowledge bit.
 AL_INIT = 0x01
@@ -245,6 +245,10 @@ class EthercatMaster(ABC):
         self.al_state = np.zeros(0, dtype=np.uint16)
         self.al_status_code = np.zeros(0, dtype=np.uint16)
         self.health_version = 0
+        # Rated torque of each drive (0x6076, read in PRE-OP by implementations that can; NaN = not read), the
+        # torque that 0x6077 and 0x60B2 count in per mille; why a drive's could not be read.
+        self.rated_torque_nm = np.zeros(0)
+        self.rated_torque_problems: dict[int, str] = {}
         self.kept_cycles = 0  # frames the keeper sent while the owner of the cycle was quiet
         self._io = threading.Lock()  # one send or receive at a time: the owner's and the keeper's
         self._in_flight = False
@@ -262,7 +266,20 @@ class EthercatMaster(ABC):
             self.slave_ok = np.zeros(n, dtype=bool)
             self.al_state = np.array([s.al_state for s in self.slaves], dtype=np.uint16)
             self.al_status_code = np.array([s.al_status_code for s in self.slaves], dtype=np.uint16)
+            self.rated_torque_nm = np.full(n, math.nan)
         return self.slaves
+
+    def store_rated_torque(self, position: int, raw: bytes) -> None:
+        """Keep what the drive at ``position`` answered for 0x6076 (UNSIGNED32 mN*m), or why it is unusable."""
+        if not 1 <= len(raw) <= 4:
+            self.rated_torque_problems[position] = f"0x6076 answered {len(raw)} bytes, expected 4 (UNSIGNED32 mN*m)"
+            return
+        milli = int.from_bytes(raw, "little")
+        if milli == 0:
+            self.rated_torque_problems[position] = "0x6076 reads 0 mN*m"
+            return
+        self.rated_torque_nm[position] = milli / 1000.0
+        self.rated_torque_problems.pop(position, None)
 
     def start(self, expected: Sequence[ExpectedSlave], *,
               on_cycle: Callable[[EthercatMaster], None] | None = None) -> BringupReport:

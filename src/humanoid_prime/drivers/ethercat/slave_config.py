@@ -1,6 +1,8 @@
 """Per-slave EtherCAT configs in the generic CiA402 schema of ``ethercat_driver_ros2``: model and loader.
 
-A config lists the slave's identity, its DC activation word, and its RxPDO/TxPDO channels. A channel
+A config lists the slave's identity, its DC activation word, its RxPDO/TxPDO channels and, optionally,
+the SDOs written once at start-up (``sdo:``, each ``{index, sub_index, type, value}``; ``value`` is read
+as a signed 32-bit integer by ``ethercat_driver_ros2``, so it must fit one, whatever the type). A channel
 with a ``command_interface`` (RxPDO) or ``state_interface`` (TxPDO) converts between the interface value
 and the raw PDO value with ``value = factor * x + offset`` in both directions: state = factor * raw +
 offset, raw = factor * command + offset. The eRob calibration is folded into those factors and offsets.
@@ -9,6 +11,7 @@ offset, raw = factor * command + offset. The eRob calibration is folded into tho
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,6 +85,19 @@ class SyncManager:
 
 
 @dataclass(frozen=True)
+class StartupSdo:
+    index: int
+    sub_index: int
+    type: str
+    value: int
+
+    @property
+    def data(self) -> bytes:
+        """The bytes of the download (little-endian, the type's size)."""
+        return struct.pack("<" + PDO_TYPES[self.type][0], self.value)
+
+
+@dataclass(frozen=True)
 class SlaveConfig:
     source: str  # the file it was read from, or what generated it
     vendor_id: int
@@ -91,6 +107,7 @@ class SlaveConfig:
     rpdo: tuple[Pdo, ...]
     tpdo: tuple[Pdo, ...]
     sm: tuple[SyncManager, ...]
+    sdo: tuple[StartupSdo, ...] = ()
 
     @property
     def rpdo_channels(self) -> tuple[Channel, ...]:
@@ -118,7 +135,8 @@ class SlaveConfig:
 
 def _int(value: Any, path: str | Path, key: str, lo: int, hi: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-        raise ConfigError(path, key, f"expected an integer in 0x{lo:X}..0x{hi:X}, got {value!r}")
+        span = f"{lo}..{hi}" if lo < 0 else f"0x{lo:X}..0x{hi:X}"
+        raise ConfigError(path, key, f"expected an integer in {span}, got {value!r}")
     return value
 
 
@@ -209,6 +227,29 @@ def _sync_managers(data: dict, path: str | Path) -> tuple[SyncManager, ...]:
     return tuple(result)
 
 
+def _startup_sdos(data: dict, path: str | Path) -> tuple[StartupSdo, ...]:
+    raw = data.get("sdo", [])
+    if not isinstance(raw, list):
+        raise ConfigError(path, "sdo", "expected a list of {index, sub_index, type, value}")
+    result = []
+    for i, entry in enumerate(raw):
+        key = f"sdo[{i}]"
+        if not isinstance(entry, dict):
+            raise ConfigError(path, key, "expected a mapping {index, sub_index, type, value}")
+        missing = [k for k in ("index", "sub_index", "type", "value") if k not in entry]
+        if missing:
+            raise ConfigError(path, f"{key}.{missing[0]}", "missing", "every start-up SDO needs index, sub_index, "
+                                                                      "type and value")
+        type_name = entry["type"]
+        if type_name not in PDO_TYPES:
+            raise ConfigError(path, f"{key}.type", f"unknown type {type_name!r}", f"use one of {', '.join(PDO_TYPES)}")
+        _, lo, hi = PDO_TYPES[type_name]
+        value = _int(entry["value"], path, f"{key}.value", max(lo, -(1 << 31)), min(hi, (1 << 31) - 1))
+        result.append(StartupSdo(_int(entry["index"], path, f"{key}.index", 0, 0xFFFF),
+                                 _int(entry["sub_index"], path, f"{key}.sub_index", 0, 0xFF), type_name, value))
+    return tuple(result)
+
+
 def load_slave_config(path: str | Path) -> SlaveConfig:
     """Load and validate one per-slave config file; every error names the file and the key."""
     path = Path(path)
@@ -233,4 +274,5 @@ def parse_slave_config(data: Any, source: str | Path) -> SlaveConfig:
         rpdo=_pdos(data, path, "rpdo"),
         tpdo=_pdos(data, path, "tpdo"),
         sm=_sync_managers(data, path),
+        sdo=_startup_sdos(data, path),
     )

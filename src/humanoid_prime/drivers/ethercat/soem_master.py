@@ -23,7 +23,6 @@ reconfigures or recovers slaves that left OP, re-arming SYNC0 for each.
 from __future__ import annotations
 
 import socket
-import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -33,15 +32,10 @@ import pysoem
 
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.objects import (
-    RXPDO,
-    RXPDO_ASSIGN,
-    RXPDO_MAP,
+    MAPPING_WRITES,
+    RATED_TORQUE,
     RXPDO_STRUCT,
-    TXPDO,
-    TXPDO_ASSIGN,
-    TXPDO_MAP,
     TXPDO_STRUCT,
-    PdoEntry,
 )
 from humanoid_prime.drivers.ethercat.master import (
     AL_ERROR,
@@ -59,22 +53,7 @@ from humanoid_prime.drivers.ethercat.master import (
 
 STATE_TIMEOUT_US = 3_000_000  # PRE-OP and SAFE-OP transitions (blocking, before the cycle starts)
 TRANSFER_ATTEMPTS = 4  # one SDO transfer, when frames get lost or another slave's error was popped
-
-
-def pdo_mapping_writes(assign: int, mapping: int, entries: Sequence[PdoEntry]) -> list[tuple[int, int, bytes]]:
-    """The SDO downloads that map ``entries`` into PDO ``mapping`` and assign it to ``assign`` (in order).
-
-    Assignment and mapping are cleared first, because a drive accepts mapping changes only while the
-    PDO is neither assigned nor enabled (count 0).
-    """
-    writes = [(assign, 0, b"\x00"), (mapping, 0, b"\x00")]
-    writes += [(mapping, sub, struct.pack("<I", e.mapping)) for sub, e in enumerate(entries, start=1)]
-    writes += [(mapping, 0, bytes([len(entries)])), (assign, 1, struct.pack("<H", mapping)), (assign, 0, b"\x01")]
-    return writes
-
-
-MAPPING_WRITES = (pdo_mapping_writes(RXPDO_ASSIGN, RXPDO_MAP, RXPDO)
-                  + pdo_mapping_writes(TXPDO_ASSIGN, TXPDO_MAP, TXPDO))
+STATE_READS = 3  # AL-state reads in a row a slave must miss before it counts as not answering
 
 
 class SoemMaster(EthercatMaster):
@@ -85,7 +64,8 @@ class SoemMaster(EthercatMaster):
     def __init__(self, interface: str, *, update_rate: float, bringup_rate: float = 1000.0,
                  sync0_period_s: float | None = None, unsafe_sync0_period_s: float | None = None,
                  bringup_timeout_s: float = 30.0, parallel_sdo: bool = True, sdo_in_flight: int | None = None,
-                 sdo_timeout_s: float = 0.7, frame_timeout_us: int = 2000) -> None:
+                 sdo_timeout_s: float = 0.7, frame_timeout_us: int = 2000,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(interface, update_rate=update_rate, bringup_rate=bringup_rate,
                          sync0_period_s=sync0_period_s, unsafe_sync0_period_s=unsafe_sync0_period_s,
                          bringup_timeout_s=bringup_timeout_s)
@@ -95,13 +75,15 @@ class SoemMaster(EthercatMaster):
         self._in_flight_slots = threading.BoundedSemaphore(self.sdo_in_flight)
         self.sdo_timeout_us = round(sdo_timeout_s * 1e6)
         self.frame_timeout_us = frame_timeout_us
+        self._clock = clock  # tells a lost frame (early) from a mailbox timeout (late)
         self.emergencies: dict[int, int] = {}  # ring position -> last EMCY error code
         self.recoveries = 0
         self.lost_frames = 0  # SDO transfers repeated because a frame of the exchange did not come back
+        self.state_rereads = 0  # AL-state reads repeated because some slave did not answer one
         self.supervision_error: str | None = None  # the last exception a recovery attempt ran into
         self._m: pysoem.Master | None = None
         self._pslaves: list = []
-        self._locks: list[threading.Lock] = []
+        self._locks: list[threading.RLock] = []
         self._stray: dict[int, Exception] = {}
         self._stray_lock = threading.Lock()
         self._hook_errors: dict[int, str] = {}
@@ -136,7 +118,8 @@ class SoemMaster(EthercatMaster):
                             "and that no other master (IgH) owns this NIC")
         self._pslaves = list(m.slaves)
         n = len(self._pslaves)
-        self._locks = [threading.Lock() for _ in range(n)] if self.parallel_sdo else [threading.Lock()] * n
+        # re-entrant: reconfig holds a slave's lock while SOEM calls the mapping hook, which transfers under it
+        self._locks = [threading.RLock() for _ in range(n)] if self.parallel_sdo else [threading.RLock()] * n
         self._lost = np.zeros(n, dtype=bool)
         for slave in self._pslaves:
             slave.add_emergency_callback(self._on_emergency)
@@ -151,15 +134,32 @@ class SoemMaster(EthercatMaster):
 
     # -------------------------------------------------------------------------- configuration
     def _map_pdos(self, k: int) -> None:
-        """PRE-OP -> SAFE-OP hook (SOEM calls it from config_map and from reconfig): write the PDO mapping."""
+        """PRE-OP -> SAFE-OP hook (SOEM calls it from config_map and from reconfig): write the PDO mapping,
+        each write with the runtime SDOs' bounded retry, then read the drive's rated torque (0x6076).
+
+        A drive powers up with ZeroErr's own mapping (``POWER_UP_RXPDO``), so these writes always change it.
+        """
         slave = self._pslaves[k]
         try:
             for index, sub_index, data in MAPPING_WRITES:
-                slave.sdo_write(index, sub_index, data)
-        except Exception as exc:
-            self._hook_errors[k] = f"ring {k}: PDO mapping 0x{index:04X}:{sub_index:02X} failed: {_describe(exc)}"
+                self._transfer(k, index, sub_index, lambda i=index, s=sub_index, d=data: slave.sdo_write(i, s, d))
+        except SdoError as exc:
+            verdict = "the drive refused it" if exc.abort_code is not None else "the drive did not answer"
+            self._hook_errors[k] = (f"ring {k}: PDO mapping write 0x{exc.index:04X}:{exc.sub_index:02X}: "
+                                    f"{exc.problem} ({verdict})")
             raise
         self._hook_errors.pop(k, None)
+        self._read_rated_torque(k)
+
+    def _read_rated_torque(self, k: int) -> None:
+        """0x6076 of ring ``k`` into ``rated_torque_nm`` (u32 mN*m); an unreadable one is left NaN and said why."""
+        slave = self._pslaves[k]
+        try:
+            raw = self._transfer(k, RATED_TORQUE, 0, lambda: slave.sdo_read(RATED_TORQUE, 0))
+        except SdoError as exc:
+            self.rated_torque_problems[k] = exc.problem
+            return
+        self.store_rated_torque(k, raw)
 
     def _configure(self) -> None:
         m = self._require()
@@ -255,10 +255,15 @@ class SoemMaster(EthercatMaster):
     def _check_ring(self) -> None:
         """One pass of SOEM's state check: acknowledge, re-request OP, reconfigure or recover each slave.
 
-        The health arrays record what the slaves reported, before any request is written.
+        A slave counts as not answering only after ``STATE_READS`` reads in a row without its state. The
+        health arrays record what the slaves reported, before any request is written.
         """
         m = self._require()
-        m.read_state()
+        for _ in range(STATE_READS):  # one lost frame leaves every slave's state at NONE: read again first
+            m.read_state()
+            if all(slave.state != pysoem.NONE_STATE for slave in self._pslaves):
+                break
+            self.state_rereads += 1
         changed = False
         for k, slave in enumerate(self._pslaves):
             state, code = slave.state, slave.al_status
@@ -315,7 +320,7 @@ class SoemMaster(EthercatMaster):
         """
         with self._locks[position], self._in_flight_slots:
             for _ in range(TRANSFER_ATTEMPTS):
-                started = time.monotonic()
+                started = self._clock()
                 try:
                     return call()
                 except (pysoem.SdoError, pysoem.MailboxError, pysoem.PacketError) as exc:
@@ -328,7 +333,7 @@ class SoemMaster(EthercatMaster):
                         stray = self._stray.pop(position, None)
                     if stray is not None:
                         raise _sdo_error(position, index, sub_index, stray) from None
-                    if (time.monotonic() - started) * 1e6 < self.sdo_timeout_us / 2:
+                    if (self._clock() - started) * 1e6 < self.sdo_timeout_us / 2:
                         self.lost_frames += 1
                         continue
                     raise SdoError(position, index, sub_index,

@@ -14,11 +14,16 @@ array is preallocated and the process image is reached through views bound once.
 
 Safety flags: ``ethercat/wkc`` (working counter mismatch for ``wkc_tolerance_cycles`` cycles in a row),
 ``ethercat/ring<N>/lost`` (slave not in OP or not answering), ``ethercat/ring<N>/fault`` (drive fault:
-decoded statusword and error code).
+decoded statusword and error code), and the warning ``ethercat/ring<N>/rated_torque`` (the drive's
+0x6076 could not be read at bring-up, so its efforts use the nominal rated torque).
+
+Efforts are per mille of each drive's rated torque, read from 0x6076 in PRE-OP: the fold's factors assume
+the nominal figure (the C++ stack cannot read it), and are rescaled here once the drive has said its own.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -27,10 +32,12 @@ import numpy as np
 from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control.flags import Level
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import (
+    BRINGUP_TRANSIENT_FAULT,
     DISABLE_VOLTAGE,
     ERROR_HINTS,
     FAULT_PATTERN,
@@ -41,12 +48,13 @@ from humanoid_prime.drivers.erob.cia402 import (
     drive_state,
     enable_step,
 )
-from humanoid_prime.drivers.erob.constants import MODE_CSP
+from humanoid_prime.drivers.erob.constants import MODE_CSP, RATED_TORQUE_NM
 from humanoid_prime.drivers.erob.objects import (
     POSITION_ACTUAL,
     TARGET_POSITION,
     TORQUE_ACTUAL,
     TORQUE_OFFSET,
+    TORQUE_OFFSET_LIMIT_PER_MILLE,
     VELOCITY_ACTUAL,
     VELOCITY_OFFSET,
 )
@@ -79,6 +87,8 @@ def _round_clamp(raw: np.ndarray, limits: tuple[np.ndarray, np.ndarray], out: np
 
 _TARGET_LIMITS = tuple(row[0] for row in _pdo_limits("target_position"))
 _FF_LIMITS = _pdo_limits("velocity_offset", "torque_offset")  # one row each
+# 0x60B2 accepts +-3000 per mille of the rated torque (ZeroErr EDS V1.5), narrower than its INTEGER16
+_FF_LIMITS[0][1], _FF_LIMITS[1][1] = -TORQUE_OFFSET_LIMIT_PER_MILLE, TORQUE_OFFSET_LIMIT_PER_MILLE
 _OPERATION_ENABLED_MASK, _OPERATION_ENABLED = OPERATION_ENABLED_PATTERN
 _FAULT_MASK, _FAULT = FAULT_PATTERN
 _MIT = ("position", "velocity", "effort")
@@ -126,7 +136,12 @@ class EthercatSystem(HardwareComponent):
         self.state_offset = np.zeros((3, n))
         self.command_factor = np.ones((3, n))
         self.command_offset = np.zeros((3, n))
-        self._cw_table = _controlword_table(True)
+        # the rated torque each drive reported (0x6076), NaN where it could not be read and the fold's
+        # nominal figure scales the efforts instead
+        self.rated_torque_nm = np.full(n, math.nan)
+        self._fold_effort = (np.ones(n), np.ones(n))  # the fold's effort factors (state, command), nominal torque
+        self._cw_table = _controlword_table(False)  # a fault latches (see _enable for the one exception)
+        self._reset_requested = False
         # raw process values in joint order
         self._rec = np.zeros(n, TX_DTYPE)  # the inputs of this component's slaves, joint order
         self._rec_pos, self._rec_vel, self._rec_tq = (self._rec[f] for f in
@@ -180,6 +195,7 @@ class EthercatSystem(HardwareComponent):
                 self.command_factor[row, k], self.command_offset[row, k] = command.factor, command.offset
             auto_reset.append(config.auto_fault_reset)
             expected.append(ExpectedSlave(int(self.ring[k]), joint, config.vendor_id, config.product_id))
+        self._fold_effort = (self.state_factor[2].copy(), self.command_factor[2].copy())
         self.expected = tuple(sorted(expected, key=lambda e: e.position))
         self._cw_table = _controlword_table(all(auto_reset))  # fault reset only if every config asks for it
         if self.master is None:
@@ -200,7 +216,28 @@ class EthercatSystem(HardwareComponent):
         if not master.operational:
             self.bringup = master.start(self.expected)
             self._bind_views()
+            self._scale_efforts()
         self._enable()
+
+    def _scale_efforts(self) -> None:
+        """Scale 0x6077/0x60B2 with the rated torque each drive reported (the fold assumes the nominal one);
+        a drive whose 0x6076 could not be read keeps the nominal scale, with a warning."""
+        master = self._master()
+        state_fold, command_fold = self._fold_effort
+        for k, joint in enumerate(self.joints):
+            position = int(self.ring[k])
+            rated = float(master.rated_torque_nm[position]) if position < len(master.rated_torque_nm) else math.nan
+            self.rated_torque_nm[k] = rated
+            key = f"ethercat/ring{position}/rated_torque"
+            if math.isfinite(rated):
+                self.state_factor[2, k] = state_fold[k] * rated / RATED_TORQUE_NM
+                self.command_factor[2, k] = command_fold[k] * RATED_TORQUE_NM / rated
+                self.clear_flag(key)
+            else:
+                self.state_factor[2, k], self.command_factor[2, k] = state_fold[k], command_fold[k]
+                why = master.rated_torque_problems.get(position, "this master does not read it")
+                self.set_flag(key, f"{joint} (ring {position}): rated torque (0x6076) unknown ({why}); efforts "
+                                   f"scaled with the nominal {RATED_TORQUE_NM:g} N*m", Level.WARN)
 
     def on_deactivate(self) -> None:
         """Disable every drive (its brake holds the joint); the ring stays in OP, the keeper feeds it."""
@@ -246,14 +283,24 @@ class EthercatSystem(HardwareComponent):
         self._out_mode = outputs["mode_of_operation"]
 
     def _enable(self) -> None:
-        """CiA402 enable at the bring-up rate: target on the actual position first, then step to enabled."""
+        """CiA402 enable at the bring-up rate: target on the actual position first, then step to enabled.
+
+        A fault latches (it waits for the operator's reset), with one exception: the EtherCAT communication
+        fault (0xA000) a drive may raise while DC locks during bring-up is reset here, so it clears by itself.
+        Enabling ends when every drive is enabled or latched in another fault (flagged by ``read``)."""
         master = self._master()
         deadline = time.monotonic() + self.enable_timeout_s
         rate = Rate(self.bringup_rate)
+        n = len(self.joints)
+        transient, latched = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         while True:
             rate.wait()
             self._gather()
-            if self._enabled.all():
+            np.equal(self._rec_err, BRINGUP_TRANSIENT_FAULT, out=transient)
+            np.logical_and(transient, self._fault, out=transient)
+            np.logical_not(transient, out=latched)
+            np.logical_and(latched, self._fault, out=latched)
+            if (self._enabled | latched).all():
                 np.take(self._out_target, self.ring, out=self._i32)
                 np.copyto(self._held, self._i32)  # a NaN command holds the position the drive was enabled at
                 return
@@ -261,12 +308,18 @@ class EthercatSystem(HardwareComponent):
             self._out_vel[:] = 0
             self._out_tq[:] = 0
             self._out_mode[:] = MODE_CSP
-            self._step_controlwords()
+            self._step_controlwords(transient)
             master.exchange()
             if time.monotonic() > deadline:
                 self._gather()
                 raise PrimeError(f"{self.name}: drives not operation-enabled within {self.enable_timeout_s:g} s: "
                                  + "; ".join(self._describe_drive(k) for k in np.flatnonzero(~self._enabled)))
+
+    def latched_faults(self) -> list[str]:
+        return [self._describe_drive(k) for k in np.flatnonzero(self._fault)]
+
+    def reset_faults(self) -> None:
+        self._reset_requested = True
 
     # ---------------------------------------------------------------------------- hot path
     def _gather(self) -> None:
@@ -280,10 +333,17 @@ class EthercatSystem(HardwareComponent):
         np.bitwise_and(self._rec_sw, _FAULT_MASK, out=self._sw7)
         np.equal(self._sw7, _FAULT, out=self._fault)
 
-    def _step_controlwords(self) -> None:
-        """Per drive, the controlword one step toward enabled; a fault reset is a rising edge, so it alternates."""
+    def _step_controlwords(self, reset: np.ndarray | None = None) -> None:
+        """Per drive, the controlword one step toward enabled; drives in ``reset`` that are in fault get a
+        fault reset (as does every faulted drive once after ``reset_faults``). A fault reset is a rising edge,
+        so it alternates."""
         np.bitwise_and(self._rec_sw, 0x7F, out=self._sw7)
         np.take(self._cw_table, self._sw7, out=self._cw)
+        if reset is not None:
+            np.copyto(self._cw, FAULT_RESET, where=reset & self._fault)
+        if self._reset_requested:
+            self._reset_requested = False
+            np.copyto(self._cw, FAULT_RESET, where=self._fault)
         np.equal(self._cw, FAULT_RESET, out=self._scratch)
         np.equal(self._cw_prev, FAULT_RESET, out=self._mask)
         np.logical_and(self._scratch, self._mask, out=self._scratch)
@@ -384,7 +444,8 @@ class EthercatSystem(HardwareComponent):
             if k not in now_faulted:
                 self.clear_flag(f"ethercat/ring{int(self.ring[k])}/fault")
         for k, _, _ in faulted:
-            self.set_flag(f"ethercat/ring{int(self.ring[k])}/fault", self._describe_drive(k))
+            self.set_flag(f"ethercat/ring{int(self.ring[k])}/fault",
+                          f"{self._describe_drive(k)} (latched: r in the live table, or `prime reset`)")
         self._fault_seen = faulted
 
     def _describe_drive(self, k: int) -> str:

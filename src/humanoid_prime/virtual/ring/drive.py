@@ -11,6 +11,14 @@ the rated torque 0x6076). With the integral at 0 this is the impedance ``kp = Kp
 - ``Kpos = pos_reg / 51.47`` (1/s), so ``kp = pos_reg / 51.47 * Kvel``,
 - ``Ki = integral * 0.1063 * (Kt * gear) / (0.132e-3 * 50) * 0.7`` (Nm/rad; model units).
 
+The object dictionary follows ZeroErr's EDS V1.5: the loop gains 0x2381:01/:02 and 0x2382:01/:02 are
+UNSIGNED16 (``gain_bytes`` 4 presents the u32 variant one public host reads), sizes are enforced as a CoE
+stack that checks them does (a write of another length aborts 0x06070010), 0x1003 keeps 4 errors, 0x6502
+reads 0x38D, 0x6076 (rated torque, u32 mN*m) is read-only and PDO-mappable, 0x60B2 takes +-3000 per mille,
+0x6065 is INTEGER32. At power up 0x1600 maps 607A/60FE:01/6040 and 0x1A00 6064/60FD/6041 (ZeroErr's
+description); a master maps its own layout in PRE-OP. The gate 0x2383 is not in the EDS; it is UDINT here,
+as ZeroErr's parameter table lists it.
+
 While the gate 0x2383 is 0 the drive runs its factory gains (FACTORY_* below: realised kp 300 Nm/rad,
 kd 9.97 Nm*s/rad, no integral); writes to 0x2381/0x2382 then succeed but are ignored and read back the
 factory values. With the gate at 1 the written registers are stored and used; setting it back to 0
@@ -45,6 +53,8 @@ from humanoid_prime.drivers.erob.gains import (
 )
 from humanoid_prime.virtual.ring.od import (
     ABORT_VALUE_RANGE,
+    OBJECT_ARRAY,
+    OBJECT_RECORD,
     PDO_RX,
     PDO_TX,
     READ_ONLY,
@@ -61,7 +71,7 @@ FOLLOWING_ERROR_WINDOW_COUNTS = round(0.5 * COUNTS_PER_RAD)  # 0.5 rad
 FOLLOWING_ERROR_TIMEOUT_MS = 10
 MAX_TORQUE_PER_MILLE = 1500
 DEVICE_TYPE_SERVO = 0x00020192  # CiA402 profile, servo drive
-SUPPORTED_MODES_CSP = 0x00000080  # 0x6502 bit 7
+SUPPORTED_MODES = 0x0000038D  # 0x6502: pp, pv, tq, csp, csv, cst (ZeroErr EDS V1.5 reads 909)
 REVISION = 0x00000001
 
 ERROR_COMMUNICATION = 0xA000
@@ -69,7 +79,8 @@ ERROR_FOLLOWING = 0x8500
 ERROR_VELOCITY = 0x8400
 ERROR_HEARTBEAT = 0x8130
 ERROR_BATTERY_LOW = 0x730F
-ERROR_HISTORY_LENGTH = 8
+ERROR_HISTORY_LENGTH = 4  # 0x1003 sub-entries (ZeroErr EDS V1.5)
+GAIN_FORMATS = {2: "H", 4: "I"}  # loop-gain register width in bytes -> object type
 
 
 class Cia402State(IntEnum):
@@ -107,13 +118,35 @@ def physical_gains(pos_reg: int, vel_reg: int, integral: int, *, kt: float = DEF
     return kp, kd, integral * per_step
 
 
+# The objects with more than one entry, as the SDO information service names them.
+OBJECT_NAMES = (
+    (obj.ERROR_HISTORY, "Pre-defined error field", OBJECT_ARRAY),
+    (obj.IDENTITY, "Identity object", OBJECT_RECORD),
+    (obj.SM_COMM_TYPE, "Sync manager communication type", OBJECT_ARRAY),
+    (obj.SYNC_OUTPUT, "SM output parameter", OBJECT_RECORD),
+    (obj.SYNC_INPUT, "SM input parameter", OBJECT_RECORD),
+    (obj.DIGITAL_OUTPUTS[0], "Digital outputs", OBJECT_ARRAY),
+    (obj.VEL_LOOP_GAIN[0], "Velocity Loop Gains", OBJECT_ARRAY),
+    (obj.POS_LOOP_GAIN[0], "Position Loop Gains", OBJECT_ARRAY),
+    (obj.RXPDO_MAP, "RxPDO 1 mapping", OBJECT_RECORD),
+    (obj.TXPDO_MAP, "TxPDO 1 mapping", OBJECT_RECORD),
+    (obj.RXPDO_ASSIGN, "RxPDO assign", OBJECT_ARRAY),
+    (obj.TXPDO_ASSIGN, "TxPDO assign", OBJECT_ARRAY),
+)
+
+
 class ErobDrive:
     """One eRob: its object dictionary, its CiA402 state and its CSP loop."""
 
-    def __init__(self, serial: int = 0, *, kt: float = DEFAULT_KT_NM_PER_MA, gear: float = DEFAULT_GEAR) -> None:
+    def __init__(self, serial: int = 0, *, kt: float = DEFAULT_KT_NM_PER_MA, gear: float = DEFAULT_GEAR,
+                 gain_bytes: int = 2, rated_torque_mnm: int = round(RATED_TORQUE_NM * 1000)) -> None:
+        if gain_bytes not in GAIN_FORMATS:
+            raise ValueError(f"gain registers are 2 or 4 bytes, got {gain_bytes}")
         self.serial = serial
         self.kt = kt
         self.gear = gear
+        self.gain_format = GAIN_FORMATS[gain_bytes]
+        self.rated_torque_nm = rated_torque_mnm / 1000.0
         self.state = Cia402State.SWITCH_ON_DISABLED
         self.latched_faults: set[int] = set()
         self.last_gain_write_applied = True
@@ -170,9 +203,10 @@ class ErobDrive:
                                          pdo=PDO_TX))
         self.torque_actual = add(Entry(obj.TORQUE_ACTUAL, 0, "torque actual value", "h", 0, READ_ONLY,
                                        pdo=PDO_TX))
-        add(Entry(obj.RATED_TORQUE, 0, "motor rated torque (mNm)", "I", round(RATED_TORQUE_NM * 1000), READ_ONLY))
-        self.following_window = add(Entry(obj.FOLLOWING_ERROR_WINDOW, 0, "following error window", "I",
-                                          FOLLOWING_ERROR_WINDOW_COUNTS))
+        add(Entry(obj.RATED_TORQUE, 0, "motor rated torque (mNm)", "I", round(self.rated_torque_nm * 1000),
+                  READ_ONLY, pdo=PDO_TX))
+        self.following_window = add(Entry(obj.FOLLOWING_ERROR_WINDOW, 0, "following error window", "i",
+                                          FOLLOWING_ERROR_WINDOW_COUNTS, minimum=0))
         self.following_timeout = add(Entry(0x6066, 0, "following error time out (ms)", "H",
                                            FOLLOWING_ERROR_TIMEOUT_MS))
         self.max_torque = add(Entry(0x6072, 0, "max torque (per mille)", "H", MAX_TORQUE_PER_MILLE))
@@ -180,28 +214,38 @@ class ErobDrive:
         self.following_error = add(Entry(0x60F4, 0, "following error actual value", "i", 0, READ_ONLY,
                                          pdo=PDO_TX))
         self.velocity_offset = add(Entry(obj.VELOCITY_OFFSET, 0, "velocity offset", "i", 0, pdo=PDO_RX))
-        self.torque_offset = add(Entry(obj.TORQUE_OFFSET, 0, "torque offset", "h", 0, pdo=PDO_RX))
-        add(Entry(0x6502, 0, "supported drive modes", "I", SUPPORTED_MODES_CSP, READ_ONLY))
+        limit = obj.TORQUE_OFFSET_LIMIT_PER_MILLE
+        self.torque_offset = add(Entry(obj.TORQUE_OFFSET, 0, "torque offset", "h", 0, pdo=PDO_RX,
+                                       minimum=-limit, maximum=limit))
+        add(Entry(obj.DIGITAL_INPUTS, 0, "digital inputs", "I", 0, READ_ONLY, pdo=PDO_TX))
+        add(Entry(obj.DIGITAL_OUTPUTS[0], 0, "digital outputs entries", "B", 2, READ_ONLY))
+        add(Entry(*obj.DIGITAL_OUTPUTS, "physical outputs", "I", 0, pdo=PDO_RX))
+        add(Entry(obj.DIGITAL_OUTPUTS[0], 2, "bit mask", "I", 0))
+        add(Entry(obj.SUPPORTED_DRIVE_MODES, 0, "supported drive modes", "I", SUPPORTED_MODES, READ_ONLY))
 
-        add(Entry(obj.VEL_LOOP_GAIN[0], 0, "velocity loop entries", "B", 2, READ_ONLY))
-        self.vel_reg = add(Entry(*obj.VEL_LOOP_GAIN, "velocity loop gain", "I", FACTORY_VEL_REG,
-                                 maximum=REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
-        self.integral_reg = add(Entry(*obj.VEL_LOOP_INTEGRAL, "velocity loop integral", "I", FACTORY_INTEGRAL,
-                                      maximum=REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
-        add(Entry(obj.POS_LOOP_GAIN[0], 0, "position loop entries", "B", 1, READ_ONLY))
-        self.pos_reg = add(Entry(*obj.POS_LOOP_GAIN, "position loop gain", "I", FACTORY_POS_REG,
-                                 maximum=REGISTER_MAX, accept_sizes=(2,), on_write=self._gain_write))
-        self.gate = add(Entry(*obj.BUS_GAIN_GATE, "bus regulation of PID", "B", 0, accept_sizes=(2, 4),
+        gain = self.gain_format  # names as ZeroErr's EDS V1.5 gives them
+        add(Entry(obj.VEL_LOOP_GAIN[0], 0, "Number of entries", "B", 2, READ_ONLY))
+        self.vel_reg = add(Entry(*obj.VEL_LOOP_GAIN, "Velocity Loop Proportional Gain", gain, FACTORY_VEL_REG,
+                                 maximum=REGISTER_MAX, on_write=self._gain_write))
+        self.integral_reg = add(Entry(*obj.VEL_LOOP_INTEGRAL, "Velocity Loop integral Gain", gain, FACTORY_INTEGRAL,
+                                      maximum=REGISTER_MAX, on_write=self._gain_write))
+        add(Entry(obj.POS_LOOP_GAIN[0], 0, "Number of entries", "B", 2, READ_ONLY))
+        self.pos_reg = add(Entry(*obj.POS_LOOP_GAIN, "Position Loop Proportional Gain", gain, FACTORY_POS_REG,
+                                 maximum=REGISTER_MAX, on_write=self._gain_write))
+        add(Entry(*obj.POS_LOOP_INTEGRAL, "Position Loop integral Gain", gain, 0, maximum=REGISTER_MAX))
+        self.gate = add(Entry(*obj.BUS_GAIN_GATE, "bus regulation of PID switch", "I", 0,
                               on_write=self._gate_write))
 
-        for assign, pdo_index, entries in ((obj.RXPDO_ASSIGN, obj.RXPDO_MAP, obj.RXPDO),
-                                           (obj.TXPDO_ASSIGN, obj.TXPDO_MAP, obj.TXPDO)):
+        for assign, pdo_index, entries in ((obj.RXPDO_ASSIGN, obj.RXPDO_MAP, obj.POWER_UP_RXPDO),
+                                           (obj.TXPDO_ASSIGN, obj.TXPDO_MAP, obj.POWER_UP_TXPDO)):
             add(Entry(pdo_index, 0, "number of mapped objects", "B", len(entries)))
             for sub in range(1, 17):
                 value = entries[sub - 1].mapping if sub <= len(entries) else 0
                 add(Entry(pdo_index, sub, f"mapped object {sub}", "I", value))
             add(Entry(assign, 0, "number of assigned PDOs", "B", 1))
             add(Entry(assign, 1, "assigned PDO", "H", pdo_index))
+        for index, name, code in OBJECT_NAMES:
+            od.name_object(index, name, code)
 
     def _clear_history(self, entry: Entry, value: int | str) -> int:
         if value != 0:
@@ -348,7 +392,7 @@ class ErobDrive:
         else:
             self._following_error_s = 0.0
             self._following_error_flag = False
-        limit = int(self.max_torque.value) / 1000.0 * RATED_TORQUE_NM
+        limit = int(self.max_torque.value) / 1000.0 * self.rated_torque_nm
         velocity_command = (self._kp / self._kd if self._kd > 0 else 0.0) * (target / COUNTS_PER_RAD - q)
         velocity_command += int(self.velocity_offset.value) / COUNTS_PER_RAD
         velocity_error = velocity_command - qd
@@ -357,7 +401,9 @@ class ErobDrive:
         else:
             self._integral_nm = 0.0
         tau = self._kd * velocity_error + self._integral_nm
-        tau += int(self.torque_offset.value) / 1000.0 * RATED_TORQUE_NM
+        offset = min(max(int(self.torque_offset.value), -obj.TORQUE_OFFSET_LIMIT_PER_MILLE),
+                     obj.TORQUE_OFFSET_LIMIT_PER_MILLE)  # a process-data value beyond the range is held at it
+        tau += offset / 1000.0 * self.rated_torque_nm
         tau = min(max(tau, -limit), limit)
         self.torque_nm = tau
         return tau
@@ -367,7 +413,7 @@ class ErobDrive:
         position = round(q * COUNTS_PER_RAD)
         self.position_actual.value = _clamp_i32(position)
         self.velocity_actual.value = _clamp_i32(round(qd * COUNTS_PER_RAD))
-        per_mille = round(self.torque_nm / RATED_TORQUE_NM * 1000.0) if math.isfinite(self.torque_nm) else 0
+        per_mille = round(self.torque_nm / self.rated_torque_nm * 1000.0) if math.isfinite(self.torque_nm) else 0
         self.torque_actual.value = min(max(per_mille, -0x8000), 0x7FFF)
         enabled = self.state == Cia402State.OPERATION_ENABLED
         self.following_error.value = _clamp_i32(int(self.target_position.value) - position) if enabled else 0

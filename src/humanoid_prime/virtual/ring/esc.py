@@ -249,9 +249,21 @@ class Esc:
         return sm is not None and self._mailbox_full(sm[0])
 
     def clear_mailboxes(self) -> None:
+        """Empty both mailboxes and forget the last reply (the slave went back to INIT): nothing of one master
+        session is ever offered to the next."""
         for sm in self._sms:
             if sm[3] & 0x03 == SM_MODE_MAILBOX:
                 self._set_mailbox_full(sm[0], False)
+        self._forget_reply()
+
+    def _forget_reply(self) -> None:
+        """No reply to repeat, and the repeat handshake back in step with whatever the master asks next."""
+        self._last_mailbox_reply = b""
+        for n in range(SM_COUNT):
+            _start, _length, control, activate = self.sync_manager(n)
+            if control & 0x03 == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE:
+                ack = REG_SM + 8 * n + 7
+                self.mem[ack] = (self.mem[ack] & ~0x02 & 0xFF) | (activate & 0x02)
 
     def _repeat_request(self, n: int) -> None:
         """Master toggled the repeat request of the read mailbox: offer the last reply again."""
@@ -431,14 +443,20 @@ class Esc:
         if _overlaps(touched, REG_FMMU, 16 * FMMU_COUNT):
             self._rebuild_fmmus()
         if _overlaps(touched, REG_SM, 8 * SM_COUNT):
+            enabled_before = {sm[0] for sm in self._sms}
             self._rebuild_sms()
             for n in range(SM_COUNT):
                 if _overlaps(touched, REG_SM + 8 * n + 6, 1):
-                    _start, _length, control, _activate = self.sync_manager(n)
-                    if control & 0x03 == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE:
-                        self._repeat_request(n)
-                    if not _activate & 0x01:
+                    _start, _length, control, activate = self.sync_manager(n)
+                    read_mailbox = control & 0x03 == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE
+                    if not activate & 0x01:
                         self._set_mailbox_full(n, False)
+                        if read_mailbox:
+                            self._forget_reply()
+                    elif read_mailbox and n not in enabled_before:
+                        self._forget_reply()  # a fresh configuration, not a repeat request
+                    elif read_mailbox:
+                        self._repeat_request(n)
         if _overlaps(touched, REG_DC_OFFSET, 8) or _overlaps(touched, REG_DC_ACTIVATION, 0x27):
             self._update_dc()
         if _overlaps(touched, REG_DC_RECEIVE_TIME, 4):

@@ -87,12 +87,16 @@ def sii_content(options: RingOptions, serial: int) -> sii.SiiContent:
             sii.SyncManagerLayout(MAILBOX_OUT_START, size, 0x26, sii.SM_TYPE_MAILBOX_OUT),
             sii.SyncManagerLayout(MAILBOX_IN_START if size <= 0x80 else MAILBOX_OUT_START + size, size, 0x22,
                                   sii.SM_TYPE_MAILBOX_IN),
-            sii.SyncManagerLayout(_outputs_start(size), obj.RXPDO_STRUCT.size, 0x64, sii.SM_TYPE_OUTPUTS),
-            sii.SyncManagerLayout(_outputs_start(size) + MAX_PDO_BYTES, obj.TXPDO_STRUCT.size, 0x20,
+            sii.SyncManagerLayout(_outputs_start(size), _size(obj.POWER_UP_RXPDO), 0x64, sii.SM_TYPE_OUTPUTS),
+            sii.SyncManagerLayout(_outputs_start(size) + MAX_PDO_BYTES, _size(obj.POWER_UP_TXPDO), 0x20,
                                   sii.SM_TYPE_INPUTS),
         ),
-        rx_pdo_index=obj.RXPDO_MAP, rx_pdo=obj.RXPDO, tx_pdo_index=obj.TXPDO_MAP, tx_pdo=obj.TXPDO,
+        rx_pdo_index=obj.RXPDO_MAP, rx_pdo=obj.POWER_UP_RXPDO, tx_pdo_index=obj.TXPDO_MAP, tx_pdo=obj.POWER_UP_TXPDO,
     )
+
+
+def _size(entries: tuple[obj.PdoEntry, ...]) -> int:
+    return sum(entry.bits for entry in entries) // 8
 
 
 def _outputs_start(mailbox_size: int) -> int:
@@ -134,7 +138,7 @@ class ErobFirmware:
         self.options = options
         self.log = log
         serial = 0x00E20000 + position
-        self.drive = ErobDrive(serial)
+        self.drive = self._new_drive(serial)
         self.esc = Esc(sii.build_image(sii_content(options, serial)), self, clock_origin_ns=clock_origin_ns)
         self.coe = CoeServer(self.drive.od, options.mailbox_size, on_download=self._downloaded)
         self.state = AlState.INIT
@@ -178,10 +182,9 @@ class ErobFirmware:
             self.mailbox_faults += 1
             self.locked = False
             self.lock_count = 0
-        reply = self.coe.handle(message)
-        if reply is not None:
-            self._replies.append((now + round(self.options.mailbox_latency_s * 1e9), reply))
-            self._post_reply(now)
+        due = now + round(self.options.mailbox_latency_s * 1e9)
+        self._replies.extend((due, reply) for reply in self.coe.handle(message))  # each posted once SM1 is free
+        self._post_reply(now)
         return True
 
     def mailbox_read(self) -> None:
@@ -452,9 +455,12 @@ class ErobFirmware:
         if self.drive.csp_enabled and not self.esc.sync0_running(now_ns):
             self.drive.fault(ERROR_COMMUNICATION)
 
+    def _new_drive(self, serial: int) -> ErobDrive:
+        return ErobDrive(serial, gain_bytes=self.options.gain_bytes, rated_torque_mnm=self.options.rated_torque_mnm)
+
     def power_cycle(self) -> None:
         """The slave lost power and came back: ESC registers, AL state and the drive start afresh."""
-        self.drive = ErobDrive(self.drive.serial)
+        self.drive = self._new_drive(self.drive.serial)  # the same model as before, factory state
         self.coe = CoeServer(self.drive.od, self.options.mailbox_size, on_download=self._downloaded)
         self._guard_pdo_objects()
         self.esc.power_on()

@@ -17,6 +17,14 @@ Command bytes, as SOEM sends and checks them:
   with 0x60 | toggle, answered ``toggle | (7 - n) << 1 | last`` with data from byte 3 of the CoE payload;
 - abort 0x80 with the abort code u32, sent with the SDO request service (2) as ETG.1000.6 specifies and
   SOEM expects; complete access (bit 4 of 0x21/0x40) is not offered.
+
+SDO information (service 8; what SOEM's ``slaveinfo -sdo`` and pysoem's ``slave.od`` read): opcode u8
+(bit 7 = more fragments follow), reserved u8, fragments still to come u16, then data. Object list 0x01 ->
+0x02 (list type u16 in the first fragment, then the indices u16, split over as many messages as the
+mailbox needs, counting the fragments down to 0); object description 0x03 -> 0x04 (index, data type u16,
+highest subindex u8, object code u8, name); entry description 0x05 -> 0x06 (index, subindex, value info
+u8, data type u16, bit length u16, access u16, name); an unknown object or entry answers 0x07 with the
+abort code u32.
 """
 
 from __future__ import annotations
@@ -29,6 +37,9 @@ from humanoid_prime.virtual.ring.od import (
     ABORT_LENGTH,
     ABORT_TOGGLE,
     ABORT_UNSUPPORTED_ACCESS,
+    DATA_TYPES,
+    PDO_RX,
+    PDO_TX,
     ObjectDictionary,
     SdoAbort,
 )
@@ -38,6 +49,13 @@ MAILBOX_TYPE_ERROR = 0x00
 MAILBOX_TYPE_COE = 0x03
 COE_SDO_REQUEST = 2
 COE_SDO_RESPONSE = 3
+COE_SDO_INFO = 8
+INFO_OD_LIST_REQ, INFO_OD_LIST_RES = 0x01, 0x02
+INFO_OD_REQ, INFO_OD_RES = 0x03, 0x04
+INFO_OE_REQ, INFO_OE_RES = 0x05, 0x06
+INFO_ERROR = 0x07
+INFO_HEADER = struct.Struct("<HBBH")  # CoE header, opcode, reserved, fragments still to come
+LIST_ALL, LIST_RX_PDO, LIST_TX_PDO = 0x01, 0x02, 0x03
 SDO_MIN_LENGTH = 10
 SDO_ABORT = 0x80  # CoE header 2 + command 1 + index 2 + subindex 1 + data 4
 MAILBOX_ERROR_SERVICE_NOT_SUPPORTED = 0x0004
@@ -62,7 +80,8 @@ def _sdo_frame(command: int, index: int, sub: int, data: bytes = b"\x00\x00\x00\
 
 class CoeServer:
     """Answers mailbox requests from an object dictionary. ``handle`` takes one complete mailbox message
-    (header included) and returns the reply message, or None when nothing is to be answered."""
+    (header included) and returns the reply messages, in order (none when nothing is to be answered; more
+    than one for a fragmented SDO information reply)."""
 
     def __init__(self, od: ObjectDictionary, mailbox_size: int, on_download: DownloadHook | None = None) -> None:
         if mailbox_size < MAILBOX_HEADER_SIZE + SDO_MIN_LENGTH:
@@ -81,28 +100,30 @@ class CoeServer:
         self._upload = None
         self._download = None
 
-    def handle(self, message: bytes) -> bytes | None:
+    def handle(self, message: bytes) -> list[bytes]:
         if len(message) < MAILBOX_HEADER_SIZE:
-            return self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)
+            return [self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)]
         length, _address, _channel, type_counter = _HEADER.unpack_from(message)
         counter = (type_counter >> 4) & 0x07
         if counter and counter == self._last_counter:
-            return None
+            return []
         self._last_counter = counter
         payload = bytes(message[MAILBOX_HEADER_SIZE:MAILBOX_HEADER_SIZE + length])
         if len(payload) < length:
-            return self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)
+            return [self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)]
         if type_counter & 0x0F != MAILBOX_TYPE_COE:
-            return self._mailbox_error(MAILBOX_ERROR_UNSUPPORTED_PROTOCOL)
+            return [self._mailbox_error(MAILBOX_ERROR_UNSUPPORTED_PROTOCOL)]
         if len(payload) < 2:
-            return self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)
+            return [self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)]
         service = struct.unpack_from("<H", payload)[0] >> 12
+        if service == COE_SDO_INFO and len(payload) >= INFO_HEADER.size:
+            return [self._reply(reply) for reply in self._info(payload)]
         if service != COE_SDO_REQUEST:
-            return self._mailbox_error(MAILBOX_ERROR_SERVICE_NOT_SUPPORTED)
+            return [self._mailbox_error(MAILBOX_ERROR_SERVICE_NOT_SUPPORTED)]
         if len(payload) < SDO_MIN_LENGTH:
-            return self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)
+            return [self._mailbox_error(MAILBOX_ERROR_INVALID_SIZE)]
         reply = self._sdo(payload)
-        return None if reply is None else self._reply(reply)
+        return [] if reply is None else [self._reply(reply)]
 
     def _next_counter(self) -> int:
         self._reply_counter = self._reply_counter % 7 + 1
@@ -113,6 +134,43 @@ class CoeServer:
 
     def _mailbox_error(self, detail: int) -> bytes:
         return mailbox_message(struct.pack("<HH", 0x0001, detail), MAILBOX_TYPE_ERROR, self._next_counter())
+
+    # ---- SDO information ----------------------------------------------------------------------------------
+    def _info(self, payload: bytes) -> list[bytes]:
+        opcode = payload[2] & 0x7F
+        data = payload[INFO_HEADER.size:]
+        try:
+            if opcode == INFO_OD_LIST_REQ and len(data) >= 2:
+                return self._od_list(struct.unpack_from("<H", data)[0])
+            if opcode == INFO_OD_REQ and len(data) >= 2:
+                index = struct.unpack_from("<H", data)[0]
+                name, code, data_type, max_sub = self.od.describe(index)
+                return [_info_frame(INFO_OD_RES, 0, struct.pack("<HHBB", index, data_type, max_sub, code)
+                                    + name.encode("ascii"))]
+            if opcode == INFO_OE_REQ and len(data) >= 4:
+                index, sub, value_info = struct.unpack_from("<HBB", data)
+                entry = self.od.entry(index, sub)
+                described = struct.pack("<HBBHHH", index, sub, value_info & 0x07, DATA_TYPES[entry.fmt], entry.bits,
+                                        entry.access_bits)
+                return [_info_frame(INFO_OE_RES, 0, described + entry.name.encode("ascii"))]
+            raise SdoAbort(ABORT_COMMAND, f"SDO information opcode 0x{opcode:02X}")
+        except SdoAbort as abort:
+            return [_info_frame(INFO_ERROR, 0, struct.pack("<I", abort.code))]
+
+    def _od_list(self, list_type: int) -> list[bytes]:
+        """The object list, the list type first, in as many fragments as the mailbox needs."""
+        if list_type == LIST_ALL:
+            indices = self.od.indices
+        elif list_type in (LIST_RX_PDO, LIST_TX_PDO):
+            want = PDO_RX if list_type == LIST_RX_PDO else PDO_TX
+            indices = [i for i in self.od.indices if any(e.pdo == want for e in self.od.subs(i))]
+        else:  # backup and settings objects: this drive keeps none
+            indices = []
+        words = [list_type, *indices]
+        per_message = (self.mailbox_size - MAILBOX_HEADER_SIZE - INFO_HEADER.size) // 2
+        chunks = [words[k:k + per_message] for k in range(0, len(words), per_message)]
+        return [_info_frame(INFO_OD_LIST_RES, len(chunks) - 1 - n, struct.pack(f"<{len(chunk)}H", *chunk))
+                for n, chunk in enumerate(chunks)]
 
     def _sdo(self, payload: bytes) -> bytes | None:
         _coe, command, index, sub = _SDO.unpack_from(payload)
@@ -207,6 +265,11 @@ class CoeServer:
         unused = 7 - len(chunk) if len(chunk) < 7 else 0
         head = struct.pack("<HB", COE_SDO_RESPONSE << 12, toggle | (unused << 1) | int(last))
         return head + chunk + b"\x00" * unused
+
+
+def _info_frame(opcode: int, fragments_left: int, data: bytes) -> bytes:
+    incomplete = 0x80 if fragments_left else 0x00
+    return INFO_HEADER.pack(COE_SDO_INFO << 12, opcode | incomplete, 0, fragments_left) + data
 
 
 def sdo_abort_code(reply: bytes) -> int | None:

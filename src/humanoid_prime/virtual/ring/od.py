@@ -2,8 +2,8 @@
 abort codes an access can fail with (ETG.1000.6 / CiA 301).
 
 Values are Python ints (or str for visible strings); ``encode``/``decode`` convert to and from the
-little-endian wire bytes. An entry may accept a narrower or wider write than its own size
-(``accept_sizes``): some masters write a u16 register as u32 and drives commonly accept that.
+little-endian wire bytes. A write of another length than the entry's own is refused (0x06070010), as a
+CoE stack that enforces sizes does.
 """
 
 from __future__ import annotations
@@ -34,6 +34,13 @@ ABORT_DEVICE_STATE = 0x08000022  # data cannot be transferred or stored because 
 READ_ONLY = "ro"
 READ_WRITE = "rw"
 
+# Object codes and CANopen data types (CiA 301), as the SDO information service reports them.
+OBJECT_VAR = 0x07
+OBJECT_ARRAY = 0x08
+OBJECT_RECORD = 0x09
+DATA_TYPES = {"b": 0x0002, "h": 0x0003, "i": 0x0004, "B": 0x0005, "H": 0x0006, "I": 0x0007, "s": 0x0009,
+              "q": 0x0015, "Q": 0x001B}
+
 PDO_RX = "rx"  # mappable into an RxPDO (master -> slave)
 PDO_TX = "tx"  # mappable into a TxPDO (slave -> master)
 
@@ -61,7 +68,6 @@ class Entry:
     pdo: str | None = None
     minimum: int | None = None
     maximum: int | None = None
-    accept_sizes: tuple[int, ...] = ()
     # Called with the decoded value before it is stored; may raise SdoAbort, may return a replacement.
     on_write: Callable[[Entry, int | str], int | str | None] | None = None
     # Called before a read so a live value (position, time) can be refreshed.
@@ -80,6 +86,13 @@ class Entry:
     def bits(self) -> int:
         return self.size * 8
 
+    @property
+    def access_bits(self) -> int:
+        """The SDO information service's object access word: read (bits 0-2) and write (bits 3-5) in PRE-OP,
+        SAFE-OP and OP, RxPDO (bit 6) or TxPDO (bit 7) mappable."""
+        bits = {READ_ONLY: 0x0007, READ_WRITE: 0x003F, "wo": 0x0038}[self.access]
+        return bits | {PDO_RX: 0x0040, PDO_TX: 0x0080, None: 0}[self.pdo]
+
     def encode(self) -> bytes:
         if self.on_read is not None:
             self.on_read(self)
@@ -91,7 +104,7 @@ class Entry:
         """The value ``data`` carries, checked against the type and range; raises SdoAbort."""
         if self._struct is None:
             return data.decode("ascii", errors="replace")
-        if len(data) != self._struct.size and len(data) not in self.accept_sizes:
+        if len(data) != self._struct.size:
             raise SdoAbort(ABORT_LENGTH, f"0x{self.index:04X}:{self.sub:02X} is {self._struct.size} bytes, "
                                          f"got {len(data)}")
         signed = self.fmt.islower()
@@ -115,6 +128,7 @@ class ObjectDictionary:
     def __init__(self, entries: Iterable[Entry] = ()) -> None:
         self._entries: dict[tuple[int, int], Entry] = {}
         self._indices: set[int] = set()
+        self._objects: dict[int, tuple[str, int]] = {}  # index -> (name, object code) of non-VAR objects
         for entry in entries:
             self.add(entry)
 
@@ -122,6 +136,30 @@ class ObjectDictionary:
         self._entries[(entry.index, entry.sub)] = entry
         self._indices.add(entry.index)
         return entry
+
+    def name_object(self, index: int, name: str, code: int = OBJECT_RECORD) -> None:
+        """Name a multi-entry object (an ARRAY or a RECORD); a VAR object is named by its one entry."""
+        self._objects[index] = (name, code)
+
+    @property
+    def indices(self) -> list[int]:
+        """Every object index, in ascending order (the SDO information service's object list)."""
+        return sorted(self._indices)
+
+    def subs(self, index: int) -> list[Entry]:
+        return sorted((e for (i, _), e in self._entries.items() if i == index), key=lambda e: e.sub)
+
+    def describe(self, index: int) -> tuple[str, int, int, int]:
+        """(name, object code, data type, highest subindex) of an object; SdoAbort 0x06020000 if absent."""
+        if index not in self._indices:
+            raise SdoAbort(ABORT_NO_OBJECT, f"0x{index:04X}")
+        subs = self.subs(index)
+        if index not in self._objects:
+            only = subs[0]
+            return only.name, OBJECT_VAR, DATA_TYPES[only.fmt], only.sub
+        name, code = self._objects[index]
+        element = subs[-1].fmt if code == OBJECT_ARRAY else None
+        return name, code, DATA_TYPES[element] if element else 0x0000, subs[-1].sub
 
     def __contains__(self, key: tuple[int, int]) -> bool:
         return key in self._entries

@@ -31,6 +31,10 @@ class RingOptions:
     hop_delay_ns: int = _option(700, "frame delay per slave, as latched in the DC receive-time registers")
     plant: str = _option("inertia", "mechanics: inertia (one joint per drive) or mujoco (Prime's arms, bundled "
                                     "hardware and calibration files; needs one slave per joints.erob_slaves entry)")
+    gain_bytes: int = _option(2, "bytes the loop-gain objects 0x2381/0x2382 hold, enforced on write: 2 as ZeroErr's "
+                                 "EDS declares them, 4 as one public host reads them")
+    rated_torque_mnm: int = _option(23000, "0x6076 rated torque in mN*m (23000 nominal eRob70 50:1; an eRob80H120I "
+                                           "reads 31000)")
 
     def check(self) -> None:
         """Raise ValueError naming the first option out of range."""
@@ -52,6 +56,10 @@ class RingOptions:
             raise ValueError(f"hop_delay_ns must be 0..1000000, got {self.hop_delay_ns}")
         if self.plant not in PLANTS:
             raise ValueError(f"plant must be one of {', '.join(PLANTS)}, got {self.plant!r}")
+        if self.gain_bytes not in (2, 4):
+            raise ValueError(f"gain_bytes must be 2 or 4, got {self.gain_bytes}")
+        if not 1 <= self.rated_torque_mnm <= 1_000_000:
+            raise ValueError(f"rated_torque_mnm must be 1..1000000, got {self.rated_torque_mnm}")
 
     def to_args(self) -> list[str]:
         """Command-line arguments that reproduce these options."""

@@ -75,7 +75,7 @@ class SiiContent:
     rx_pdo: tuple[PdoEntry, ...]
     tx_pdo_index: int
     tx_pdo: tuple[PdoEntry, ...]
-    coe_details: int = COE_DETAIL_SDO | COE_DETAIL_PDO_ASSIGN | COE_DETAIL_PDO_CONFIG
+    coe_details: int = COE_DETAIL_SDO | COE_DETAIL_SDO_INFO | COE_DETAIL_PDO_ASSIGN | COE_DETAIL_PDO_CONFIG
 
 
 def crc8(data: bytes) -> int:

@@ -1,0 +1,133 @@
+"""SoemMaster's handling of what a real ring does now and then, on a scripted pysoem double: frames lost in
+the PRE-OP mapping, a drive refusing it, a drive not answering, an AL-state read that comes back empty, and
+each drive's rated torque (0x6076)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pysoem
+import pytest
+
+from doubles.soem import LOST_FRAME, NO_REPLY, Clock, FakeSoemMaster
+from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RATED_TORQUE
+from humanoid_prime.drivers.ethercat.master import RingError, expected_ring
+from humanoid_prime.drivers.ethercat.soem_master import STATE_READS, SoemMaster
+
+SLAVES = 10
+EXPECTED = expected_ring({f"joint{k}": k for k in range(SLAVES)})
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    monkeypatch.setattr(pysoem, "Master", FakeSoemMaster)
+    FakeSoemMaster.ring = {}
+    yield Clock()
+    FakeSoemMaster.ring = {}
+
+
+def ring(clock: Clock, **options) -> SoemMaster:
+    FakeSoemMaster.ring = {"clock": clock, "slaves": SLAVES, **options}
+    return SoemMaster("lo", update_rate=100.0, bringup_rate=1000.0, clock=clock)
+
+
+def test_every_drive_is_remapped_from_zeroerr_s_power_up_layout_in_pre_op(clock):
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        assert all(slave.writes == MAPPING_WRITES for slave in fake.slaves)
+        assert [(len(s.output), len(s.input)) for s in fake.slaves] == [(14, 16)] * SLAVES
+        assert master.lost_frames == 0
+
+
+def test_a_mapping_write_whose_frame_was_lost_is_repeated(clock):
+    with ring(clock, failures={(3, 0x1600, 2): [LOST_FRAME, LOST_FRAME]}) as master:
+        master.start(EXPECTED)
+        assert master.lost_frames == 2
+        assert FakeSoemMaster.last.slaves[3].writes == MAPPING_WRITES
+        assert master.operational
+
+
+def test_a_mapping_the_drive_refuses_is_reported_as_refused(clock):
+    with ring(clock, failures={(4, 0x1A00, 3): [0x06040041]}) as master, pytest.raises(RingError) as error:
+        master.start(EXPECTED)
+    assert str(error.value) == (
+        "mapping the PDOs on lo failed: ring 4: PDO mapping write 0x1A00:03: aborted with 0x06040041 "
+        "(scripted abort) (the drive refused it)")
+
+
+def test_a_mapping_write_nobody_answers_is_reported_as_no_reply(clock):
+    with ring(clock, failures={(6, 0x1C12, 0): [NO_REPLY]}) as master, pytest.raises(RingError) as error:
+        master.start(EXPECTED)
+    assert "ring 6: PDO mapping write 0x1C12:00: no reply within 700 ms" in str(error.value)
+    assert str(error.value).endswith("(the drive did not answer)")
+    assert master.lost_frames == 0
+
+
+def test_frames_lost_on_every_attempt_end_in_a_clear_error(clock):
+    expected = r"ring 0: PDO mapping write 0x1600:01: no complete exchange in 4 attempts .* \(the drive did not\b"
+    with ring(clock, failures={(0, 0x1600, 1): [LOST_FRAME] * 4}) as master, pytest.raises(RingError, match=expected):
+        master.start(EXPECTED)
+
+
+def test_each_drive_s_rated_torque_is_read_in_pre_op(clock):
+    with ring(clock, rated_torque_mnm=[23000] * 5 + [31000] * 5) as master:
+        master.start(EXPECTED)
+        assert list(master.rated_torque_nm) == [23.0] * 5 + [31.0] * 5
+        assert master.rated_torque_problems == {}
+
+
+def test_an_unreadable_rated_torque_is_left_unknown_with_the_reason(clock):
+    with ring(clock, failures={(2, RATED_TORQUE, 0): [0x06020000], (7, RATED_TORQUE, 0): [NO_REPLY]}) as master:
+        master.start(EXPECTED)  # not a reason to stop the bring-up: the component warns and uses the nominal
+        assert math.isnan(master.rated_torque_nm[2]) and math.isnan(master.rated_torque_nm[7])
+        assert master.rated_torque_problems[2].startswith("aborted with 0x06020000")
+        assert master.rated_torque_problems[7].startswith("no reply within 700 ms")
+        assert master.rated_torque_nm[0] == 23.0
+
+
+def test_empty_al_state_reads_flag_nobody(clock):
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        version = master.health_version
+        fake.lose_state_reads = 2  # two frames in a row lost: every slave's state reads NONE twice
+        master._check_ring()
+        assert master.slave_ok.all() and not master.lost.any()
+        assert master.state_rereads == 2
+        assert master.health_version == version
+
+
+def wait_for(condition, what: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} not reached within {timeout_s} s")
+        time.sleep(0.005)
+
+
+def test_a_slave_silent_over_every_read_is_lost_alone(clock):
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        fake.slaves[8].answering = False  # the keeper's frames come back short: the supervision wakes
+        wait_for(lambda: master.lost.any(), "slave 8 found lost")
+        assert list(master.slave_ok) == [True] * 8 + [False, True]
+        assert list(master.lost) == [False] * 8 + [True, False]
+        assert master.state_rereads >= STATE_READS
+        fake.slaves[8].answering = True
+        wait_for(lambda: master.slave_ok.all(), "slave 8 back in OP")
+        assert not master.lost.any()
+
+
+def test_a_slave_back_in_pre_op_is_remapped_on_reconfiguration(clock):
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        slave = fake.slaves[5]
+        slave.writes.clear()
+        slave.true_state = pysoem.PREOP_STATE  # the drive was power-cycled
+        master._check_ring()
+        assert slave.reconfigured == 1 and slave.writes == MAPPING_WRITES
+        assert master.recoveries == 1

@@ -19,7 +19,7 @@ from humanoid_prime.modes import Mode
 
 def remote_command(robot, **rows):
     values = {name: np.zeros(robot.n) for name in ("position", "velocity", "effort", "stiffness", "damping")}
-    values.update({k: np.asarray(v, float) for k, v in rows.items()})
+    values.update({k: np.asarray(v) for k, v in rows.items()})
     return MitCommand(joint_names=robot.names, **values)
 
 
@@ -258,10 +258,19 @@ def test_a_controller_that_raises_is_replaced_in_the_same_tick(manager, plant):
     assert plant.last[4].tolist() == [6.0] * 14
 
 
-def test_a_non_finite_remote_command_falls_back_to_damping(manager, robot, plant):
-    enter_remote(manager, robot)
-    manager.topics.publish("/remote_policy_controller/command",
-                           remote_command(robot, position=np.full(14, np.nan)))
+def standby_producing(manager, **rows):
+    """STANDBY active, its controller patched to propose ``rows`` (zeros elsewhere): the output check's input."""
+    def produce(now, dt, state, command):
+        command.data[:] = 0.0
+        for row, values in rows.items():
+            np.copyto(getattr(command, row), values)
+
+    manager.controllers["standby_controller"].update = produce
+    manager.request_mode(Mode.STANDBY)
+
+
+def test_a_non_finite_command_falls_back_to_damping(manager, robot, plant):
+    standby_producing(manager, position=np.full(14, np.nan))
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
     assert "non-finite position" in manager.fallbacks[-1]["reason"]
@@ -277,20 +286,16 @@ def test_a_non_finite_remote_command_falls_back_to_damping(manager, robot, plant
     ("effort", -4.9, "effort of -4.9 Nm for left_wrist_roll, beyond its limit of 4.8 Nm"),
 ])
 def test_an_unsafe_command_is_rejected(manager, robot, row, value, reason):
-    enter_remote(manager, robot)
-    rows = {row: np.where(np.arange(14) == robot.index("left_wrist_roll"), value, 0.0)}
-    manager.topics.publish("/remote_policy_controller/command", remote_command(robot, **rows))
+    standby_producing(manager, **{row: np.where(np.arange(14) == robot.index("left_wrist_roll"), value, 0.0)})
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
     assert reason in manager.fallbacks[-1]["reason"]
 
 
 def test_a_stiff_target_beyond_a_limit_by_more_than_the_margin_is_rejected(manager, robot):
-    enter_remote(manager, robot)
     position = np.zeros(14)
     position[robot.index("left_wrist_pitch")] = 0.785 + 0.006
-    manager.topics.publish("/remote_policy_controller/command",
-                           remote_command(robot, position=position, stiffness=np.full(14, 5.0)))
+    standby_producing(manager, position=position, stiffness=np.full(14, 5.0))
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
     assert "position target of 0.791 rad for left_wrist_pitch, outside its limits [-0.785, 0.785]" in \
@@ -316,6 +321,32 @@ def test_a_target_without_stiffness_is_not_limit_checked(manager, robot, plant):
     manager.tick(0.01)
     assert manager.active_mode is Mode.REMOTE
     assert plant.last[0][robot.index("left_wrist_pitch")] == 2.0
+
+
+# ---- REMOTE refuses a bad command at the door ----------------------------------------------------
+
+@pytest.mark.parametrize(("rows", "reason"), [
+    ({"position": np.full(14, np.nan)}, "position of left_shoulder_pitch is nan"),
+    ({"damping": np.full(14, np.inf)}, "damping of left_shoulder_pitch is inf"),
+    ({"stiffness": -np.ones(14)}, "stiffness of left_shoulder_pitch is negative (-1)"),
+    ({"effort": np.full(14, 500.0)}, "effort of left_shoulder_pitch is 500 Nm, beyond its limit of"),
+    ({"position": np.full(14, 9.0), "stiffness": np.ones(14)}, "position target of left_shoulder_pitch is 9 rad"),
+    ({"velocity": np.zeros(13)}, "velocity has shape (13,), expected (14,)"),
+    ({"effort": ["a"] * 14}, "effort is not a list of numbers"),
+])
+def test_remote_refuses_a_bad_command_counts_it_flags_it_and_keeps_the_last_good_one(manager, robot, plant, rows,
+                                                                                       reason):
+    enter_remote(manager, robot)
+    good = (robot.lower + robot.upper) / 2
+    manager.topics.publish("/remote_policy_controller/command", remote_command(robot, position=good))
+    manager.tick(0.01)
+    manager.topics.publish("/remote_policy_controller/command", remote_command(robot, **rows))
+    manager.tick(0.02)
+    remote = manager.controllers["remote_policy_controller"]
+    assert manager.active_mode is Mode.REMOTE, manager.fallbacks
+    assert remote.rejected == 1 and reason in remote.last_rejection
+    assert reason in manager.topics.latest(SAFETY_STATUS).flags["remote_policy_controller/rejected"]
+    np.testing.assert_array_equal(plant.last[0], good)
 
 
 # ---- topics --------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from typing import Any
 
 from rich.console import Console
 
+from humanoid_prime.dds.domain import MAX_DOMAIN_ID
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.socket import default_socket_path
@@ -30,6 +31,25 @@ def add_config_options(parser: argparse.ArgumentParser, *, calibration: bool = F
 
 def add_socket_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
+
+
+def add_dds_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dds", action="store_true",
+                        help="take part in the ROS 2 graph over DDS: publish /prime/joint_states, /control_mode and "
+                             "/safety_status, take REMOTE commands and /prime/mode_request")
+    parser.add_argument("--domain", type=whole(at_least=0, at_most=MAX_DOMAIN_ID), metavar="N",
+                        help="(with --dds) ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
+
+
+def dds_domain(args: argparse.Namespace) -> int | None:
+    """The run's DDS domain when ``--dds`` was given, None for no DDS; checked before anything starts."""
+    if not args.dds:
+        if args.domain is not None:
+            raise PrimeError("--domain needs --dds")
+        return None
+    from humanoid_prime.dds.domain import domain_id
+
+    return domain_id(args.domain)
 
 
 def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) -> None:

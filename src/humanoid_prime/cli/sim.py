@@ -18,7 +18,15 @@ from collections.abc import Callable
 from itertools import groupby
 from typing import Any
 
-from humanoid_prime.cli._common import SECONDS, add_config_options, add_json_option, output_file, print_json
+from humanoid_prime.cli._common import (
+    SECONDS,
+    add_config_options,
+    add_dds_options,
+    add_json_option,
+    dds_domain,
+    output_file,
+    print_json,
+)
 from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
@@ -41,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "sim", help="run the simulated Prime through every mode (MuJoCo, headless by default)",
         description="Bring up the simulated Prime (MuJoCo, MIT law at the physics rate) with the staged start and "
                     f"run the {DEMO_SECONDS:g} s demonstration: ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION, REMOTE "
-                    "(a scripted command stream), DAMPING. On a terminal, keys 1-5 switch modes and q quits.")
+                    "(a scripted command stream; with --dds, commands from the ROS 2 graph), DAMPING. On a terminal, keys 1-5 switch modes and q quits.")
     p.add_argument("--duration", type=SECONDS, metavar="S",
                    help=f"simulated seconds to run (default: {DEMO_SECONDS:g}; with --mode, until q or Ctrl-C)")
     p.add_argument("--fast", action="store_true", help="run as fast as possible instead of in real time")
@@ -54,6 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "on a virtual CAN bus, their plants the wrists of the same model (default: none)")
     p.add_argument("--socket", metavar="PATH",
                    help=f"control socket for 'prime switch' (default: {default_socket_path()})")
+    add_dds_options(p)
     add_config_options(p, controllers=True)
     add_json_option(p)
     p.set_defaults(func=run)
@@ -150,6 +159,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise PrimeError(f"--duration must be a positive number of seconds, got {args.duration:g}")
     duration = args.duration if args.duration is not None else (None if mode is not None else DEMO_SECONDS)
+    domain = dds_domain(args)
 
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
@@ -162,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
         system, manager = build_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
         start, close = manager.start, manager.shutdown
     try:
-        stream = demo_stream(robot, config, manager)
+        # With --dds, REMOTE follows the graph (prime remote, a policy node), not the scripted stream.
+        stream = demo_stream(robot, config, manager) if domain is None else None
         viewer, close_viewer = _open_viewer(system) if args.viewer else (None, None)
     except BaseException:
         close()  # the CAN buses are open already
@@ -199,6 +210,7 @@ def run(args: argparse.Namespace) -> int:
         for hook in hooks:
             hook()
 
+    bridge = None
     with contextlib.ExitStack() as stack, _sigterm_stops():
         if close_viewer is not None:
             stack.callback(close_viewer)
@@ -208,6 +220,15 @@ def run(args: argparse.Namespace) -> int:
             stages = " -> ".join(name for name, _ in manager.stages)
             print(f"staged start: {stages} ({sum(s for _, s in manager.stages) * 1e3:.1f} ms); "
                   f"ZERO_TORQUE active, the other mode controllers loaded inactive", file=out, flush=True)
+            if domain is not None:
+                from humanoid_prime.dds.bridge import bridge_manager
+
+                # Stamps in simulated time, as ROS 2 nodes with use_sim_time expect.
+                bridge = bridge_manager(manager, domain=domain,
+                                        request_mode=lambda text: operator_mode(Mode.parse(text)))
+                stack.callback(bridge.close)
+                print(f"DDS: ROS 2 domain {domain}; publishing /prime/joint_states, /control_mode, /safety_status; "
+                      f"REMOTE follows {config.remote.topic}; modes on /prime/mode_request", file=out, flush=True)
             server = ControlServer(operator_mode, args.socket)
             try:
                 server.start()
@@ -223,6 +244,8 @@ def run(args: argparse.Namespace) -> int:
             sim.stopped_by = "interrupt"
         summary = sim.summary()
     summary["hil"] = args.hil
+    if bridge is not None:
+        summary["dds"] = bridge.summary()
     if hil is not None:
         summary["can"] = hil.frame_counts()  # after shutdown: the disable frames count too
 

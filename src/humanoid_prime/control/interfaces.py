@@ -9,6 +9,7 @@ import numpy as np
 
 COMMAND_NAMES = ("position", "velocity", "effort", "stiffness", "damping")
 STATE_NAMES = ("position", "velocity", "effort")
+POSITION_MARGIN = 0.005  # rad beyond a joint limit that a command may reach: clipped onto the limit, not rejected
 
 
 class CommandArrays:

@@ -36,14 +36,13 @@ from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
-from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays
+from humanoid_prime.control.interfaces import COMMAND_NAMES, POSITION_MARGIN, CommandArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
 from humanoid_prime.errors import ControllerError, LifecycleError, PrimeError
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
 
-POSITION_MARGIN = 0.005  # rad beyond a limit that is clipped rather than rejected
 SPIN_S = 0.0005  # the last part of each period is busy-waited: sleep() wakes up to ~0.1 ms late on Linux
 FALLBACK: dict[Mode, Mode | None] = {
     Mode.LOCOMOTION: Mode.DAMPING,
@@ -220,6 +219,11 @@ class ControllerManager:
         self.shutdown()
 
     # ---- switching -------------------------------------------------------------------------------
+
+    @property
+    def flag_source_names(self) -> list[str]:
+        """Every source of /safety_status flags, in order (the first part of each flag key)."""
+        return [source.name for source in self._flag_sources]
 
     def add_flag_source(self, source: SafetyFlags) -> None:
         """Publish ``source``'s flags on /safety_status too (e.g. the eRob impedance manager)."""

@@ -9,7 +9,7 @@ import numpy as np
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, gain_rows
 from humanoid_prime.control.flags import Level
-from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays, StateArrays
+from humanoid_prime.control.interfaces import COMMAND_NAMES, POSITION_MARGIN, CommandArrays, StateArrays
 from humanoid_prime.control.topics import REMOTE_COMMAND, MitCommand, TopicBus
 from humanoid_prime.modes import Mode
 
@@ -17,10 +17,15 @@ from humanoid_prime.modes import Mode
 class RemotePolicyController(Controller):
     """Applies the latest accepted ``MitCommand`` every tick.
 
-    A message is rejected (and counted in ``rejected``) unless ``joint_names`` is exactly the canonical
-    joint list and every array has one value per joint. The eRob entries of the incoming stiffness and
-    damping are replaced by the mode's fixed eRob gains (``erob_kp``, ``erob_kd``): eRob impedance is
-    written once per mode over SDO, so only the Sito wrists take the message's per-tick gains.
+    A message is rejected (counted in ``rejected``, flagged while REMOTE is active) unless ``joint_names`` is
+    exactly the canonical joint list, every array has one finite value per joint, no stiffness or damping is
+    negative, no effort exceeds its joint's limit and no stiff target (stiffness > 0; on eRob joints the mode's)
+    lies beyond its joint's limits by more than the output check's margin. A rejected message changes nothing:
+    the last accepted command (or the stale policy) goes on. Messages come from any thread (in-process, DDS).
+
+    The eRob entries of the incoming stiffness and damping are replaced by the mode's fixed eRob gains
+    (``erob_kp``, ``erob_kd``): eRob impedance is written once per mode over SDO, so only the Sito wrists take
+    the message's per-tick gains.
 
     Freshness is arrival time, in the manager's clock at tick resolution. On entry nothing is fresh:
     messages that arrived while inactive are dropped. When no message arrived for longer than
@@ -47,6 +52,9 @@ class RemotePolicyController(Controller):
 
     def on_configure(self, robot: Robot, topics: TopicBus) -> None:
         self.names = robot.names
+        self._lower = robot.lower - POSITION_MARGIN
+        self._upper = robot.upper + POSITION_MARGIN
+        self._effort_limit = robot.effort_limit
         self._erob = np.array([j.family == "erob" for j in robot.joints])
         # Stale-damp gains; their eRob entries are also the fixed mode gains applied to every message.
         self._damp_kp, self._damp_kd = gain_rows(robot, (self.erob_kp, self.erob_kd), (0.0, self.stale_kd))
@@ -79,10 +87,34 @@ class RemotePolicyController(Controller):
                 return f"{len(names)} joint names, expected {len(self.names)} in canonical order"
             i = next(i for i, (got, want) in enumerate(zip(names, self.names, strict=True)) if got != want)
             return f"joint {i} is {names[i]!r}, expected {self.names[i]!r} (canonical order)"
+        rows = {}
         for interface in COMMAND_NAMES:
-            values = np.asarray(getattr(message, interface), dtype=np.float64)
+            try:
+                values = np.asarray(getattr(message, interface), dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                return f"{interface} is not a list of numbers ({exc})"
             if values.shape != (len(self.names),):
                 return f"{interface} has shape {values.shape}, expected ({len(self.names)},)"
+            bad = np.flatnonzero(~np.isfinite(values))
+            if bad.size:
+                return f"{interface} of {self.names[bad[0]]} is {values[bad[0]]}"
+            rows[interface] = values
+        for interface in ("stiffness", "damping"):
+            bad = np.flatnonzero(rows[interface] < 0.0)
+            if bad.size:
+                return f"{interface} of {self.names[bad[0]]} is negative ({rows[interface][bad[0]]:g})"
+        bad = np.flatnonzero(np.abs(rows["effort"]) > self._effort_limit)
+        if bad.size:
+            j = bad[0]
+            return (f"effort of {self.names[j]} is {rows['effort'][j]:g} Nm, beyond its limit of "
+                    f"{self._effort_limit[j]:g} Nm")
+        position = rows["position"]
+        stiff = np.where(self._erob, self._damp_kp, rows["stiffness"]) > 0.0  # eRob: the mode's stiffness applies
+        bad = np.flatnonzero(((position < self._lower) | (position > self._upper)) & stiff)
+        if bad.size:
+            j = bad[0]
+            return (f"position target of {self.names[j]} is {position[j]:g} rad, outside its limits "
+                    f"[{self._lower[j] + POSITION_MARGIN:g}, {self._upper[j] - POSITION_MARGIN:g}]")
         return ""
 
     def on_activate(self, state: StateArrays, now: float) -> None:

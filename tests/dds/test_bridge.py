@@ -1,0 +1,175 @@
+"""The bridge in one process, over real DDS on loopback: what a ROS 2 node on the graph sees and sends."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from cyclonedds.internal import InvalidSample
+
+from doubles.control import Clock, Plant
+from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.dds import messages as msg
+from humanoid_prime.dds.bridge import MODE_REQUEST, bridge_manager
+from humanoid_prime.dds.node import DdsNode
+from humanoid_prime.modes import Mode
+
+from .conftest import wait_for
+
+
+@pytest.fixture
+def manager(sim_robot, config):
+    clock = Clock()
+    m = ControllerManager(sim_robot, [Plant("plant", sim_robot.names)], config, update_rate=100.0, clock=clock,
+                          sleep=clock.sleep)
+    m.start()
+    yield m
+    m.shutdown()
+
+
+@pytest.fixture
+def bridged(manager, domain):
+    bridge = bridge_manager(manager, domain=domain)
+    yield bridge
+    bridge.close()
+
+
+@pytest.fixture
+def peer(domain):
+    """Another participant in the domain: a ROS 2 node stands here."""
+    with DdsNode(domain) as node:
+        yield node
+
+
+def take(reader, into: list) -> None:
+    into.extend(s for s in reader.take(N=100) if not isinstance(s, InvalidSample))
+
+
+def test_joint_states_reach_a_reader_every_tick_in_canonical_order(manager, bridged, peer, sim_robot):
+    reader = peer.reader("/prime/joint_states", msg.JointState, depth=100)  # keeps all 20 of the burst below
+    assert wait_for(lambda: bool(reader.get_matched_publications()))
+    for k in range(20):
+        manager.tick(k * 0.01)
+    got: list = []
+    assert wait_for(lambda: len(got) >= 20, poll=lambda: take(reader, got))
+    assert [list(s.name) for s in got] == [list(sim_robot.names)] * 20
+    assert [round(msg.seconds(s.header.stamp), 6) for s in got] == [round(k * 0.01, 6) for k in range(20)]
+    summary = bridged.summary()["topics"]["/prime/joint_states"]
+    assert summary["published"] == 20 and summary["dropped"] == 0
+
+
+def test_mode_and_safety_are_latched_for_a_late_joiner(manager, bridged, peer):
+    manager.request_mode(Mode.DAMPING)
+    manager.tick(0.0)
+    assert wait_for(lambda: bridged.counts["/control_mode"].samples >= 2)
+    mode = peer.reader("/control_mode", msg.String, latched=True, depth=1)  # joins after the fact
+    safety = peer.reader("/safety_status", msg.DiagnosticArray, latched=True, depth=1)
+    modes: list = []
+    statuses: list = []
+    assert wait_for(lambda: modes and statuses, poll=lambda: (take(mode, modes), take(safety, statuses)))
+    assert [m.data for m in modes] == ["DAMPING"]
+    names = [s.name for s in statuses[-1].status]
+    assert names == [f"prime/{source}" for source in manager.flag_source_names]
+    assert all(s.level == msg.DiagnosticStatus.OK and s.message == "ok" for s in statuses[-1].status)
+
+
+def test_a_flag_is_one_key_value_under_its_source_at_its_level(manager, bridged, peer):
+    safety = peer.reader("/safety_status", msg.DiagnosticArray, latched=True, depth=1)
+    manager.request_mode(Mode.REMOTE)
+    manager.tick(0.0)  # REMOTE without a command: the stale warning
+    statuses: list = []
+
+    def stale():
+        remote = [s for a in statuses for s in a.status if s.name == "prime/remote_policy_controller"]
+        return remote and remote[-1].level == msg.DiagnosticStatus.WARN
+
+    assert wait_for(stale, poll=lambda: take(safety, statuses))
+    remote = [s for s in statuses[-1].status if s.name == "prime/remote_policy_controller"][0]
+    assert [kv.key for kv in remote.values] == ["stale"]
+    assert "waiting for the first command" in remote.message
+
+
+def test_a_remote_command_from_the_graph_drives_remote(manager, bridged, peer, sim_robot):
+    writer = peer.writer("/remote_policy_controller/command", msg.MitCommand)
+    manager.request_mode(Mode.REMOTE)
+    manager.tick(0.0)
+    target = (sim_robot.lower + sim_robot.upper) / 2
+    command = msg.MitCommand(name=list(sim_robot.names), position=target.tolist(), velocity=[0.0] * 14,
+                             effort=[0.0] * 14, stiffness=[5.0] * 14, damping=[0.5] * 14)
+    assert wait_for(lambda: bool(writer.get_matched_subscriptions()))
+    writer.write(command)
+    remote = manager.controllers["remote_policy_controller"]
+    assert wait_for(lambda: remote.accepted == 1)
+    manager.tick(0.01)
+    plant = manager.resources.components[0]
+    np.testing.assert_allclose(plant.written[-1][0], target)
+    assert manager.active_mode is Mode.REMOTE
+
+
+def test_a_bad_remote_command_is_refused_counted_and_flagged(manager, bridged, peer, sim_robot):
+    writer = peer.writer("/remote_policy_controller/command", msg.MitCommand)
+    manager.request_mode(Mode.REMOTE)
+    manager.tick(0.0)
+    assert wait_for(lambda: bool(writer.get_matched_subscriptions()))
+    writer.write(msg.MitCommand(name=list(reversed(sim_robot.names)), position=[0.0] * 14, velocity=[0.0] * 14,
+                                effort=[0.0] * 14, stiffness=[0.0] * 14, damping=[0.0] * 14))
+    writer.write(msg.MitCommand(name=list(sim_robot.names), position=[float("nan")] * 14, velocity=[0.0] * 14,
+                                effort=[0.0] * 14, stiffness=[0.0] * 14, damping=[0.0] * 14))
+    remote = manager.controllers["remote_policy_controller"]
+    assert wait_for(lambda: remote.rejected == 2)
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.REMOTE and not manager.fallbacks
+    flags = manager.topics.latest("/safety_status").flags
+    assert "position of left_shoulder_pitch is nan" in flags["remote_policy_controller/rejected"]
+    received = bridged.summary()["topics"]["/remote_policy_controller/command"]
+    assert received["received"] == 2 and received["refused"] == 2
+
+
+def test_a_mode_request_takes_the_switch_path_and_an_unknown_one_is_refused(manager, bridged, peer):
+    writer = peer.writer(MODE_REQUEST, msg.String)
+    assert wait_for(lambda: bool(writer.get_matched_subscriptions()))
+    writer.write(msg.String(data="standby"))
+    assert wait_for(lambda: bridged.counts[MODE_REQUEST].samples == 1)
+    manager.tick(0.0)
+    assert manager.active_mode is Mode.STANDBY
+    writer.write(msg.String(data="FLY"))
+    assert wait_for(lambda: bridged.counts[MODE_REQUEST].refused == 1)
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.STANDBY
+    assert "mode request 'FLY' on /prime/mode_request refused" in \
+        manager.topics.latest("/safety_status").flags["dds/mode_request"]
+
+
+class StuckWriter:
+    """A DDS writer whose transport never returns (until released)."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.entered = threading.Event()
+
+    def write(self, sample) -> None:
+        self.entered.set()
+        self.release.wait()
+
+
+def test_a_stuck_transport_never_holds_the_tick_it_drops_counts_and_flags(manager, bridged):
+    stuck = StuckWriter()
+    bridged._joint_states = stuck
+    manager.tick(0.0)
+    assert stuck.entered.wait(30)
+    ticks = 3 * bridged._slots
+    for k in range(1, ticks):
+        manager.tick(k * 0.01)  # returns: nothing here waits on the stuck writer
+    counts = bridged.counts["/prime/joint_states"]
+    assert counts.dropped == ticks - 1 - bridged._slots
+    assert "joint states dropped" in manager.topics.latest("/safety_status").flags["dds/dropped"]
+    stuck.release.set()
+
+
+def test_closing_leaves_the_domain(manager, domain, peer):
+    bridge = bridge_manager(manager, domain=domain)
+    reader = peer.reader("/prime/joint_states", msg.JointState)
+    assert wait_for(lambda: bool(reader.get_matched_publications()))
+    bridge.close()
+    assert wait_for(lambda: not reader.get_matched_publications())

@@ -1,6 +1,8 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# Debian packages the tests build against: a Fast DDS peer (ROS 2's default middleware) for the DDS tests.
+TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless
 
 .PHONY: sim test bench lint clean
 
@@ -14,6 +16,7 @@ sim: $(STAMP)
 	$(VENV)/bin/prime sim
 
 test: $(STAMP)
+	tools/install-debs $(TEST_DEBS)
 	$(VENV)/bin/ruff check src tests
 	$(PY) -m pytest -q
 

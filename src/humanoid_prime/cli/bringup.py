@@ -13,9 +13,11 @@ from pathlib import Path
 from humanoid_prime.cli._common import (
     SECONDS,
     add_config_options,
+    add_dds_options,
     add_emulation_options,
     add_json_option,
     add_socket_option,
+    dds_domain,
     output_dir,
     output_file,
     real,
@@ -72,6 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--erob-config-dir", metavar="DIR", type=output_dir,
                    help="keep the folded per-slave eRob configs here")
     add_socket_option(p)
+    add_dds_options(p)
     p.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
     p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
     add_json_option(p)
@@ -121,6 +124,7 @@ def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     ring = ring_options(args, **{"--load-test": args.load_test})
+    domain = dds_domain(args)
     # Everything is checked before anything opens, and before a private namespace is entered.
     load_test_joints = _load_test_joints(args, plan_session(options).robot) if args.load_test else []
     if options.emulated:
@@ -145,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
             plan.stage("virtual prime", t)
         session = open_session(plan, stack)
         session.reports.update(load_test=[], emulator=emulator)
+        if domain is not None:
+            _bridge(session, domain, stack, report, emulated=options.emulated)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
@@ -174,6 +180,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"prime bringup: FAULTED: {problems[0]}{more}", file=sys.stderr)
         return 1
     return 0
+
+
+def _bridge(session: Session, domain: int, stack: contextlib.ExitStack, report, *, emulated: bool) -> None:
+    """Put the run on the ROS 2 graph; the bridge closes before the session's teardown, and its figures go in
+    the summary. Stamps are in the system clock, as ROS 2 nodes on the robot stamp theirs."""
+    from humanoid_prime.dds.bridge import bridge_manager
+
+    bridge = bridge_manager(session.manager, domain=domain, epoch_offset=time.time() - time.monotonic())
+    stack.callback(lambda: session.reports.__setitem__("dds", bridge.summary()))
+    stack.callback(bridge.close)
+    where = " (inside the emulation's private network namespace: only processes in it can join)" if emulated else ""
+    report(f"DDS: ROS 2 domain {domain}{where}")
 
 
 def _refuse(mode: Mode) -> None:

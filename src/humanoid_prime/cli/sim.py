@@ -49,7 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "sim", help="run the simulated Prime through every mode (MuJoCo, headless by default)",
         description="Bring up the simulated Prime (MuJoCo, MIT law at the physics rate) with the staged start and "
                     f"run the {DEMO_SECONDS:g} s demonstration: ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION, REMOTE "
-                    "(a scripted command stream; with --dds, commands from the ROS 2 graph), DAMPING. On a terminal, keys 1-5 switch modes and q quits.")
+                    "(a scripted command stream; with --dds, commands from the ROS 2 graph), DAMPING. On a "
+                    "terminal, keys 1-5 switch modes and q quits.")
     p.add_argument("--duration", type=SECONDS, metavar="S",
                    help=f"simulated seconds to run (default: {DEMO_SECONDS:g}; with --mode, until q or Ctrl-C)")
     p.add_argument("--fast", action="store_true", help="run as fast as possible instead of in real time")

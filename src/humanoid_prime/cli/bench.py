@@ -26,6 +26,8 @@ SUITES: dict[str, tuple[str, str, str]] = {
                  "EthercatSystem on the emulated ring: cold bring-up at 50 Hz and 1 kHz, cycle cost"),
     "bringup": ("humanoid_prime.bench.bringup", "bench_bringup",
                 "prime bringup --emulate: 14 joints, mode switches, 50 Hz loop"),
+    "dds": ("humanoid_prime.bench.dds", "bench_dds",
+            "the simulated Prime at 50 Hz and 1 kHz with and without DDS, and a subscriber process"),
 }
 
 _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": operator.ge}
@@ -42,6 +44,8 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
      "control tick, 14 joints, read+update+write (us, median)"),
     ("bringup", "tick_us.p99", "<=", b.TARGET_TICK_P99_US, "control tick, 14 joints (us, p99)"),
     ("bringup", "jitter_us.p99", "<=", b.TARGET_JITTER_P99_US, "loop period jitter at 50 Hz (us, p99)"),
+    ("dds", "added_tick_us_median", "<=", b.TARGET_DDS_ADDED_TICK_US, "DDS: added tick cost (us, median, worst rate)"),
+    ("dds", "overruns_with_dds", "<=", 0, "DDS: overruns at 50 Hz and 1 kHz"),
 )
 
 

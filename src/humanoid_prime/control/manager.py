@@ -140,6 +140,7 @@ class ControllerManager:
         self._flag_sources: tuple[SafetyFlags, ...] = (*self.resources.components, *self.controllers.values(),
                                                         self.flags)
         self._flags_seen = -1
+        self._end_of_tick: tuple[Callable[[], None], ...] = ()
         self._lock = threading.Lock()
         self._request: Mode | None = None
         self._reset = False
@@ -224,6 +225,15 @@ class ControllerManager:
     def flag_source_names(self) -> list[str]:
         """Every source of /safety_status flags, in order (the first part of each flag key)."""
         return [source.name for source in self._flag_sources]
+
+    def add_end_of_tick(self, hook: Callable[[], None]) -> None:
+        """Call ``hook`` at the end of every tick, after ``write()`` (it must be quick: it is part of the tick).
+        Work handed to another thread from here runs while the loop waits for its next period, instead of
+        competing with the tick for the interpreter."""
+        self._end_of_tick = (*self._end_of_tick, hook)
+
+    def remove_end_of_tick(self, hook: Callable[[], None]) -> None:
+        self._end_of_tick = tuple(h for h in self._end_of_tick if h is not hook)
 
     def add_flag_source(self, source: SafetyFlags) -> None:
         """Publish ``source``'s flags on /safety_status too (e.g. the eRob impedance manager)."""
@@ -331,6 +341,8 @@ class ControllerManager:
             self._update(now, dt)
         resources.write(now)
         self._publish_safety(now)
+        for hook in self._end_of_tick:
+            hook()
         self.tick_count += 1
         self.stats.record(self.clock() - began, math.nan if last is None else dt)
 

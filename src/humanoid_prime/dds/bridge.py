@@ -7,8 +7,9 @@ change: one status per flag source, one key/value per flag). In: the REMOTE cont
 (prime_msgs/MitCommand) and ``/prime/mode_request`` (std_msgs/String), which takes the same path, with the same
 refusals, as ``prime switch``.
 
-The control tick never waits on DDS: the tick thread copies a joint state into a slot of a fixed ring and
-hands the slot number to the publisher thread, which converts and writes. When the ring is full (the
+The control tick never waits on DDS: the tick thread copies a joint state into a slot of a fixed ring and,
+at the end of the tick (after ``write()``), hands what the tick produced to the publisher thread, which
+converts and writes while the loop waits for its next period. When the ring is full (the
 publisher, the transport or a reader fell behind) the sample is dropped, counted and flagged; the tick goes on.
 Incoming samples are read on their own thread and enter the stack through the same paths as in-process ones.
 """
@@ -132,6 +133,7 @@ class DdsBridge(SafetyFlags):
         self._latency = np.full(LATENCY_WINDOW, np.nan)
         self._latencies = 0
         self._work: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._pending: list[Any] = []  # produced by the current tick, handed over at its end
         self._stop = threading.Event()
 
         self._joint_states = node.writer(joint_states_topic, msg.JointState)
@@ -152,6 +154,7 @@ class DdsBridge(SafetyFlags):
         self._reader = threading.Thread(target=self._read_loop, name="dds-read", daemon=True)
         self._publisher.start()
         self._reader.start()
+        self.detach: Callable[[], None] | None = None  # undoes bridge_manager's attachment
         topics.subscribe(joint_states_topic, self._on_joint_states)
         topics.subscribe(CONTROL_MODE, self._on_control_mode, latched=True)
         topics.subscribe(SAFETY_STATUS, self._on_safety, latched=True)
@@ -175,13 +178,21 @@ class DdsBridge(SafetyFlags):
         self._stamps[k] = message.stamp
         self._queued_at[k] = self.clock()
         self._head = head + 1
-        self._work.put(k)
+        self._pending.append(k)
 
     def _on_control_mode(self, message: ControlMode) -> None:
-        self._work.put(message)
+        self._pending.append(message)
 
     def _on_safety(self, message: SafetyStatus) -> None:
-        self._work.put(message)
+        self._pending.append(message)
+
+    def end_of_tick(self) -> None:
+        """Hand this tick's samples to the publisher thread (the manager calls it after ``write()``)."""
+        pending = self._pending
+        if pending:
+            self._pending = []
+            for item in pending:
+                self._work.put(item)
 
     # ---- the publisher thread --------------------------------------------------------------------
 
@@ -285,6 +296,9 @@ class DdsBridge(SafetyFlags):
         self.topics.unsubscribe(self.joint_states_topic, self._on_joint_states)
         self.topics.unsubscribe(CONTROL_MODE, self._on_control_mode)
         self.topics.unsubscribe(SAFETY_STATUS, self._on_safety)
+        if self.detach is not None:
+            self.detach()
+        self.end_of_tick()  # what the last tick produced is still written
         self._work.put(None)
         self._stop.set()
         self._guard.set(True)
@@ -310,4 +324,7 @@ def bridge_manager(manager: ControllerManager, *, domain: int | None = None,
         node.close()
         raise
     manager.add_flag_source(bridge)
+    manager.add_end_of_tick(bridge.end_of_tick)
+    bridge.detach = lambda: manager.remove_end_of_tick(bridge.end_of_tick)
+    bridge.end_of_tick()  # the latched mode and status it was given on subscribing
     return bridge

@@ -1,0 +1,49 @@
+"""The DDS options' bad input: one line, non-zero, before anything starts."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from humanoid_prime.bench.dds import bench_dds
+
+PRIME = [sys.executable, "-m", "humanoid_prime"]
+
+
+@pytest.mark.parametrize(("args", "env", "says"), [
+    (["sim", "--domain", "3"], {}, "prime sim: --domain needs --dds"),
+    (["sim", "--dds", "--domain", "999"], {}, "--domain: must be in 0..232, got 999"),
+    (["bringup", "--dds", "--domain", "-1"], {}, "--domain"),
+    (["sim", "--dds"], {"ROS_DOMAIN_ID": "abc"}, "prime sim: ROS_DOMAIN_ID='abc' is not a domain id"),
+    (["sim", "--dds"], {"ROS_DOMAIN_ID": "500"}, "prime sim: ROS_DOMAIN_ID 500 is outside the ROS 2 domain ids"),
+    (["remote", "--wave", "left_knee"], {}, "prime remote: --wave: 'left_knee' is not a joint of Prime"),
+    (["remote", "--pose", "dab"], {}, "prime remote: --pose: no pose 'dab'"),
+    (["remote", "--amplitude", "nan"], {}, "--amplitude"),
+])
+def test_bad_dds_input_is_one_line(args, env, says, domain, monkeypatch):
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    done = subprocess.run([*PRIME, *args, "--duration", "1"], capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0], done.stderr
+
+
+def test_remote_without_a_prime_says_so(domain):
+    done = subprocess.run([*PRIME, "remote", "--wait", "0.5", "--duration", "1"], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 1
+    assert done.stderr.strip().splitlines() == [
+        f"prime remote: no joint states from Prime on ROS 2 domain {domain} within 0.5 s (is it running with --dds, "
+        "in the same domain, reachable on this network?)"]
+
+
+def test_the_dds_benchmark_measures_both_rates_with_a_subscriber(domain):
+    results = bench_dds(seconds=0.5)
+    for rate in ("50_hz", "1000_hz"):
+        bridged = results[rate]["with"]
+        assert bridged["bridge"]["topics"]["/prime/joint_states"]["published"] == bridged["ticks"]
+        assert bridged["subscriber"]["received"] > 0
+        assert results[rate]["without"]["ticks"] == bridged["ticks"]

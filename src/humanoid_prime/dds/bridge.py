@@ -7,16 +7,14 @@ change: one status per flag source, one key/value per flag). In: the REMOTE cont
 (prime_msgs/MitCommand) and ``/prime/mode_request`` (std_msgs/String), which takes the same path, with the same
 refusals, as ``prime switch``.
 
-The control tick never waits on DDS: the tick thread copies a joint state into a slot of a fixed ring and,
-at the end of the tick (after ``write()``), hands what the tick produced to the publisher thread, which
-converts and writes while the loop waits for its next period. When the ring is full (the
-publisher, the transport or a reader fell behind) the sample is dropped, counted and flagged; the tick goes on.
+The control tick never waits on DDS: a ``TickTap`` hands each tick's joint state to the publisher thread at
+the end of the tick, which converts and writes while the loop waits for its next period. When the publisher,
+the transport or a reader falls behind, samples are dropped, counted and flagged; the tick goes on.
 Incoming samples are read on their own thread and enter the stack through the same paths as in-process ones.
 """
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -27,26 +25,21 @@ from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, Sample
 from cyclonedds.internal import InvalidSample
 from cyclonedds.util import duration
 
-from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.control.tap import SLOTS, TickSample, TickTap
 from humanoid_prime.control.topics import (
     CONTROL_MODE,
-    JOINT_STATES,
-    REMOTE_COMMAND,
     SAFETY_STATUS,
     ControlMode,
     SafetyStatus,
-    TopicBus,
 )
-from humanoid_prime.control.topics import JointState as JointStateMessage
 from humanoid_prime.control.topics import MitCommand as MitCommandMessage
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.node import DdsNode
 from humanoid_prime.modes import Mode
 
 MODE_REQUEST = "/prime/mode_request"
-RING_SLOTS = 64  # joint states in flight to the publisher thread before one is dropped
 LATENCY_WINDOW = 4096  # recent tick-to-written latencies kept for the summary
 HARDWARE_ID = "prime"
 READ_BATCH = 32
@@ -92,54 +85,42 @@ def diagnostics(status: SafetyStatus, sources: Sequence[str], epoch_offset: floa
 
 class DdsBridge(SafetyFlags):
     """Bridges a controller manager's topics to DDS (module docstring). A flag source of its own (``dds``):
-    dropped joint states, refused mode requests.
+    dropped joint states, refused mode requests, transport errors.
 
     ``epoch_offset`` turns the loop clock into message stamps: ``time.time() - time.monotonic()`` for a run on
     the robot (stamps in the system clock, as ROS 2 nodes use), 0 in simulation (stamps in simulated time, as
     ROS 2 does with ``use_sim_time``). ``request_mode`` is the run's mode request path (None: refuse).
     """
 
-    def __init__(self, node: DdsNode, topics: TopicBus, robot: Robot, *, period: float,
-                 request_mode: Callable[[str], None] | None, sources: Sequence[str] = (),
-                 epoch_offset: float = 0.0, joint_states_topic: str = JOINT_STATES,
-                 remote_topic: str = REMOTE_COMMAND, remote_refusals: Callable[[], tuple[int, str]] | None = None,
-                 slots: int = RING_SLOTS, clock: Callable[[], float] = time.perf_counter) -> None:
+    def __init__(self, node: DdsNode, manager: ControllerManager, *, request_mode: Callable[[str], None] | None,
+                 epoch_offset: float = 0.0, slots: int = SLOTS, clock: Callable[[], float] = time.perf_counter) -> None:
         super().__init__("dds")
         self.node = node
-        self.topics = topics
-        self.names = list(robot.names)
-        self.period = period
+        self.manager = manager
+        self.topics = manager.topics
+        self.names = list(manager.robot.names)
+        self.period = manager.period
         self.request_mode = request_mode
-        self.sources = [*sources, self.name]
+        self.sources = [*manager.flag_source_names, self.name]
         self.epoch_offset = epoch_offset
-        self.joint_states_topic = joint_states_topic
-        self.remote_topic = remote_topic
-        self.remote_refusals = remote_refusals
+        self.joint_states_topic = manager.config.joint_states_topic
+        self.remote_topic = manager.config.remote.topic
         self.clock = clock
         self.counts = {
-            joint_states_topic: TopicCounts("sensor_msgs/msg/JointState", "out"),
+            self.joint_states_topic: TopicCounts("sensor_msgs/msg/JointState", "out"),
             CONTROL_MODE: TopicCounts("std_msgs/msg/String", "out"),
             SAFETY_STATUS: TopicCounts("diagnostic_msgs/msg/DiagnosticArray", "out"),
-            remote_topic: TopicCounts("prime_msgs/msg/MitCommand", "in"),
+            self.remote_topic: TopicCounts("prime_msgs/msg/MitCommand", "in"),
             MODE_REQUEST: TopicCounts("std_msgs/msg/String", "in"),
         }
-        n = robot.n
-        self._slots = slots
-        self._ring = np.zeros((slots, 3, n))
-        self._stamps = np.zeros(slots)
-        self._queued_at = np.zeros(slots)
-        self._head = 0  # written by the tick thread only
-        self._tail = 0  # written by the publisher thread only
         self._latency = np.full(LATENCY_WINDOW, np.nan)
         self._latencies = 0
-        self._work: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._pending: list[Any] = []  # produced by the current tick, handed over at its end
         self._stop = threading.Event()
 
-        self._joint_states = node.writer(joint_states_topic, msg.JointState)
+        self._joint_states = node.writer(self.joint_states_topic, msg.JointState)
         self._mode = node.writer(CONTROL_MODE, msg.String, latched=True, depth=1)
         self._safety = node.writer(SAFETY_STATUS, msg.DiagnosticArray, latched=True, depth=1)
-        self._commands = node.reader(remote_topic, msg.MitCommand)
+        self._commands = node.reader(self.remote_topic, msg.MitCommand)
         self._mode_requests = node.reader(MODE_REQUEST, msg.String)
         self._guard = GuardCondition(node.participant)
         self._waitset = WaitSet(node.participant)
@@ -149,85 +130,48 @@ class DdsBridge(SafetyFlags):
         for condition in self._conditions.values():
             self._waitset.attach(condition)
         self._waitset.attach(self._guard)
-
-        self._publisher = threading.Thread(target=self._publish_loop, name="dds-publish", daemon=True)
         self._reader = threading.Thread(target=self._read_loop, name="dds-read", daemon=True)
-        self._publisher.start()
         self._reader.start()
-        self.detach: Callable[[], None] | None = None  # undoes bridge_manager's attachment
-        topics.subscribe(joint_states_topic, self._on_joint_states)
-        topics.subscribe(CONTROL_MODE, self._on_control_mode, latched=True)
-        topics.subscribe(SAFETY_STATUS, self._on_safety, latched=True)
         self._closed = False
+        self.tap = TickTap(manager, self, name="dds-publish", on_drop=self._on_drop, slots=slots, clock=clock)
 
-    # ---- the tick thread: copy and hand over, never wait ----------------------------------------
+    def _on_drop(self, dropped: int) -> None:
+        self.counts[self.joint_states_topic].dropped = dropped
+        self.set_flag("dropped", f"{dropped} joint states dropped: the DDS publisher fell behind the loop",
+                      Level.WARN)
 
-    def _on_joint_states(self, message: JointStateMessage) -> None:
-        head = self._head
-        if head - self._tail >= self._slots:
-            counts = self.counts[self.joint_states_topic]
-            counts.dropped += 1
-            self.set_flag("dropped", f"{counts.dropped} joint states dropped: the DDS publisher fell behind the "
-                                     "loop", Level.WARN)
-            return
-        k = head % self._slots
-        row = self._ring[k]
-        row[0] = message.position
-        row[1] = message.velocity
-        row[2] = message.effort
-        self._stamps[k] = message.stamp
-        self._queued_at[k] = self.clock()
-        self._head = head + 1
-        self._pending.append(k)
+    # ---- the publisher thread (the tap's consumer) -----------------------------------------------
 
-    def _on_control_mode(self, message: ControlMode) -> None:
-        self._pending.append(message)
+    def on_tick(self, sample: TickSample) -> None:
+        data = sample.data
+        self._write(self._joint_states, msg.JointState(
+            header=msg.Header(stamp=msg.stamp(sample.stamp + self.epoch_offset)), name=self.names,
+            position=data[0].tolist(), velocity=data[1].tolist(), effort=data[2].tolist()))
+        latency = self.clock() - sample.queued_at
+        self._latency[self._latencies % LATENCY_WINDOW] = latency
+        self._latencies += 1
+        counts = self.counts[self.joint_states_topic]
+        counts.samples += 1
+        if latency > self.period:
+            counts.late += 1
 
-    def _on_safety(self, message: SafetyStatus) -> None:
-        self._pending.append(message)
+    def on_mode(self, message: ControlMode) -> None:
+        self._write(self._mode, msg.String(data=message.mode))
+        self.counts[CONTROL_MODE].samples += 1
 
-    def end_of_tick(self) -> None:
-        """Hand this tick's samples to the publisher thread (the manager calls it after ``write()``)."""
-        pending = self._pending
-        if pending:
-            self._pending = []
-            for item in pending:
-                self._work.put(item)
+    def on_safety(self, message: SafetyStatus) -> None:
+        self._write(self._safety, diagnostics(message, self.sources, self.epoch_offset))
+        self.counts[SAFETY_STATUS].samples += 1
 
-    # ---- the publisher thread --------------------------------------------------------------------
+    def on_remote(self, message: MitCommandMessage) -> None:  # the bridge takes no remote tap
+        """Not used: the bridge is the source of remote commands, not their consumer."""
 
-    def _publish_loop(self) -> None:
-        while True:
-            item = self._work.get()
-            if item is None:
-                return
-            try:
-                self._publish(item)
-            except Exception as exc:  # a transport error is a flag, never the end of publishing
-                self.set_flag("publish", f"DDS write failed: {type(exc).__name__}: {exc}", Level.WARN)
-
-    def _publish(self, item: Any) -> None:
-        if isinstance(item, int):
-            row = self._ring[item]
-            sample = msg.JointState(
-                header=msg.Header(stamp=msg.stamp(float(self._stamps[item]) + self.epoch_offset)), name=self.names,
-                position=row[0].tolist(), velocity=row[1].tolist(), effort=row[2].tolist())
-            queued_at = float(self._queued_at[item])
-            self._tail += 1  # the slot is free again once its values are out
-            self._joint_states.write(sample)
-            latency = self.clock() - queued_at
-            self._latency[self._latencies % LATENCY_WINDOW] = latency
-            self._latencies += 1
-            counts = self.counts[self.joint_states_topic]
-            counts.samples += 1
-            if latency > self.period:
-                counts.late += 1
-        elif isinstance(item, ControlMode):
-            self._mode.write(msg.String(data=item.mode))
-            self.counts[CONTROL_MODE].samples += 1
-        elif isinstance(item, SafetyStatus):
-            self._safety.write(diagnostics(item, self.sources, self.epoch_offset))
-            self.counts[SAFETY_STATUS].samples += 1
+    def _write(self, writer: Any, sample: Any) -> None:
+        try:
+            writer.write(sample)
+        except Exception as exc:  # a transport error is a flag, never the end of publishing
+            self.set_flag("publish", f"DDS write failed: {type(exc).__name__}: {exc}", Level.WARN)
+            raise
 
     # ---- the reader thread -----------------------------------------------------------------------
 
@@ -275,9 +219,9 @@ class DdsBridge(SafetyFlags):
 
     def summary(self) -> dict[str, Any]:
         topics = {topic: counts.as_dict() for topic, counts in self.counts.items()}
-        if self.remote_refusals is not None:
-            refused, reason = self.remote_refusals()
-            topics[self.remote_topic].update(refused=refused, last_refusal=reason)
+        remote = self.manager.controllers.get(Mode.REMOTE.controller)
+        if remote is not None:  # every refusal of a command from the graph is REMOTE's
+            topics[self.remote_topic].update(refused=remote.rejected, last_refusal=remote.last_rejection)
         latency = self._latency[np.isfinite(self._latency)] * 1e6
         return {
             "domain": self.node.domain,
@@ -289,20 +233,13 @@ class DdsBridge(SafetyFlags):
         }
 
     def close(self, timeout: float = 5.0) -> None:
-        """Stop both threads (what is queued is written first), then leave the DDS domain."""
+        """Detach from the loop (what is queued is written first), stop reading, then leave the DDS domain."""
         if self._closed:
             return
         self._closed = True
-        self.topics.unsubscribe(self.joint_states_topic, self._on_joint_states)
-        self.topics.unsubscribe(CONTROL_MODE, self._on_control_mode)
-        self.topics.unsubscribe(SAFETY_STATUS, self._on_safety)
-        if self.detach is not None:
-            self.detach()
-        self.end_of_tick()  # what the last tick produced is still written
-        self._work.put(None)
+        self.tap.close(timeout)
         self._stop.set()
         self._guard.set(True)
-        self._publisher.join(timeout)
         self._reader.join(timeout)
         self.node.close()
 
@@ -311,20 +248,12 @@ def bridge_manager(manager: ControllerManager, *, domain: int | None = None,
                    request_mode: Callable[[str], None] | None = None, epoch_offset: float = 0.0) -> DdsBridge:
     """Put ``manager``'s topics on DDS (domain ``domain``, else ``ROS_DOMAIN_ID``); its flags join
     /safety_status. ``request_mode`` defaults to the manager's own (which refuses in a broadcaster-only run)."""
-    remote = manager.controllers[Mode.REMOTE.controller]
     node = DdsNode(domain)
     try:
-        bridge = DdsBridge(
-            node, manager.topics, manager.robot, period=manager.period,
-            request_mode=request_mode or manager.request_mode, sources=manager.flag_source_names,
-            epoch_offset=epoch_offset, joint_states_topic=manager.config.joint_states_topic,
-            remote_topic=manager.config.remote.topic,
-            remote_refusals=lambda: (remote.rejected, remote.last_rejection))
+        bridge = DdsBridge(node, manager, request_mode=request_mode or manager.request_mode,
+                           epoch_offset=epoch_offset)
     except BaseException:
         node.close()
         raise
     manager.add_flag_source(bridge)
-    manager.add_end_of_tick(bridge.end_of_tick)
-    bridge.detach = lambda: manager.remove_end_of_tick(bridge.end_of_tick)
-    bridge.end_of_tick()  # the latched mode and status it was given on subscribing
     return bridge

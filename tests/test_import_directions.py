@@ -1,4 +1,4 @@
-"""The package's rooms import one way: cli -> runtime -> dds -> calibration -> drivers -> control -> config ->
+"""The package's rooms import one way: cli -> runtime -> record -> dds -> calibration -> drivers -> control -> config ->
 foundation (errors, files, modes), with the simulation, the virtual Prime and the benchmarks beside the CLI.
 Production code never imports what pretends to be hardware (virtual/)."""
 
@@ -11,7 +11,7 @@ import humanoid_prime
 
 PACKAGE = Path(humanoid_prime.__file__).parent
 FOUNDATION = {"errors", "files", "modes", "__init__"}
-LAYERS = ("foundation", "config", "control", "drivers", "calibration", "dds", "runtime")
+LAYERS = ("foundation", "config", "control", "drivers", "calibration", "dds", "record", "runtime")
 APPS = {  # rooms above the layers, and which of their peers each may import
     "sim": set(),
     "virtual": {"sim"},

@@ -52,7 +52,8 @@ def calibrated(robot, truth, tmp_path_factory) -> tuple[dict, Path, Path]:
     tmp = tmp_path_factory.mktemp("calibrate")
     output, plot = tmp / "prime_calibration.yaml", tmp / "sweeps.png"
     proc = prime("calibrate", "--emulate", "--truth", str(truth[1]), "--scripted", "--output", str(output),
-                 "--plot", str(plot), "--socket", str(tmp / "control.sock"), "--json")
+                 "--plot", str(plot), "--socket", str(tmp / "control.sock"), "--record", str(tmp / "run.mcap"),
+                 "--json")
     assert proc.returncode == 0, proc.stderr
     joints = json.loads(proc.stdout)["joints"]
     return {"joints": {j: r for j, r in joints.items() if r["status"] != "carried"}}, output, plot
@@ -83,6 +84,20 @@ def test_joints_wired_backwards_are_flagged_and_a_flip_recovers_them(robot, trut
 def test_the_plot_is_written(calibrated):
     _, _, plot = calibrated
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_both_phases_are_in_one_recording(robot, calibrated):
+    """--record: the EtherCAT phase and the CAN phase, one after the other, in one readable file."""
+    from rosbags.highlevel import AnyReader
+
+    _, output, _ = calibrated
+    with AnyReader([output.parent / "run.mcap"]) as reader:
+        states = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                  if c.topic == "/prime/joint_states"]
+    assert len(states) > 100 and all(tuple(s.name) == robot.names for s in states)
+    for joint in ("left_elbow_pitch", "left_wrist_pitch"):  # one of each phase (NaN while the other bus runs)
+        swept = [s.position[robot.index(joint)] for s in states]
+        assert max(v for v in swept if v == v) - min(v for v in swept if v == v) > 0.5, joint
 
 
 def test_after_folding_every_joint_at_a_stop_reads_its_limit(robot, truth, calibrated, tmp_path):

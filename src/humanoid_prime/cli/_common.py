@@ -52,6 +52,19 @@ def dds_domain(args: argparse.Namespace) -> int | None:
     return domain_id(args.domain)
 
 
+def mcap_file(text: str) -> Path:
+    """argparse type of a recording: an .mcap file that can be written."""
+    if not text.endswith(".mcap"):
+        raise argparse.ArgumentTypeError(f"a recording is an .mcap file, got {text!r}")
+    return output_file(text)
+
+
+def add_record_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--record", metavar="FILE.mcap", type=mcap_file,
+                        help="record every topic of the run to FILE.mcap (ROS 2 messages: ros2 bag play, Foxglove, "
+                             "rosbags and `prime plot` read it)")
+
+
 def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) -> None:
     """``--emulate`` and the virtual Prime's tunables (``ring_options`` reads them back)."""
     parser.add_argument("--emulate", action="store_true", help=emulate_help)

@@ -16,6 +16,7 @@ from humanoid_prime.cli._common import (
     add_dds_options,
     add_emulation_options,
     add_json_option,
+    add_record_option,
     add_socket_option,
     dds_domain,
     output_dir,
@@ -75,6 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="keep the folded per-slave eRob configs here")
     add_socket_option(p)
     add_dds_options(p)
+    add_record_option(p)
     p.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
     p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
     add_json_option(p)
@@ -149,8 +151,11 @@ def run(args: argparse.Namespace) -> int:
             plan.stage("virtual prime", t)
         session = open_session(plan, stack)
         session.reports.update(load_test=[], emulator=emulator)
+        epoch_offset = time.time() - time.monotonic()  # stamps in the system clock, as ROS 2 nodes on the robot
+        if args.record is not None:
+            _record(session, args.record, stack, epoch_offset)
         if domain is not None:
-            _bridge(session, domain, stack, report, emulated=options.emulated)
+            _bridge(session, domain, stack, report, emulated=options.emulated, epoch_offset=epoch_offset)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
@@ -182,12 +187,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bridge(session: Session, domain: int, stack: contextlib.ExitStack, report, *, emulated: bool) -> None:
+def _record(session: Session, path: Path, stack: contextlib.ExitStack, epoch_offset: float) -> None:
+    """Record the run; the file is finished before the session's teardown, and its figures go in the summary."""
+    from humanoid_prime.record.mcap import Recorder
+
+    recorder = Recorder(path, session.manager, epoch_offset=epoch_offset)
+    stack.callback(lambda: session.reports.__setitem__("record", recorder.summary()))
+    stack.callback(recorder.close)
+
+
+def _bridge(session: Session, domain: int, stack: contextlib.ExitStack, report, *, emulated: bool,
+            epoch_offset: float) -> None:
     """Put the run on the ROS 2 graph; the bridge closes before the session's teardown, and its figures go in
-    the summary. Stamps are in the system clock, as ROS 2 nodes on the robot stamp theirs."""
+    the summary."""
     from humanoid_prime.dds.bridge import bridge_manager
 
-    bridge = bridge_manager(session.manager, domain=domain, epoch_offset=time.time() - time.monotonic())
+    bridge = bridge_manager(session.manager, domain=domain, epoch_offset=epoch_offset)
     stack.callback(lambda: session.reports.__setitem__("dds", bridge.summary()))
     stack.callback(bridge.close)
     where = " (inside the emulation's private network namespace: only processes in it can join)" if emulated else ""

@@ -34,6 +34,7 @@ from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
     add_json_option,
+    add_record_option,
     add_socket_option,
     output_file,
     ring_options,
@@ -87,6 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="the stops were swept in any order: skip the direction check that relies on sweeping "
                         "each joint to its lower stop first")
     add_socket_option(p)
+    add_record_option(p)
     p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
     add_json_option(p)
     p.set_defaults(func=run)
@@ -138,6 +140,28 @@ def _virtual(args: argparse.Namespace, ring: dict[str, Any], stack: contextlib.E
     from humanoid_prime.virtual.harness import attach_virtual_prime
 
     return attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring)
+
+
+class _Recording:
+    """``--record``: one file for the whole run, each phase's session attached in turn (None: no recording)."""
+
+    def __init__(self, path: Path | None, stack: contextlib.ExitStack) -> None:
+        self.path = path
+        self.stack = stack
+        self.recorder: Any = None
+
+    def attach(self, session: Session, stack: contextlib.ExitStack) -> None:
+        if self.path is None:
+            return
+        if self.recorder is None:
+            from humanoid_prime.record.mcap import Recorder
+
+            # Stamps in the system clock, as on the robot; the file is finished when the run ends.
+            self.recorder = Recorder(self.path, session.manager, epoch_offset=time.time() - time.monotonic())
+            self.stack.callback(self.recorder.close)
+        else:
+            self.recorder.attach(session.manager)
+        stack.callback(self.recorder.detach)  # before this phase's session closes
 
 
 def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: Any, server: ControlServer,
@@ -193,11 +217,12 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any
     with stop_on_signals(finish), contextlib.ExitStack() as run_stack:
         server = run_stack.enter_context(ControlServer(path=args.socket))  # a second instance stops here
         virtual = _virtual(args, ring, run_stack)
+        recording = _Recording(args.record, run_stack)
         for number, backends in enumerate(phases, start=1):
             if finish.is_set():
                 break
             result, phase_faults = _phase(args, backends, calibration, virtual, server, finish, console,
-                                          f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}")
+                                          f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}", recording)
             faults += phase_faults
             if result.swept:
                 write(output, result, result.robot)
@@ -217,11 +242,13 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any
 
 
 def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: Any, server: ControlServer,
-           finish: threading.Event, console: Console, title: str) -> tuple[CalibrationResult, list[dict[str, Any]]]:
+           finish: threading.Event, console: Console, title: str,
+           recording: _Recording) -> tuple[CalibrationResult, list[dict[str, Any]]]:
     """One phase: bring its bus up with identity calibration, track its joints until it ends, compute."""
     stop = threading.Event()  # this phase ends (the whole run ends too when ``finish`` is set)
     with contextlib.ExitStack() as stack:
         session = _open(args, backends, identity_from(prior), virtual, server, stack)
+        recording.attach(session, stack)
         robot = session.robot
         joints = tracked_joints(robot, backends)
         scripted = None
@@ -294,6 +321,7 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
         server = stack.enter_context(ControlServer(path=args.socket))
         virtual = _virtual(args, ring, stack)
         session = _open(args, args.backends, calibration, virtual, server, stack)
+        _Recording(args.record, stack).attach(session, stack)
         robot = session.robot
         joints = tracked_joints(robot, args.backends)
         chosen = tuple(_joint_list(args.joints)) or joints

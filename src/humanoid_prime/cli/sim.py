@@ -23,6 +23,7 @@ from humanoid_prime.cli._common import (
     add_config_options,
     add_dds_options,
     add_json_option,
+    add_record_option,
     dds_domain,
     output_file,
     print_json,
@@ -64,6 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--socket", metavar="PATH",
                    help=f"control socket for 'prime switch' (default: {default_socket_path()})")
     add_dds_options(p)
+    add_record_option(p)
     add_config_options(p, controllers=True)
     add_json_option(p)
     p.set_defaults(func=run)
@@ -171,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         system, manager, start, close = hil.system, hil.manager, hil.start, hil.close
     else:
         system, manager = build_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
-        start, close = manager.start, manager.shutdown
+        start, close = (lambda: manager.start(now=system.sim_time)), manager.shutdown
     try:
         # With --dds, REMOTE follows the graph (prime remote, a policy node), not the scripted stream.
         stream = demo_stream(robot, config, manager) if domain is None else None
@@ -211,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
         for hook in hooks:
             hook()
 
-    bridge = None
+    bridge = recorder = None
     with contextlib.ExitStack() as stack, _sigterm_stops():
         if close_viewer is not None:
             stack.callback(close_viewer)
@@ -221,6 +223,11 @@ def run(args: argparse.Namespace) -> int:
             stages = " -> ".join(name for name, _ in manager.stages)
             print(f"staged start: {stages} ({sum(s for _, s in manager.stages) * 1e3:.1f} ms); "
                   f"ZERO_TORQUE active, the other mode controllers loaded inactive", file=out, flush=True)
+            if args.record is not None:
+                from humanoid_prime.record.mcap import Recorder
+
+                recorder = Recorder(args.record, manager)  # stamps in simulated time, like the DDS topics
+                stack.callback(recorder.close)
             if domain is not None:
                 from humanoid_prime.dds.bridge import bridge_manager
 
@@ -247,6 +254,8 @@ def run(args: argparse.Namespace) -> int:
     summary["hil"] = args.hil
     if bridge is not None:
         summary["dds"] = bridge.summary()
+    if recorder is not None:
+        summary["record"] = recorder.summary()
     if hil is not None:
         summary["can"] = hil.frame_counts()  # after shutdown: the disable frames count too
 

@@ -163,8 +163,10 @@ class ControllerManager:
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Hardware configure + activate, then the staged controller start; each stage's seconds in ``stages``."""
+    def start(self, now: float | None = None) -> None:
+        """Hardware configure + activate, then the staged controller start; each stage's seconds in ``stages``.
+        ``now`` is the loop time of the start (default: the clock; a simulation passes its simulated time, as
+        it does to ``tick``), the stamp of the first joint state, mode and status."""
         if self._started:
             raise LifecycleError("the controller manager is already started")
         t = self.clock()
@@ -172,7 +174,7 @@ class ControllerManager:
         t = self._stage("hardware configure", t)
         self.resources.activate()
         t = self._stage("hardware activate", t)
-        now = t
+        now = t if now is None else now
         self.resources.read(now)
         if self.broadcaster_only:
             # No controller claims the commands: "no command" everywhere (NaN position, zero gains), which the

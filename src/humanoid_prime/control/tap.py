@@ -159,6 +159,9 @@ class TickTap:
         topics.unsubscribe(SAFETY_STATUS, self._on_latched)
         if self._remote_topic is not None:
             topics.unsubscribe(self._remote_topic, self._on_remote)
+        if self._slot is not None:  # a tick cut short (an exception, Ctrl-C) before its write: not handed over
+            self._slot = None
+            self._head -= 1
         self._end_of_tick()
         self._work.put(None)
         self._thread.join(timeout)

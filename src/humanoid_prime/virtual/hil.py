@@ -91,7 +91,7 @@ class HilSimulation:
         emulator = self.emulator
         emulator.start()
         try:
-            self.manager.start()
+            self.manager.start(now=self.system.sim_time)
         finally:
             emulator.stop()
         self._align_feedback()

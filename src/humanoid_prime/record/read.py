@@ -1,0 +1,85 @@
+"""Reading a Prime recording back: the per-tick series of a run (measured state and the MIT command written),
+and its modes, for plots and replays."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES
+from humanoid_prime.dds import messages as msg
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.record.mcap import COMMAND_TOPIC
+
+
+@dataclass
+class Recording:
+    """Per-tick arrays (ticks x joints) in the recording's joint order; times in seconds from the first joint
+    state, by the time each message was recorded (one clock for every topic)."""
+
+    path: Path
+    names: tuple[str, ...]
+    time: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    command_time: np.ndarray
+    command: np.ndarray  # ticks x 5 x joints: position, velocity, effort, stiffness, damping
+    modes: list[tuple[float, str]] = field(default_factory=list)  # (time, mode) as the mode changed
+
+    def index(self, joint: str) -> int:
+        if joint not in self.names:
+            raise PrimeError(f"{self.path}: no joint {joint!r} in the recording (joints: {', '.join(self.names)})")
+        return self.names.index(joint)
+
+    def commanded_torque(self) -> np.ndarray:
+        """The MIT law's torque at each commanded tick, on the measured state of the same tick:
+        effort + stiffness (position - q) + damping (velocity - dq); NaN where no command was written."""
+        n = min(len(self.command_time), len(self.time))
+        c = self.command[:n]
+        with np.errstate(invalid="ignore"):
+            return c[:, 2] + c[:, 3] * (c[:, 0] - self.position[:n]) + c[:, 4] * (c[:, 1] - self.velocity[:n])
+
+
+def read_recording(path: str | Path) -> Recording:
+    """The joint states, commands and modes of a Prime recording; one clear error when it is not one."""
+    path = Path(path)
+    states: list[msg.JointState] = []
+    commands: list[msg.MitCommand] = []
+    state_times: list[int] = []
+    command_times: list[int] = []
+    modes: list[tuple[float, str]] = []
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            for _, channel, message in reader.iter_messages(topics=[JOINT_STATES, COMMAND_TOPIC, CONTROL_MODE]):
+                if channel.topic == JOINT_STATES:
+                    states.append(msg.JointState.deserialize(message.data))
+                    state_times.append(message.log_time)
+                elif channel.topic == COMMAND_TOPIC:
+                    commands.append(msg.MitCommand.deserialize(message.data))
+                    command_times.append(message.log_time)
+                else:
+                    modes.append((message.log_time, msg.String.deserialize(message.data).data))
+    except OSError as exc:
+        raise PrimeError(f"cannot read {path}: {exc.strerror}") from None
+    except (McapError, ValueError, EOFError, Exception) as exc:  # noqa: B014 -- any decoding failure is one line
+        raise PrimeError(f"{path} is not a readable MCAP recording: {type(exc).__name__}: {exc}") from None
+    if not states:
+        raise PrimeError(f"{path}: no {JOINT_STATES} messages in it (is it a Prime recording?)")
+    names = tuple(states[0].name)
+    t0 = state_times[0]
+
+    def rows(samples, fields):
+        return np.array([[getattr(s, f) for f in fields] for s in samples], dtype=np.float64)
+
+    state = rows(states, ("position", "velocity", "effort"))
+    command = rows(commands, ("position", "velocity", "effort", "stiffness", "damping")) if commands else \
+        np.zeros((0, 5, len(names)))
+    return Recording(path, names, (np.array(state_times) - t0) * 1e-9, state[:, 0], state[:, 1], state[:, 2],
+                     (np.array(command_times, dtype=np.int64) - t0) * 1e-9, command,
+                     [((t - t0) * 1e-9, mode) for t, mode in modes])

@@ -1,8 +1,8 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# Debian packages the tests build against: a Fast DDS peer (ROS 2's default middleware) for the DDS tests.
-TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless
+# Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view.
+TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium
 
 .PHONY: sim test bench lint clean
 

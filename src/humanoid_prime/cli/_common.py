@@ -65,6 +65,15 @@ def add_record_option(parser: argparse.ArgumentParser) -> None:
                              "rosbags and `prime plot` read it)")
 
 
+DEFAULT_WEB_PORT = 8080
+
+
+def add_web_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--web", nargs="?", const=DEFAULT_WEB_PORT, type=whole(at_least=0, at_most=65535),
+                        metavar="PORT", help=f"serve the live 3D view on http://127.0.0.1:PORT/ (default "
+                                             f"{DEFAULT_WEB_PORT}; the next free port if taken; 0: any)")
+
+
 def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) -> None:
     """``--emulate`` and the virtual Prime's tunables (``ring_options`` reads them back)."""
     parser.add_argument("--emulate", action="store_true", help=emulate_help)

@@ -18,6 +18,7 @@ from humanoid_prime.cli._common import (
     add_json_option,
     add_record_option,
     add_socket_option,
+    add_web_option,
     dds_domain,
     output_dir,
     output_file,
@@ -77,6 +78,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_socket_option(p)
     add_dds_options(p)
     add_record_option(p)
+    add_web_option(p)
     p.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
     p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
     add_json_option(p)
@@ -156,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
             _record(session, args.record, stack, epoch_offset)
         if domain is not None:
             _bridge(session, domain, stack, report, emulated=options.emulated, epoch_offset=epoch_offset)
+        if args.web is not None:
+            _web(session, args.web, stack, report)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
@@ -185,6 +189,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"prime bringup: FAULTED: {problems[0]}{more}", file=sys.stderr)
         return 1
     return 0
+
+
+def _web(session: Session, port: int, stack: contextlib.ExitStack, report) -> None:
+    """The live 3D view of the run; its mode buttons take the run's mode request path."""
+    from humanoid_prime.view.feeds import manager_source
+    from humanoid_prime.view.page import PrimeView
+
+    source, detach = manager_source(session.manager)
+    stack.callback(detach)
+    view = PrimeView(session.robot, port=port, request_mode=session.manager.request_mode, source=source)
+    stack.callback(view.close)
+    report(f"view: {view.url}")
 
 
 def _record(session: Session, path: Path, stack: contextlib.ExitStack, epoch_offset: float) -> None:

@@ -36,6 +36,7 @@ from humanoid_prime.cli._common import (
     add_json_option,
     add_record_option,
     add_socket_option,
+    add_web_option,
     output_file,
     ring_options,
 )
@@ -89,6 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "each joint to its lower stop first")
     add_socket_option(p)
     add_record_option(p)
+    add_web_option(p)
     p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
     add_json_option(p)
     p.set_defaults(func=run)
@@ -164,6 +166,49 @@ class _Recording:
         stack.callback(self.recorder.detach)  # before this phase's session closes
 
 
+class _Web:
+    """``--web``: one page for the whole run, showing each phase's joints and the ranges swept so far."""
+
+    def __init__(self, port: int | None, hardware_file: Any, stack: contextlib.ExitStack) -> None:
+        self.view = None
+        self.snapshot: Any = None
+        self.tracker: SweepTracker | None = None
+        self.swept: dict[str, tuple[float, float]] = {}  # the phases before this one
+        if port is None:
+            return
+        from humanoid_prime.config.robot import load_robot
+        from humanoid_prime.view.page import PrimeView
+
+        self.robot = load_robot(hardware_file)
+        self.view = PrimeView(self.robot, port=port, source=self._state, sweeps=True, title="Prime calibration")
+        stack.callback(self.view.close)
+        print(f"view: {self.view.url}", flush=True)
+
+    def attach(self, session: Session, tracker: SweepTracker, stack: contextlib.ExitStack) -> None:
+        if self.view is None:
+            return
+        from humanoid_prime.control.topics import Snapshot
+
+        self.snapshot = Snapshot(session.manager.topics, session.robot.names,
+                                 session.manager.config.joint_states_topic)
+        self.tracker = tracker
+
+        def detach() -> None:
+            self.swept.update(tracker.sweeps())
+            self.snapshot.detach()
+            self.snapshot = self.tracker = None
+
+        stack.callback(detach)
+
+    def _state(self) -> dict[str, Any]:
+        snapshot, tracker = self.snapshot, self.tracker
+        if snapshot is None:
+            raise ConnectionError("between phases")
+        swept = {**self.swept, **(tracker.sweeps() if tracker is not None else {})}
+        nothing = (float("inf"), float("-inf"))
+        return {**snapshot.as_dict(), "sweeps": [swept.get(name, nothing) for name in self.robot.names]}
+
+
 def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: Any, server: ControlServer,
           stack: contextlib.ExitStack) -> Session:
     """A broadcaster-only session on ``backends`` with ``calibration``, answering on ``server``."""
@@ -218,11 +263,13 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any
         server = run_stack.enter_context(ControlServer(path=args.socket))  # a second instance stops here
         virtual = _virtual(args, ring, run_stack)
         recording = _Recording(args.record, run_stack)
+        web = _Web(args.web, args.hardware, run_stack)
         for number, backends in enumerate(phases, start=1):
             if finish.is_set():
                 break
             result, phase_faults = _phase(args, backends, calibration, virtual, server, finish, console,
-                                          f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}", recording)
+                                          f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}", recording,
+                                          web)
             faults += phase_faults
             if result.swept:
                 write(output, result, result.robot)
@@ -242,8 +289,8 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any
 
 
 def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: Any, server: ControlServer,
-           finish: threading.Event, console: Console, title: str,
-           recording: _Recording) -> tuple[CalibrationResult, list[dict[str, Any]]]:
+           finish: threading.Event, console: Console, title: str, recording: _Recording,
+           web: _Web) -> tuple[CalibrationResult, list[dict[str, Any]]]:
     """One phase: bring its bus up with identity calibration, track its joints until it ends, compute."""
     stop = threading.Event()  # this phase ends (the whole run ends too when ``finish`` is set)
     with contextlib.ExitStack() as stack:
@@ -257,6 +304,7 @@ def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual:
             scripted = tuple(j for j in named if j in joints)
         tracker = SweepTracker(robot, joints)
         tracker.attach(session.manager.topics)
+        web.attach(session, tracker, stack)
         keys = "Enter or n: done, go on; q or Ctrl-C: write and stop" if backends != PHASES[args.backends][-1] \
             else "Enter, n, q or Ctrl-C: write and stop"
         if "ec" in backends:

@@ -24,6 +24,7 @@ from humanoid_prime.cli._common import (
     add_dds_options,
     add_json_option,
     add_record_option,
+    add_web_option,
     dds_domain,
     output_file,
     print_json,
@@ -66,6 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"control socket for 'prime switch' (default: {default_socket_path()})")
     add_dds_options(p)
     add_record_option(p)
+    add_web_option(p)
     add_config_options(p, controllers=True)
     add_json_option(p)
     p.set_defaults(func=run)
@@ -237,12 +239,22 @@ def run(args: argparse.Namespace) -> int:
                 stack.callback(bridge.close)
                 print(f"DDS: ROS 2 domain {domain}; publishing /prime/joint_states, /control_mode, /safety_status; "
                       f"REMOTE follows {config.remote.topic}; modes on /prime/mode_request", file=out, flush=True)
-            server = ControlServer(operator_mode, args.socket)
+            from humanoid_prime.control.topics import Snapshot
+
+            snapshot = Snapshot(manager.topics, robot.names, config.joint_states_topic)
+            server = ControlServer(operator_mode, args.socket, state=snapshot.as_dict)
             try:
                 server.start()
                 stack.callback(server.close)
             except (PrimeError, OSError) as exc:
                 print(f"note: no control socket for 'prime switch' ({exc})", file=out, flush=True)
+            if args.web is not None:
+                from humanoid_prime.view.page import PrimeView
+
+                view = PrimeView(robot, port=args.web, request_mode=lambda text: operator_mode(Mode.parse(text)),
+                                 source=snapshot.as_dict, title="Prime (simulated)")
+                stack.callback(view.close)
+                print(f"view: {view.url}", file=out, flush=True)
             keys = stack.enter_context(ModeKeys(operator_mode, stop.set))
             if table is not None:
                 table.keys = keys.active

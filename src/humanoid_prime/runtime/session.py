@@ -33,7 +33,7 @@ from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SI
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
-from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
+from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus, Snapshot
 from humanoid_prime.drivers.erob.gains import check_mode_gains
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
@@ -344,5 +344,6 @@ def serve(session: Session, server: ControlServer) -> None:
                 session.record_fault(f"limp/ring{position}", f"{ring_joints[position]} (ring {position}) was still "
                                      "limp when the run ended; its gate was reset to 0", Level.WARN)
 
+    snapshot = Snapshot(manager.topics, session.robot.names, manager.config.joint_states_topic)
     server.attach(request_mode=request, sdo=sdo, joint_limp=joint_limp, on_close=on_close,
-                  reset=manager.request_reset)
+                  reset=manager.request_reset, state=snapshot.as_dict)

@@ -48,7 +48,8 @@ class ControlServer:
     def __init__(self, request_mode: Callable[[Mode], None] | None = None, path: str | Path | None = None, *,
                  sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None,
                  on_close: Callable[[], None] | None = None,
-                 reset: Callable[[], list[str]] | None = None) -> None:
+                 reset: Callable[[], list[str]] | None = None,
+                 state: Callable[[], dict[str, Any]] | None = None) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
         self.ready = False
         self.request_mode: Callable[[Mode], None] | None = None
@@ -56,8 +57,10 @@ class ControlServer:
         self.sdo: SdoClient | None = None
         self.joint_limp: Callable[[int, bool], str] | None = None
         self.on_close: Callable[[], None] | None = None  # runs once no request can arrive any more
-        if any(h is not None for h in (request_mode, sdo, joint_limp, on_close, reset)):
-            self.attach(request_mode=request_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close, reset=reset)
+        self.state: Callable[[], dict[str, Any]] | None = None  # the run's latest joints, mode and flags
+        if any(h is not None for h in (request_mode, sdo, joint_limp, on_close, reset, state)):
+            self.attach(request_mode=request_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close, reset=reset,
+                        state=state)
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -79,16 +82,18 @@ class ControlServer:
 
     def attach(self, *, request_mode: Callable[[Mode], None] | None = None, sdo: SdoClient | None = None,
                joint_limp: Callable[[int, bool], str] | None = None,
-               on_close: Callable[[], None] | None = None, reset: Callable[[], list[str]] | None = None) -> None:
+               on_close: Callable[[], None] | None = None, reset: Callable[[], list[str]] | None = None,
+               state: Callable[[], dict[str, Any]] | None = None) -> None:
         """Start answering with these handlers (the run is up)."""
         self.request_mode, self.sdo, self.joint_limp, self.on_close = request_mode, sdo, joint_limp, on_close
         self.reset = reset
+        self.state = state
         self.ready = True
 
     def detach(self) -> None:
         """Stop answering for the run (it is tearing down) and run its ``on_close`` once."""
         self.ready = False
-        self.request_mode = self.sdo = self.joint_limp = self.reset = None
+        self.request_mode = self.sdo = self.joint_limp = self.reset = self.state = None
         if self.on_close is not None:
             on_close, self.on_close = self.on_close, None
             on_close()
@@ -130,6 +135,10 @@ class ControlServer:
                 mode = Mode.parse(str(request["mode"]))
                 self.request_mode(mode)
                 return {"ok": True, "mode": mode.value}
+            if op == "state":
+                if self.state is None:
+                    return {"ok": False, "error": "this prime instance publishes no state"}
+                return {"ok": True, **self.state()}
             if op == "reset":
                 if self.reset is None:
                     return {"ok": False, "error": "this prime instance drives no hardware that latches faults"}
@@ -218,6 +227,11 @@ def _answers(path: Path) -> bool:
 def send_mode_request(mode: Mode, path: str | Path | None = None) -> str:
     """Ask the running instance to switch to ``mode``; returns the mode it accepted."""
     return str(request(path, {"op": "mode", "mode": mode.value})["mode"])
+
+
+def request_state(path: str | Path | None = None, timeout: float = 2.0) -> dict[str, Any]:
+    """The running instance's latest joint positions, mode and safety flags."""
+    return request(path, {"op": "state"}, timeout=timeout)
 
 
 def send_reset_request(path: str | Path | None = None) -> list[str]:

@@ -1,0 +1,117 @@
+"""``prime view``: the live 3D view of a running Prime in the browser; ``prime replay``: a recording played
+into the same view."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+
+from humanoid_prime.cli._common import DEFAULT_WEB_PORT, add_config_options, add_socket_option, real, whole
+from humanoid_prime.config.robot import load_robot
+from humanoid_prime.dds.domain import MAX_DOMAIN_ID
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.signals import stop_on_signals
+
+
+def _port(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--port", type=whole(at_least=0, at_most=65535), default=DEFAULT_WEB_PORT, metavar="PORT",
+                   help=f"serve on http://127.0.0.1:PORT/ (default {DEFAULT_WEB_PORT}; the next free port if taken)")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "view", help="the live 3D view of a running prime sim or prime bringup, in the browser",
+        description="Serve a page on 127.0.0.1 (offline: nothing is fetched from the internet) showing the robot "
+                    "posed live, the mode with a button per mode (the same requests and refusals as prime "
+                    "switch), the safety flags and each joint against its limits. It reads a running instance "
+                    "over its control socket, or over DDS with --dds.")
+    add_socket_option(p)
+    p.add_argument("--dds", action="store_true", help="read Prime's topics from the ROS 2 graph instead")
+    p.add_argument("--domain", type=whole(at_least=0, at_most=MAX_DOMAIN_ID), metavar="N",
+                   help="(with --dds) ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
+    _port(p)
+    add_config_options(p)
+    p.set_defaults(func=run_view)
+
+    r = subparsers.add_parser(
+        "replay", help="play a recording (.mcap) into the 3D view",
+        description="Serve the 3D view and play a recording made with --record into it at its own pace "
+                    "(--speed to change it), with its modes and joints; Ctrl-C stops.")
+    r.add_argument("recording", metavar="FILE.mcap")
+    r.add_argument("--speed", type=real(above=0.0, at_most=100.0), default=1.0, metavar="X",
+                   help="playback speed (default 1)")
+    r.add_argument("--loop", action="store_true", help="start again at the end")
+    _port(r)
+    add_config_options(r)
+    r.set_defaults(func=run_replay)
+
+
+def run_view(args: argparse.Namespace) -> int:
+    from humanoid_prime.view.page import PrimeView
+
+    if args.domain is not None and not args.dds:
+        raise PrimeError("--domain needs --dds")
+    robot = load_robot(args.hardware, use_sim=True)
+    stop = threading.Event()
+    source = None
+    if args.dds:
+        from humanoid_prime.dds.domain import domain_id
+        from humanoid_prime.view.feeds import DdsSource
+
+        source = DdsSource(robot, domain_id(args.domain))
+        state, request_mode, where = source, source.request_mode, "the ROS 2 graph"
+    else:
+        from humanoid_prime.view.feeds import socket_source
+
+        state, request_mode = socket_source(args.socket)
+        where = "the control socket"
+    try:
+        with stop_on_signals(stop):
+            view = PrimeView(robot, port=args.port, request_mode=request_mode, source=state)
+            try:
+                print(f"prime view: {view.url} (reading {where}; Ctrl-C stops)", flush=True)
+                stop.wait()
+            finally:
+                view.close()
+    finally:
+        if source is not None:
+            source.close()
+    return 0
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    from humanoid_prime.record.read import read_recording
+    from humanoid_prime.view.page import PrimeView
+
+    recording = read_recording(args.recording)
+    robot = load_robot(args.hardware, use_sim=True)
+    if recording.names != robot.names:
+        raise PrimeError(f"{args.recording}: its joints are not this robot's ({', '.join(recording.names)})")
+    stop = threading.Event()
+    with stop_on_signals(stop):
+        view = PrimeView(robot, port=args.port, title=f"Prime replay: {args.recording}")
+        try:
+            print(f"prime replay: {view.url} ({len(recording.time)} ticks, {recording.time[-1]:.1f} s; Ctrl-C stops)",
+                  flush=True)
+            while not stop.is_set():
+                _play(recording, view, args.speed, stop)
+                if not args.loop:
+                    break
+        finally:
+            view.close()
+    print(f"prime replay: {'stopped' if stop.is_set() else 'played'} {args.recording}", file=sys.stderr)
+    return 0
+
+
+def _play(recording, view, speed: float, stop: threading.Event) -> None:
+    modes = list(recording.modes)
+    began = time.monotonic()
+    for k, t in enumerate(recording.time):
+        wait = began + t / speed - time.monotonic()
+        if wait > 0 and stop.wait(wait):
+            return
+        while modes and modes[0][0] <= t:
+            view.update(mode=modes.pop(0)[1])
+        view.update(position=recording.position[k])

@@ -1,0 +1,141 @@
+"""The browser page of Prime: the robot posed live, the active mode and a button per mode, the safety flags,
+each joint's position against its limits and, during a calibration, each joint's swept range.
+
+Served by viser on 127.0.0.1 only, entirely from the installed package (no CDN, no telemetry: the share
+button and the logo link are off). The page is fed through ``update`` from any thread; a view thread redraws
+at ``rate`` Hz, so nothing here runs on the control thread. Mode buttons call ``request_mode`` with the mode's
+name: the same path, with the same refusals, as ``prime switch``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from humanoid_prime.config.robot import Robot
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import Mode
+from humanoid_prime.view.scene import RobotScene
+
+REDRAW_HZ = 20.0
+LEVEL_MARK = {"WARN": "⚠️", "ERROR": "⛔"}
+
+
+class PrimeView:
+    def __init__(self, robot: Robot, *, port: int = 8080, host: str = "127.0.0.1", title: str = "Prime",
+                 request_mode: Callable[[str], Any] | None = None, source: Callable[[], dict[str, Any]] | None = None,
+                 sweeps: bool = False, model_path: str | Path | None = None, rate: float = REDRAW_HZ) -> None:
+        import viser
+
+        self.robot = robot
+        self.request_mode = request_mode
+        self.source = source  # polled by the view thread for the latest state (else: fed through update)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser announces itself on stdout; ours says the URL
+            try:
+                self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
+            except OSError as exc:
+                raise PrimeError(f"cannot serve the view on {host}:{port}: {exc.strerror or exc}") from None
+        self.port = self.server.get_port()  # viser moves on to the next free port when this one is taken
+        self.url = f"http://{host}:{self.port}/"
+        server = self.server
+        server.gui.configure_theme(show_share_button=False, show_logo=False, control_width="large")
+        server.initial_camera.position = (1.3, -1.1, 1.6)  # in front of the torso, a little above the shoulders
+        server.initial_camera.look_at = (0.0, 0.0, 1.05)
+        self.scene = RobotScene(server, robot, model_path)
+        gui = server.gui
+        self._mode = gui.add_markdown("**mode** —")
+        self._buttons = gui.add_button_group("switch to", [mode.value for mode in Mode],
+                                             disabled=request_mode is None)
+        self._buttons.on_click(lambda event: self._on_button(event.target.value))
+        self._answer = gui.add_markdown("")
+        with gui.add_folder("safety"):
+            self._safety = gui.add_markdown("ok")
+        with gui.add_folder("joints: position within limits (rad)"):
+            self._joints = [gui.add_slider(j.name, min=j.lower, max=j.upper, step=0.001,
+                                           initial_value=float(np.clip(0.0, j.lower, j.upper)), disabled=True)
+                            for j in robot.joints]
+        self._sweeps = []
+        if sweeps:
+            with gui.add_folder("calibration: swept range within limits (rad)"):
+                self._sweeps = [gui.add_multi_slider(f"{j.name} swept", min=j.lower, max=j.upper, step=0.001,
+                                                     initial_value=(j.lower, j.lower), disabled=True)
+                                for j in robot.joints]
+        self._lock = threading.Lock()
+        self._latest: dict[str, Any] = {}
+        self._version = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._redraw, args=(1.0 / rate,), name="view", daemon=True)
+        self._thread.start()
+
+    # ---- fed from anywhere ---------------------------------------------------------------------------
+
+    def update(self, **latest: Any) -> None:
+        """Keep the newest of ``position`` (14 rad), ``mode`` (str), ``flags`` and ``levels`` (dicts keyed by
+        flag), ``sweeps`` (14 (min, max) pairs); the view thread draws them."""
+        with self._lock:
+            self._latest.update(latest)
+            self._version += 1
+
+    def _on_button(self, mode: str) -> None:  # viser's thread
+        if self.request_mode is None:
+            return
+        try:
+            self.request_mode(mode)
+        except Exception as exc:  # the same refusal `prime switch` prints, on the page
+            self._answer.content = f"**{mode}** refused: {exc}"
+        else:
+            self._answer.content = f"asked for **{mode}**"
+
+    # ---- the view thread -----------------------------------------------------------------------------
+
+    def _redraw(self, period: float) -> None:
+        seen = -1
+        while not self._stop.wait(period):
+            if self.source is not None:
+                try:
+                    self.update(**self.source())
+                except Exception as exc:  # the run went away (or is not up yet): say so, keep trying
+                    self.update(mode=f"not connected ({exc})")
+            with self._lock:
+                if self._version == seen:
+                    continue
+                seen = self._version
+                latest = dict(self._latest)
+            try:
+                self._draw(latest)
+            except Exception:  # a browser that went away mid-update; the next frame redraws everything
+                continue
+
+    def _draw(self, latest: dict[str, Any]) -> None:
+        position = latest.get("position")
+        if position is not None:
+            position = np.asarray(position, dtype=np.float64)
+            self.scene.pose(position)
+            for slider, joint, value in zip(self._joints, self.robot.joints, position, strict=True):
+                if value == value:
+                    slider.value = float(np.clip(value, joint.lower, joint.upper))
+        if "mode" in latest:
+            self._mode.content = f"**mode** {latest['mode'] or '—'}"
+        if "flags" in latest:
+            levels = latest.get("levels", {})
+            lines = [f"- {LEVEL_MARK.get(str(levels.get(key, 'ERROR')), '')} `{key}`: {text}"
+                     for key, text in sorted(latest["flags"].items())]
+            self._safety.content = "\n".join(lines) or "ok"
+        sweeps = latest.get("sweeps")
+        if sweeps is not None and self._sweeps:
+            for slider, joint, (low, high) in zip(self._sweeps, self.robot.joints, sweeps, strict=True):
+                if low <= high:
+                    slider.value = (float(np.clip(low, joint.lower, joint.upper)),
+                                    float(np.clip(high, joint.lower, joint.upper)))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()

@@ -1,0 +1,90 @@
+"""The page works in a real browser: it connects, shows the 14 joints and the mode, a mode button switches the
+running simulation, nothing leaves 127.0.0.1, and the robot is drawn."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+
+from .conftest import PRIME, drawn, start
+
+JOINTS = ("left_shoulder_pitch", "left_wrist_yaw", "right_elbow_pitch", "right_wrist_roll")
+
+
+def stop(process) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+
+def test_the_page_of_a_running_simulation_shows_it_and_switches_its_mode(browser, tmp_path):
+    summary = tmp_path / "sim.json"
+    sim, url = start("sim", "--web", "0", "--mode", "DAMPING", "--duration", "300", "--summary", str(summary),
+                     "--socket", str(tmp_path / "control.sock"))
+    try:
+        page = browser.page
+        page.goto(url)
+        page.get_by_text("mode DAMPING").wait_for(timeout=60_000)
+        for joint in JOINTS:
+            page.get_by_text(joint, exact=True).first.wait_for(timeout=30_000)
+        page.get_by_role("button", name="STANDBY").click()
+        page.get_by_text("mode STANDBY").wait_for(timeout=60_000)  # the simulation's own /control_mode
+        page.wait_for_timeout(1500)  # STANDBY lifts the arms; let a few frames draw
+        shot = page.locator("canvas").first.screenshot()
+        (tmp_path / "view.png").write_bytes(shot)
+    finally:
+        stop(sim)
+    assert browser.hosts() == {"127.0.0.1"}, browser.urls
+    picture = drawn(shot)
+    assert picture["colours"] > 500 and picture["erob_pixels"] > 2000, picture
+    visited = json.loads(summary.read_text())["modes_visited"]
+    assert visited[-1] == "STANDBY"
+
+
+def test_prime_view_attaches_to_a_running_simulation_over_its_control_socket(browser, tmp_path):
+    socket = str(tmp_path / "control.sock")
+    sim = subprocess.Popen([*PRIME, "sim", "--mode", "DAMPING", "--duration", "300", "--socket", socket],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    view = None
+    try:
+        view, url = start("view", "--port", "0", "--socket", socket)
+        page = browser.page
+        page.goto(url)
+        page.get_by_text("mode DAMPING").wait_for(timeout=60_000)
+        page.get_by_role("button", name="ZERO_TORQUE").click()
+        page.get_by_text("mode ZERO_TORQUE").wait_for(timeout=60_000)
+    finally:
+        for process in (view, sim):
+            if process is not None:
+                stop(process)
+    assert browser.hosts() == {"127.0.0.1"}
+
+
+def test_with_no_running_instance_the_page_says_so_and_a_request_shows_its_refusal(browser, tmp_path):
+    view, url = start("view", "--port", "0", "--socket", str(tmp_path / "nobody.sock"))
+    try:
+        page = browser.page
+        page.goto(url)
+        page.get_by_text("not connected").first.wait_for(timeout=60_000)
+        page.get_by_role("button", name="STANDBY").click()
+        page.get_by_text("STANDBY refused: no running prime instance listens on").wait_for(timeout=30_000)
+    finally:
+        stop(view)
+
+
+def test_a_recording_replays_into_the_view(browser, tmp_path):
+    recording = tmp_path / "run.mcap"
+    subprocess.run([*PRIME, "sim", "--fast", "--record", str(recording)], check=True, capture_output=True,
+                   timeout=300)
+    replay, url = start("replay", str(recording), "--port", "0", "--speed", "4")
+    try:
+        page = browser.page
+        page.goto(url)
+        page.get_by_text("mode STANDBY").wait_for(timeout=60_000)  # the demonstration's third mode, replayed
+    finally:
+        stop(replay)

@@ -103,3 +103,13 @@ def test_record_refuses_a_file_that_is_not_mcap(tmp_path):
     done = subprocess.run([*PRIME, "sim", "--record", str(tmp_path / "run.bag")], capture_output=True, text=True,
                           timeout=120)
     assert done.returncode == 2 and "a recording is an .mcap file" in done.stderr
+
+
+def test_the_recording_benchmark_records_every_tick_at_both_rates():
+    from humanoid_prime.bench.dds import bench_record
+
+    results = bench_record(seconds=0.5)
+    for rate in ("50_hz", "1000_hz"):
+        recorded = results[rate]["with"]
+        assert recorded["recorder"]["messages"]["/prime/joint_states"] + recorded["recorder"]["dropped_ticks"] == \
+            recorded["ticks"]

@@ -10,3 +10,4 @@ TARGET_TICK_P99_US = 300.0
 TARGET_JITTER_P99_US = 500.0  # loop period at 50 Hz
 TARGET_LOAD_PERCENT = 5.0  # Sito bus at 50 Hz
 TARGET_DDS_ADDED_TICK_US = 30.0  # what --dds adds to the median tick
+TARGET_RECORD_ADDED_TICK_US = 20.0  # what --record adds to the median tick

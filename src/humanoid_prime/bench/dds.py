@@ -1,4 +1,4 @@
-"""DDS on the control loop (DESIGN §6): the simulated Prime in STANDBY, paced at 50 Hz and at 1 kHz, once
+"""DDS and recording on the control loop (DESIGN §6): the simulated Prime in STANDBY, paced at 50 Hz and at 1 kHz, once
 without and once with ``--dds``, and a subscriber in another process measuring how late each joint state
 arrives.
 
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from humanoid_prime.bench import TARGET_DDS_ADDED_TICK_US
+from humanoid_prime.bench import TARGET_DDS_ADDED_TICK_US, TARGET_RECORD_ADDED_TICK_US
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.manager import ControllerManager
@@ -29,7 +29,7 @@ BENCH_DOMAIN = 231  # away from the usual ROS 2 domains, so a benchmark does not
 RATES_HZ = (50.0, 1000.0)
 
 
-def _run(robot, config, rate: float, seconds: float, dds: bool) -> dict[str, Any]:
+def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None) -> dict[str, Any]:
     from humanoid_prime.config.calibration import identity_calibration
     from humanoid_prime.config.description import MUJOCO_BLOCK
     from humanoid_prime.sim.demo import START_POSE
@@ -38,8 +38,8 @@ def _run(robot, config, rate: float, seconds: float, dds: bool) -> dict[str, Any
                                  physics_rate=max(rate, config.physics_rate), initial_pose=START_POSE)
     (system,) = build_components((MUJOCO_BLOCK,), settings)
     manager = ControllerManager(robot, [system], config, update_rate=rate, clock=time.monotonic)
-    listener = bridge = None
-    result: dict[str, Any] = {"rate_hz": rate, "dds": dds}
+    listener = bridge = recorder = None
+    result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None}
     with manager:
         manager.start()
         manager.request_mode(Mode.STANDBY)
@@ -52,6 +52,10 @@ def _run(robot, config, rate: float, seconds: float, dds: bool) -> dict[str, Any
             deadline = time.monotonic() + 30.0
             while not bridge._joint_states.get_matched_subscriptions() and time.monotonic() < deadline:
                 time.sleep(0.01)
+        if record is not None:
+            from humanoid_prime.record.mcap import Recorder
+
+            recorder = Recorder(record, manager)
         began = time.monotonic()
         manager.run(duration=seconds)
         wall = time.monotonic() - began
@@ -61,6 +65,9 @@ def _run(robot, config, rate: float, seconds: float, dds: bool) -> dict[str, Any
             result["bridge"] = bridge.summary()
             published = result["bridge"]["topics"]["/prime/joint_states"]["published"]
             result["published_per_s"] = round(published / wall, 1)
+        if recorder is not None:
+            recorder.close()
+            result["recorder"] = recorder.summary()
     if listener is not None:
         out, _ = listener.communicate("", timeout=60)
         result["subscriber"] = json.loads(out or "{}")
@@ -116,3 +123,22 @@ def listen(domain: int) -> dict[str, Any]:
 
 if __name__ == "__main__":
     print(json.dumps(listen(int(sys.argv[1]))))
+
+
+def bench_record(seconds: float = 10.0) -> dict[str, Any]:
+    """--record on the loop: the simulated Prime in STANDBY at 50 Hz and 1 kHz, without and with a recorder."""
+    import tempfile
+    from pathlib import Path
+
+    robot = load_robot(use_sim=True)
+    config = load_controllers(robot.names)
+    results: dict[str, Any] = {"seconds": seconds, "target_added_tick_us": TARGET_RECORD_ADDED_TICK_US}
+    with tempfile.TemporaryDirectory() as folder:
+        for rate in RATES_HZ:
+            plain = _run(robot, config, rate, seconds, dds=False)
+            recorded = _run(robot, config, rate, seconds, dds=False, record=str(Path(folder) / f"{rate:g}.mcap"))
+            added = round(recorded["tick_us"]["median"] - plain["tick_us"]["median"], 1)
+            results[f"{rate:g}_hz"] = {"without": plain, "with": recorded, "added_tick_us_median": added}
+    results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] for rate in RATES_HZ)
+    results["dropped_ticks"] = sum(results[f"{rate:g}_hz"]["with"]["recorder"]["dropped_ticks"] for rate in RATES_HZ)
+    return results

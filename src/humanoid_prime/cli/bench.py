@@ -28,6 +28,8 @@ SUITES: dict[str, tuple[str, str, str]] = {
                 "prime bringup --emulate: 14 joints, mode switches, 50 Hz loop"),
     "dds": ("humanoid_prime.bench.dds", "bench_dds",
             "the simulated Prime at 50 Hz and 1 kHz with and without DDS, and a subscriber process"),
+    "record": ("humanoid_prime.bench.dds", "bench_record",
+               "the simulated Prime at 50 Hz and 1 kHz with and without --record"),
 }
 
 _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": operator.ge}
@@ -46,6 +48,8 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("bringup", "jitter_us.p99", "<=", b.TARGET_JITTER_P99_US, "loop period jitter at 50 Hz (us, p99)"),
     ("dds", "added_tick_us_median", "<=", b.TARGET_DDS_ADDED_TICK_US, "DDS: added tick cost (us, median, worst rate)"),
     ("dds", "overruns_with_dds", "<=", 0, "DDS: overruns at 50 Hz and 1 kHz"),
+    ("record", "added_tick_us_median", "<=", b.TARGET_RECORD_ADDED_TICK_US,
+     "recording: added tick cost (us, median, worst rate)"),
 )
 
 

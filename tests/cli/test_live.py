@@ -126,3 +126,33 @@ def test_live_table_shows_a_fault_from_the_tick_it_is_raised(started):
     manager.tick()  # the same tick publishes it on /safety_status; the next refresh draws it
     console.print(table.render())
     assert "ERROR MujocoSystem/joint/left_elbow_pitch: left_elbow_pitch: encoder lost" in console.file.getvalue()
+
+
+def test_working_shows_what_is_done_how_far_and_for_how_long_on_a_terminal_only():
+    import io
+
+    from rich.console import Console
+
+    from humanoid_prime.cli._live import Working
+
+    screen = io.StringIO()
+    terminal = Console(file=screen, force_terminal=True, width=100)
+    with Working(terminal, "verifying the stops", total=4) as working:
+        working.update("verifying the stops: left_elbow_pitch", completed=2)
+        working.progress.refresh()
+    drawn = screen.getvalue()
+    assert "verifying the stops: left_elbow_pitch" in drawn and "50%" in drawn and "0:00:0" in drawn
+    piped = io.StringIO()
+    with Working(Console(file=piped, force_terminal=False), "bringing Prime up") as working:
+        working.update("bringing Prime up: first tick done")
+    assert piped.getvalue() == ""
+
+
+def test_each_bringup_stage_is_told_as_it_completes():
+    from humanoid_prime.runtime.session import BringupOptions, plan_session
+
+    plan = plan_session(BringupOptions())
+    told = []
+    plan.on_stage = told.append
+    plan.stage("virtual prime", plan.began)
+    assert told == ["virtual prime"] and plan.stages[-1][0] == "virtual prime"

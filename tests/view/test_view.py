@@ -7,9 +7,11 @@ import json
 import signal
 import subprocess
 
+from humanoid_prime.config.robot import load_robot
+
 from .conftest import PRIME, drawn, start
 
-JOINTS = ("left_shoulder_pitch", "left_wrist_yaw", "right_elbow_pitch", "right_wrist_roll")
+JOINTS = load_robot(use_sim=True).names
 
 
 def stop(process) -> None:
@@ -23,6 +25,7 @@ def stop(process) -> None:
 
 
 def test_the_page_of_a_running_simulation_shows_it_and_switches_its_mode(browser, tmp_path):
+    assert len(JOINTS) == 14
     summary = tmp_path / "sim.json"
     sim, url = start("sim", "--web", "0", "--mode", "DAMPING", "--duration", "300", "--summary", str(summary),
                      "--socket", str(tmp_path / "control.sock"))

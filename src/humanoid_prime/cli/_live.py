@@ -210,3 +210,29 @@ class ModeKeys:
         elif key in self.extra:
             self.extra[key]()
 
+
+
+class Working:
+    """A live status line on a terminal for work without a live table (bring-up, verification, benchmarks): a
+    spinner, what is being done, how far (``total`` steps, if known) and the time it has taken. Nothing is drawn
+    when the console is not a terminal; the line goes away when the work ends."""
+
+    def __init__(self, console: Console, description: str, total: float | None = None) -> None:
+        from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
+
+        columns: list[Any] = [SpinnerColumn(), TextColumn("{task.description}")]
+        if total is not None:
+            columns += [BarColumn(), TaskProgressColumn()]
+        columns.append(TimeElapsedColumn())
+        self.progress = Progress(*columns, console=console, transient=True, disable=not console.is_terminal)
+        self.task = self.progress.add_task(description, total=total)
+
+    def update(self, description: str | None = None, completed: float | None = None) -> None:
+        self.progress.update(self.task, description=description, completed=completed)
+
+    def __enter__(self) -> Working:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.stop()

@@ -16,6 +16,7 @@ from rich.table import Table
 from humanoid_prime import bench as b
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import output_file
+from humanoid_prime.cli._live import Working
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 
@@ -84,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"[bold]{suite}[/bold]: {what} ...")
         began = time.monotonic()
         try:
-            results[suite] = getattr(importlib.import_module(module), function)()
+            with Working(console, f"{suite}: measuring"):
+                results[suite] = getattr(importlib.import_module(module), function)()
         except PrimeError as exc:
             results[suite] = {"error": str(exc)}
         results[suite]["bench_seconds"] = round(time.monotonic() - began, 1)

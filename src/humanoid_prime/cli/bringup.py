@@ -151,7 +151,8 @@ def run(args: argparse.Namespace) -> int:
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
             plan.stage("virtual prime", t)
-        session = open_session(plan, stack)
+        with _bringing_up(plan, args):
+            session = open_session(plan, stack)
         session.reports.update(load_test=[], emulator=emulator)
         epoch_offset = time.time() - time.monotonic()  # stamps in the system clock, as ROS 2 nodes on the robot
         if args.record is not None:
@@ -189,6 +190,23 @@ def run(args: argparse.Namespace) -> int:
         print(f"prime bringup: FAULTED: {problems[0]}{more}", file=sys.stderr)
         return 1
     return 0
+
+
+@contextlib.contextmanager
+def _bringing_up(plan, args: argparse.Namespace):
+    """A live status on a terminal while the buses come up (the slow part on the real robot)."""
+    if args.json or not sys.stdout.isatty():
+        yield
+        return
+    from humanoid_prime.cli._common import console
+    from humanoid_prime.cli._live import Working
+
+    with Working(console(), "bringing Prime up: EtherCAT ring to OP, wrists, controllers") as working:
+        plan.on_stage = lambda name: working.update(f"bringing Prime up: {name} done")
+        try:
+            yield
+        finally:
+            plan.on_stage = None
 
 
 def _web(session: Session, port: int, stack: contextlib.ExitStack, report) -> None:

@@ -377,7 +377,14 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
         worker = threading.Thread(target=_verify_joints, args=(session, virtual, chosen, rows, errors, stop),
                                   name="verify", daemon=True)
         worker.start()
-        run_loop(session, stop)
+        if not args.json and virtual is not None:  # the scripted check runs on its own: show how far it is
+            from humanoid_prime.cli._live import Working
+
+            working = stack.enter_context(Working(make_console(), "verifying the stops", total=2 * len(chosen)))
+            run_loop(session, stop, on_tick=lambda manager: working.update(
+                f"verifying the stops: {rows[-1].joint if rows else chosen[0]}", completed=len(rows)))
+        else:
+            run_loop(session, stop)
         worker.join(timeout=30.0)
     if errors:
         raise PrimeError(errors[0])

@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -87,11 +87,14 @@ class Plan:
     began: float
     stages: list[tuple[str, float]] = field(default_factory=list)
     control: ControlServer | None = None  # the run's control socket, claimed before any bus
+    on_stage: Callable[[str], None] | None = None  # told each bring-up stage as it completes (a live status)
 
     def stage(self, name: str, since: float) -> float:
         """Record a bring-up stage that started at ``since``; returns now."""
         now = time.monotonic()
         self.stages.append((name, now - since))
+        if self.on_stage is not None:
+            self.on_stage(name)
         return now
 
 

@@ -1,5 +1,6 @@
 """The package's rooms import one way: cli -> runtime -> record -> dds -> calibration -> drivers -> control -> config ->
-foundation (errors, files, modes), with the simulation, the virtual Prime and the benchmarks beside the CLI.
+foundation (errors, files, modes), with the simulation, the virtual Prime, the benchmarks and the view beside the
+CLI.
 Production code never imports what pretends to be hardware (virtual/)."""
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ APPS = {  # rooms above the layers, and which of their peers each may import
     "sim": set(),
     "virtual": {"sim"},
     "bench": {"sim", "virtual"},
-    "cli": {"sim", "virtual", "bench"},
+    "view": set(),
+    "cli": {"sim", "virtual", "bench", "view"},
     "__main__": {"cli"},
 }
 

@@ -53,9 +53,30 @@ def wait_until_up(proc: subprocess.Popen, socket: Path) -> None:
 
 @pytest.fixture(scope="module")
 def switching_run(tmp_path_factory) -> dict:
-    """One run visiting DAMPING and STANDBY twice each: most tests read its summary."""
-    return bringup(tmp_path_factory.mktemp("switching"), "--sequence", "DAMPING,STANDBY,DAMPING,STANDBY,DAMPING",
-                   "--dwell", "0.6")
+    """One run visiting DAMPING and STANDBY twice each, recorded: most tests read its summary."""
+    folder = tmp_path_factory.mktemp("switching")
+    summary = bringup(folder, "--sequence", "DAMPING,STANDBY,DAMPING,STANDBY,DAMPING", "--dwell", "0.6",
+                      "--record", str(folder / "run.mcap"))
+    summary["recording"] = folder / "run.mcap"
+    return summary
+
+
+def test_the_run_is_recorded_tick_for_tick_with_its_modes_in_the_system_clock(switching_run):
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([switching_run["recording"]]) as reader:
+        stamps, modes = [], []
+        for connection, log_time, raw in reader.messages():
+            if connection.topic == "/prime/joint_states":
+                stamps.append(log_time)
+            elif connection.topic == "/control_mode":
+                modes.append(reader.deserialize(raw, connection.msgtype).data)
+    record = switching_run["record"]
+    # Every tick from the moment the run was up: the bring-up's first tick comes before the recorder attaches.
+    ticks = switching_run["ticks"] - 1
+    assert len(stamps) == record["messages"]["/prime/joint_states"] == ticks - record["dropped_ticks"]
+    assert modes == switching_run["modes_visited"]
+    assert abs(stamps[-1] * 1e-9 - time.time()) < 24 * 3600  # epoch stamps (the robot's clock), not monotonic
 
 
 def replay(log: list[dict], position: int) -> list[tuple[int, int, int]]:

@@ -114,3 +114,35 @@ def test_stale_socket_file_is_replaced(tmp_path):
         send_mode_request(Mode.REMOTE, path)
     assert requested == [Mode.REMOTE]
     assert not path.exists()
+
+
+def test_state_answers_the_latest_joints_mode_and_flags(tmp_path):
+    import numpy as np
+
+    from humanoid_prime.config.robot import load_robot
+    from humanoid_prime.control.flags import Level
+    from humanoid_prime.control.topics import (
+        CONTROL_MODE,
+        JOINT_STATES,
+        SAFETY_STATUS,
+        ControlMode,
+        JointState,
+        SafetyStatus,
+        Snapshot,
+        TopicBus,
+    )
+    from humanoid_prime.runtime.socket import request_state
+
+    robot = load_robot()
+    topics = TopicBus()
+    snapshot = Snapshot(topics, robot.names)
+    position = np.linspace(-0.5, 0.5, robot.n)
+    position[3] = np.nan  # a joint not measured (the other bus of a single-bus run)
+    topics.publish(JOINT_STATES, JointState(1.5, robot.names, position, np.zeros(14), np.zeros(14)))
+    topics.publish(CONTROL_MODE, ControlMode("STANDBY", "standby_controller", 1.0))
+    topics.publish(SAFETY_STATUS, SafetyStatus(False, {"dds/dropped": "3 dropped"}, 1.5, {"dds/dropped": Level.WARN}))
+    with ControlServer(path=tmp_path / "control.sock", state=snapshot.as_dict):
+        state = request_state(tmp_path / "control.sock")
+    assert state["names"] == list(robot.names) and state["mode"] == "STANDBY" and state["stamp"] == 1.5
+    assert state["position"][3] is None and state["position"][0] == -0.5
+    assert state["flags"] == {"dds/dropped": "3 dropped"} and state["levels"] == {"dds/dropped": "WARN"}

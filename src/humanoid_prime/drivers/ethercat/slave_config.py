@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -180,18 +181,25 @@ def _channel(raw: Any, path: str | Path, key: str, interface_key: str, other_key
     )
 
 
-def _pdos(data: dict, path: str | Path, section: str) -> tuple[Pdo, ...]:
-    interface_key, other_key = (("command_interface", "state_interface") if section == "rpdo"
-                                else ("state_interface", "command_interface"))
+def _mappings(data: dict, section: str, path: str | Path, fields: str) -> Iterator[tuple[str, dict]]:
+    """The entries of the list ``section`` (absent: none), each with its key (``section[i]``); anything but a
+    list of mappings with ``fields`` is refused naming the key."""
     raw = data.get(section, [])
     if not isinstance(raw, list):
-        raise ConfigError(path, section, "expected a list of {index, channels}")
-    pdos = []
-    seen: dict[str, str] = {}
+        raise ConfigError(path, section, f"expected a list of {{{fields}}}")
     for i, entry in enumerate(raw):
         key = f"{section}[{i}]"
         if not isinstance(entry, dict):
-            raise ConfigError(path, key, "expected a mapping {index, channels}")
+            raise ConfigError(path, key, f"expected a mapping {{{fields}}}")
+        yield key, entry
+
+
+def _pdos(data: dict, path: str | Path, section: str) -> tuple[Pdo, ...]:
+    interface_key, other_key = (("command_interface", "state_interface") if section == "rpdo"
+                                else ("state_interface", "command_interface"))
+    pdos = []
+    seen: dict[str, str] = {}
+    for key, entry in _mappings(data, section, path, "index, channels"):
         channels_raw = entry.get("channels")
         if not isinstance(channels_raw, list) or not channels_raw:
             raise ConfigError(path, f"{key}.channels", "missing or empty", "list the mapped objects")
@@ -210,14 +218,8 @@ def _pdos(data: dict, path: str | Path, section: str) -> tuple[Pdo, ...]:
 
 
 def _sync_managers(data: dict, path: str | Path) -> tuple[SyncManager, ...]:
-    raw = data.get("sm", [])
-    if not isinstance(raw, list):
-        raise ConfigError(path, "sm", "expected a list of {index, type, pdo, watchdog}")
     result = []
-    for i, entry in enumerate(raw):
-        key = f"sm[{i}]"
-        if not isinstance(entry, dict):
-            raise ConfigError(path, key, "expected a mapping {index, type, pdo, watchdog}")
+    for key, entry in _mappings(data, "sm", path, "index, type, pdo, watchdog"):
         result.append(SyncManager(
             index=_int(entry.get("index"), path, f"{key}.index", 0, 0xFF),
             type=_choice(entry.get("type"), path, f"{key}.type", ("output", "input")),
@@ -228,14 +230,8 @@ def _sync_managers(data: dict, path: str | Path) -> tuple[SyncManager, ...]:
 
 
 def _startup_sdos(data: dict, path: str | Path) -> tuple[StartupSdo, ...]:
-    raw = data.get("sdo", [])
-    if not isinstance(raw, list):
-        raise ConfigError(path, "sdo", "expected a list of {index, sub_index, type, value}")
     result = []
-    for i, entry in enumerate(raw):
-        key = f"sdo[{i}]"
-        if not isinstance(entry, dict):
-            raise ConfigError(path, key, "expected a mapping {index, sub_index, type, value}")
+    for key, entry in _mappings(data, "sdo", path, "index, sub_index, type, value"):
         missing = [k for k in ("index", "sub_index", "type", "value") if k not in entry]
         if missing:
             raise ConfigError(path, f"{key}.{missing[0]}", "missing", "every start-up SDO needs index, sub_index, "

@@ -12,7 +12,7 @@ import sys
 import pytest
 from cyclonedds.internal import InvalidSample
 
-from doubles.process import popen
+from doubles.process import popen, stop
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.node import DdsNode
 
@@ -28,13 +28,7 @@ def sim(domain, tmp_path):
     process = popen([*PRIME, "sim", "--dds", "--mode", "DAMPING", "--duration", "300", "--summary", str(summary)],
                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     yield process, summary
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        process.wait(timeout=60)
-    finally:
-        if process.poll() is None:
-            process.kill()
+    stop(process)
 
 
 def remote_status(statuses: list) -> msg.DiagnosticStatus | None:
@@ -86,8 +80,7 @@ def test_a_remote_process_drives_the_simulated_arm_and_its_death_makes_remote_da
     assert [kv.key for kv in stale.values] == ["stale"]
     assert "no command on /remote_policy_controller/command for more than 100 ms; damp" in stale.message
 
-    process.send_signal(signal.SIGINT)
-    process.wait(timeout=60)
+    stop(process)
     summary = json.loads(summary_path.read_text())
     received = summary["dds"]["topics"]["/remote_policy_controller/command"]
     assert received["received"] >= remote["commands_sent"] and received["refused"] == 0

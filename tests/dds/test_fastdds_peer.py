@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from doubles.process import popen
+from doubles.process import popen, stop
 from humanoid_prime.control.controller import pose_array
 
 PEER = Path(__file__).parent / "fastdds_peer"
@@ -52,8 +51,7 @@ def test_a_fast_dds_participant_reads_joint_states_and_drives_remote(fastdds_pee
         peer = subprocess.run([str(fastdds_peer), str(domain), "200", "4", "20", "2", *map(str, target)],
                               capture_output=True, text=True, timeout=300)
     finally:
-        sim.send_signal(signal.SIGINT)
-        sim.wait(timeout=60)
+        stop(sim)
     assert peer.returncode == 0, peer.stderr
     lines = [line.split() for line in peer.stdout.splitlines() if line.startswith("JS ")]
     assert len(lines) >= 200

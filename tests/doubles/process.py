@@ -17,3 +17,14 @@ def terminal_signals() -> None:
 def popen(*args: Any, **kwargs: Any) -> subprocess.Popen:
     """``subprocess.Popen`` with ``terminal_signals`` in the child."""
     return subprocess.Popen(*args, preexec_fn=terminal_signals, **kwargs)
+
+
+def stop(process: subprocess.Popen, timeout: float = 60.0) -> None:
+    """End a running prime command as Ctrl-C does (its teardown runs), then wait; kill it only if it hangs."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            process.kill()

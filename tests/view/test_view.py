@@ -4,24 +4,14 @@ running simulation, nothing leaves 127.0.0.1, and the robot is drawn."""
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 
+from doubles.process import stop
 from humanoid_prime.config.robot import load_robot
 
 from .conftest import PRIME, drawn, start
 
 JOINTS = load_robot(use_sim=True).names
-
-
-def stop(process) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        process.wait(timeout=60)
-    finally:
-        if process.poll() is None:
-            process.kill()
 
 
 def test_the_page_of_a_running_simulation_shows_it_and_switches_its_mode(browser, tmp_path):

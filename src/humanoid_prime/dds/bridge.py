@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
-from cyclonedds.internal import InvalidSample
 from cyclonedds.util import duration
 
 from humanoid_prime.control.flags import Level, SafetyFlags
@@ -36,7 +35,7 @@ from humanoid_prime.control.topics import (
 )
 from humanoid_prime.control.topics import MitCommand as MitCommandMessage
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.node import DdsNode
+from humanoid_prime.dds.node import DdsNode, take
 from humanoid_prime.modes import Mode
 
 MODE_REQUEST = "/prime/mode_request"
@@ -190,7 +189,7 @@ class DdsBridge(SafetyFlags):
 
     def _take(self, reader: Any) -> list[Any]:
         condition = self._conditions[id(reader)]
-        return [s for s in reader.take(N=READ_BATCH, condition=condition) if not isinstance(s, InvalidSample)]
+        return take(reader, READ_BATCH, condition=condition)
 
     def _on_command(self, sample: msg.MitCommand) -> None:
         self.counts[self.remote_topic].samples += 1

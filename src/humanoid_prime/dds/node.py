@@ -12,6 +12,7 @@ from typing import Any
 
 from cyclonedds.core import DDSException
 from cyclonedds.domain import DomainParticipant
+from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
 from cyclonedds.sub import DataReader
@@ -49,6 +50,12 @@ def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool
     else:
         policies.append(Policy.Durability.Volatile)
     return Qos(*policies)
+
+
+def take(reader: DataReader, n: int = 64, **conditions: Any) -> list[Any]:
+    """Up to ``n`` samples from ``reader``, without the data-less ones (a writer gone away, an instance
+    disposed) that DDS also delivers."""
+    return [s for s in reader.take(N=n, **conditions) if not isinstance(s, InvalidSample)]
 
 
 class DdsNode:

@@ -20,13 +20,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from cyclonedds.internal import InvalidSample
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, REMOTE_COMMAND, SAFETY_STATUS
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.bridge import MODE_REQUEST
-from humanoid_prime.dds.node import DdsNode
+from humanoid_prime.dds.node import DdsNode, take
 
 LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
@@ -102,7 +101,7 @@ class RemoteClient:
         self.on_joint_state: Callable[[float, np.ndarray], None] | None = None  # (arrival, positions)
 
     def poll(self) -> None:
-        for sample in self._take(self.joint_states):
+        for sample in take(self.joint_states):
             if list(sample.name) != self.names:
                 continue  # not Prime's joint order: not ours to compare
             now = self.clock()
@@ -114,14 +113,10 @@ class RemoteClient:
             seen.stamp = msg.seconds(sample.header.stamp)
             if self.on_joint_state is not None:
                 self.on_joint_state(now, seen.position)
-        for sample in self._take(self.control_mode):
+        for sample in take(self.control_mode):
             self.seen.modes.append(sample.data)
-        for sample in self._take(self.safety_status):
+        for sample in take(self.safety_status):
             self.seen.safety = [(s.name, LEVELS.get(s.level, str(s.level)), s.message) for s in sample.status]
-
-    @staticmethod
-    def _take(reader: Any) -> list[Any]:
-        return [s for s in reader.take(N=64) if not isinstance(s, InvalidSample)]
 
     def wait_for_joint_states(self, timeout: float, sleep: Callable[[float], None] = time.sleep) -> bool:
         """Poll until a joint state of Prime arrived or ``timeout`` seconds passed."""

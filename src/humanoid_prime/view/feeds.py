@@ -53,23 +53,21 @@ class DdsSource:
         self.latest: dict[str, Any] = {}
 
     def __call__(self) -> dict[str, Any]:
-        from cyclonedds.internal import InvalidSample
+        from humanoid_prime.dds.node import take
 
-        states = [s for s in self._joint_states.take(N=256) if not isinstance(s, InvalidSample)]
+        states = take(self._joint_states, 256)
         if states and list(states[-1].name) == self.names:
             self.latest["position"] = np.asarray(states[-1].position, dtype=np.float64)
-        for sample in self._mode.take(N=8):
-            if not isinstance(sample, InvalidSample):
-                self.latest["mode"] = sample.data
-        for sample in self._safety.take(N=8):
-            if not isinstance(sample, InvalidSample):
-                flags, levels = {}, {}
-                for status in sample.status:
-                    for value in status.values:
-                        key = f"{status.name.removeprefix('prime/')}/{value.key}"
-                        flags[key] = value.value
-                        levels[key] = {1: "WARN", 2: "ERROR"}.get(status.level, "ERROR")
-                self.latest.update(flags=flags, levels=levels)
+        for sample in take(self._mode, 8):
+            self.latest["mode"] = sample.data
+        for sample in take(self._safety, 8):
+            flags, levels = {}, {}
+            for status in sample.status:
+                for value in status.values:
+                    key = f"{status.name.removeprefix('prime/')}/{value.key}"
+                    flags[key] = value.value
+                    levels[key] = {1: "WARN", 2: "ERROR"}.get(status.level, "ERROR")
+            self.latest.update(flags=flags, levels=levels)
         if "position" not in self.latest:
             raise ConnectionError("no /prime/joint_states on the ROS 2 graph yet")
         return dict(self.latest)

@@ -33,12 +33,17 @@ def add_socket_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--socket", metavar="PATH", help=f"control socket (default: {default_socket_path()})")
 
 
-def add_dds_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--dds", action="store_true",
-                        help="take part in the ROS 2 graph over DDS: publish /prime/joint_states, /control_mode and "
-                             "/safety_status, take REMOTE commands and /prime/mode_request")
+def add_domain_option(parser: argparse.ArgumentParser, *, with_dds: bool = True) -> None:
     parser.add_argument("--domain", type=whole(at_least=0, at_most=MAX_DOMAIN_ID), metavar="N",
-                        help="(with --dds) ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
+                        help=f"{'(with --dds) ' if with_dds else ''}ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
+
+
+def add_dds_options(parser: argparse.ArgumentParser, dds_help: str | None = None) -> None:
+    parser.add_argument("--dds", action="store_true",
+                        help=dds_help or "take part in the ROS 2 graph over DDS: publish /prime/joint_states, "
+                                         "/control_mode and /safety_status, take REMOTE commands and "
+                                         "/prime/mode_request")
+    add_domain_option(parser)
 
 
 def dds_domain(args: argparse.Namespace) -> int | None:

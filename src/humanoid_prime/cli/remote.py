@@ -12,11 +12,18 @@ import time
 
 import numpy as np
 
-from humanoid_prime.cli._common import SECONDS, add_config_options, add_json_option, output_file, real, whole
+from humanoid_prime.cli._common import (
+    SECONDS,
+    add_config_options,
+    add_domain_option,
+    add_json_option,
+    output_file,
+    real,
+)
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.rate import Rate
-from humanoid_prime.dds.domain import MAX_DOMAIN_ID, domain_id
+from humanoid_prime.dds.domain import domain_id
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
@@ -34,8 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "asks for REMOTE on /prime/mode_request, and prints the joint states, mode and safety status "
                     "it receives. The motion starts at the measured position, moves to the pose over --ramp "
                     "seconds, then holds it (--amplitude 0) or waves the --wave joints about it.")
-    p.add_argument("--domain", type=whole(at_least=0, at_most=MAX_DOMAIN_ID), metavar="N",
-                   help="ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
+    add_domain_option(p, with_dds=False)
     p.add_argument("--pose", metavar="NAME", help="standby pose to hold or wave about (default: the default pose)")
     p.add_argument("--wave", metavar="JOINT,...", default=DEFAULT_WAVE,
                    help=f"joints that wave about the pose (default: {DEFAULT_WAVE})")

@@ -8,9 +8,16 @@ import sys
 import threading
 import time
 
-from humanoid_prime.cli._common import DEFAULT_WEB_PORT, add_config_options, add_socket_option, real, whole
+from humanoid_prime.cli._common import (
+    DEFAULT_WEB_PORT,
+    add_config_options,
+    add_dds_options,
+    add_socket_option,
+    dds_domain,
+    real,
+    whole,
+)
 from humanoid_prime.config.robot import load_robot
-from humanoid_prime.dds.domain import MAX_DOMAIN_ID
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.signals import stop_on_signals
 
@@ -28,9 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "switch), the safety flags and each joint against its limits. It reads a running instance "
                     "over its control socket, or over DDS with --dds.")
     add_socket_option(p)
-    p.add_argument("--dds", action="store_true", help="read Prime's topics from the ROS 2 graph instead")
-    p.add_argument("--domain", type=whole(at_least=0, at_most=MAX_DOMAIN_ID), metavar="N",
-                   help="(with --dds) ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
+    add_dds_options(p, "read Prime's topics from the ROS 2 graph instead")
     _port(p)
     add_config_options(p)
     p.set_defaults(func=run_view)
@@ -51,16 +56,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_view(args: argparse.Namespace) -> int:
     from humanoid_prime.view.page import PrimeView
 
-    if args.domain is not None and not args.dds:
-        raise PrimeError("--domain needs --dds")
+    domain = dds_domain(args)
     robot = load_robot(args.hardware, use_sim=True)
     stop = threading.Event()
     source = None
-    if args.dds:
-        from humanoid_prime.dds.domain import domain_id
+    if domain is not None:
         from humanoid_prime.view.feeds import DdsSource
 
-        source = DdsSource(robot, domain_id(args.domain))
+        source = DdsSource(robot, domain)
         state, request_mode, where = source, source.request_mode, "the ROS 2 graph"
     else:
         from humanoid_prime.view.feeds import socket_source

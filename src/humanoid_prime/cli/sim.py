@@ -239,10 +239,10 @@ def run(args: argparse.Namespace) -> int:
                 stack.callback(bridge.close)
                 print(f"DDS: ROS 2 domain {domain}; publishing /prime/joint_states, /control_mode, /safety_status; "
                       f"REMOTE follows {config.remote.topic}; modes on /prime/mode_request", file=out, flush=True)
-            from humanoid_prime.control.topics import Snapshot
+            from humanoid_prime.view.feeds import manager_source
 
-            snapshot = Snapshot(manager.topics, robot.names, config.joint_states_topic)
-            server = ControlServer(operator_mode, args.socket, state=snapshot.as_dict)
+            state, _ = manager_source(manager)  # for the run's whole life: no detach
+            server = ControlServer(operator_mode, args.socket, state=state)
             try:
                 server.start()
                 stack.callback(server.close)
@@ -252,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
                 from humanoid_prime.view.page import PrimeView
 
                 view = PrimeView(robot, port=args.web, request_mode=lambda text: operator_mode(Mode.parse(text)),
-                                 source=snapshot.as_dict, title="Prime (simulated)")
+                                 source=state, title="Prime (simulated)")
                 stack.callback(view.close)
                 print(f"view: {view.url}", file=out, flush=True)
             keys = stack.enter_context(ModeKeys(operator_mode, stop.set))

@@ -48,8 +48,7 @@ class RobotScene:
         elif kind == mujoco.mjtGeom.mjGEOM_CYLINDER:
             scene.add_cylinder(name, radius=float(size[0]), height=float(2 * size[1]), color=colour, **placed)
         elif kind == mujoco.mjtGeom.mjGEOM_CAPSULE:  # a cylinder with a sphere at each end
-            frame = scene.add_frame(name, show_axes=False, **placed)
-            del frame
+            scene.add_frame(name, show_axes=False, **placed)
             scene.add_cylinder(f"{name}/body", radius=float(size[0]), height=float(2 * size[1]), color=colour)
             for end, z in (("top", size[1]), ("bottom", -size[1])):
                 scene.add_icosphere(f"{name}/{end}", radius=float(size[0]), color=colour, position=(0.0, 0.0, z))

@@ -134,6 +134,8 @@ ARGUMENT_CASES = [  # (id, arguments, what the line must contain)
     ("sim summary is a folder", ["sim", "--fast", "--duration", "0.1", "--summary", "{tmp}"], "--summary"),
     ("sim duration -1", ["sim", "--duration", "-1"], "--duration"),
     ("sim unknown mode", ["sim", "--mode", "DANCE", "--duration", "0.1"], "DANCE"),
+    ("web view of an emulated bringup", ["bringup", "--emulate", "--web"], "run `prime view --socket"),
+    ("web view of an emulated calibration", ["calibrate", "--emulate", "--web", "0"], "run `prime view --socket"),
     ("scripted joint unknown", ["calibrate", "--emulate", "--scripted", "left_toe", "--output", "{tmp}/cal.yaml"],
      "left_toe"),
     ("can ids open range", ["can", "discover", "--ids", "1-", "--interface", "virtual"], "--ids"),

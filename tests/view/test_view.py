@@ -81,3 +81,22 @@ def test_a_recording_replays_into_the_view(browser, tmp_path):
         page.get_by_text("mode STANDBY").wait_for(timeout=60_000)  # the demonstration's third mode, replayed
     finally:
         stop(replay)
+
+
+def test_a_calibration_page_shows_each_joints_swept_range(browser, sim_robot):
+    """What `prime calibrate --web` serves on the robot: the swept range beside each joint's position."""
+    from humanoid_prime.view.page import PrimeView
+
+    view = PrimeView(sim_robot, port=0, sweeps=True)
+    try:
+        view.update(position=[0.0] * 14, mode=None,
+                    sweeps=[(j.lower + 0.1, j.upper - 0.1) if j.family == "sito" else (1.0, -1.0)
+                            for j in sim_robot.joints])
+        page = browser.page
+        page.goto(view.url)
+        page.get_by_text("calibration: swept range within limits (rad)").wait_for(timeout=60_000)
+        for joint in JOINTS:
+            page.get_by_text(f"{joint} swept", exact=True).wait_for(timeout=30_000)
+    finally:
+        view.close()
+    assert browser.hosts() == {"127.0.0.1"}

@@ -79,6 +79,14 @@ def add_web_option(parser: argparse.ArgumentParser) -> None:
                                              f"{DEFAULT_WEB_PORT}; the next free port if taken; 0: any)")
 
 
+def check_web(args: argparse.Namespace) -> None:
+    """``--web`` serves on this machine's loopback; an emulated run lives in a private network namespace that
+    a browser cannot reach, so it is refused with the way that works (``prime view`` over the control socket)."""
+    if args.web is not None and args.emulate:
+        raise PrimeError("--web cannot serve an emulated run: it runs in a private network namespace your browser "
+                         f"cannot reach; run `prime view --socket {args.socket or default_socket_path()}` beside it")
+
+
 def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) -> None:
     """``--emulate`` and the virtual Prime's tunables (``ring_options`` reads them back)."""
     parser.add_argument("--emulate", action="store_true", help=emulate_help)

@@ -19,6 +19,7 @@ from humanoid_prime.cli._common import (
     add_record_option,
     add_socket_option,
     add_web_option,
+    check_web,
     dds_domain,
     output_dir,
     output_file,
@@ -129,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     ring = ring_options(args, **{"--load-test": args.load_test})
     domain = dds_domain(args)
+    check_web(args)
     # Everything is checked before anything opens, and before a private namespace is entered.
     load_test_joints = _load_test_joints(args, plan_session(options).robot) if args.load_test else []
     if options.emulated:

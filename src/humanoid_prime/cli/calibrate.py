@@ -8,6 +8,7 @@ import json
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +38,7 @@ from humanoid_prime.cli._common import (
     add_record_option,
     add_socket_option,
     add_web_option,
+    check_web,
     output_file,
     ring_options,
 )
@@ -108,6 +110,7 @@ PHASE_NAMES = {"ec": "the eRob arms on EtherCAT", "can": "the Sito wrists on CAN
 
 def run(args: argparse.Namespace) -> int:
     emulator = ring_options(args, **{"--scripted": args.scripted})
+    check_web(args)
     if args.plot and args.verify:
         raise PrimeError("--plot draws a calibration run's sweeps; it does not go with --verify")
     hardware = load_hardware(args.hardware)
@@ -171,8 +174,7 @@ class _Web:
 
     def __init__(self, port: int | None, hardware_file: Any, stack: contextlib.ExitStack) -> None:
         self.view = None
-        self.snapshot: Any = None
-        self.tracker: SweepTracker | None = None
+        self.phase: tuple[Callable[[], dict[str, Any]], SweepTracker] | None = None  # its state, its sweeps
         self.swept: dict[str, tuple[float, float]] = {}  # the phases before this one
         if port is None:
             return
@@ -187,26 +189,26 @@ class _Web:
     def attach(self, session: Session, tracker: SweepTracker, stack: contextlib.ExitStack) -> None:
         if self.view is None:
             return
-        from humanoid_prime.control.topics import Snapshot
+        from humanoid_prime.view.feeds import manager_source
 
-        self.snapshot = Snapshot(session.manager.topics, session.robot.names,
-                                 session.manager.config.joint_states_topic)
-        self.tracker = tracker
+        state, detach_state = manager_source(session.manager)
+        self.phase = (state, tracker)
 
         def detach() -> None:
             self.swept.update(tracker.sweeps())
-            self.snapshot.detach()
-            self.snapshot = self.tracker = None
+            detach_state()
+            self.phase = None
 
         stack.callback(detach)
 
     def _state(self) -> dict[str, Any]:
-        snapshot, tracker = self.snapshot, self.tracker
-        if snapshot is None:
+        phase = self.phase
+        if phase is None:
             raise ConnectionError("between phases")
-        swept = {**self.swept, **(tracker.sweeps() if tracker is not None else {})}
+        state, tracker = phase
+        swept = {**self.swept, **tracker.sweeps()}
         nothing = (float("inf"), float("-inf"))
-        return {**snapshot.as_dict(), "sweeps": [swept.get(name, nothing) for name in self.robot.names]}
+        return {**state(), "sweeps": [swept.get(name, nothing) for name in self.robot.names]}
 
 
 def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: Any, server: ControlServer,

@@ -50,7 +50,7 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             bridge = bridge_manager(manager, domain=BENCH_DOMAIN)  # stamps: the loop clock, CLOCK_MONOTONIC
             deadline = time.monotonic() + 30.0
-            while not bridge._joint_states.get_matched_subscriptions() and time.monotonic() < deadline:
+            while not bridge.joint_state_readers() and time.monotonic() < deadline:
                 time.sleep(0.01)
         if record is not None:
             from humanoid_prime.record.mcap import Recorder

@@ -134,6 +134,10 @@ class DdsBridge(SafetyFlags):
         self._closed = False
         self.tap = TickTap(manager, self, name="dds-publish", on_drop=self._on_drop, slots=slots, clock=clock)
 
+    def joint_state_readers(self) -> int:
+        """How many DDS readers of the joint states this bridge is matched with now."""
+        return len(self._joint_states.get_matched_subscriptions())
+
     def _on_drop(self, dropped: int) -> None:
         self.counts[self.joint_states_topic].dropped = dropped
         self.set_flag("dropped", f"{dropped} joint states dropped: the DDS publisher fell behind the loop",

@@ -4,7 +4,7 @@ STAMP := $(VENV)/.installed
 # Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view.
 TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium
 
-.PHONY: sim test bench lint clean
+.PHONY: sim test bench soak lint clean
 
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
@@ -22,6 +22,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/prime bench
+
+soak: $(STAMP)
+	$(VENV)/bin/prime bench soak
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info .pytest_cache

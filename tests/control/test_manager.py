@@ -463,3 +463,45 @@ def test_safety_flags_version_grows_on_every_change_only():
     flags.clear_flag("a")
     flags.clear_flag("a")
     assert flags.flags_version == 3
+
+
+def test_loop_stats_split_the_tick_into_our_cpu_and_bus_io():
+    stats = LoopStats(period=0.02, capacity=8)
+    for k in range(4):
+        stats.record(cost=100e-6 + k * 10e-6, period=0.02, io=40e-6)
+    split = stats.split_us()
+    assert split["io"]["median"] == pytest.approx(40.0)
+    assert split["cpu"]["median"] == pytest.approx(75.0)
+    assert split["cpu"]["max"] == pytest.approx(90.0)
+    assert stats.summary()["tick_cpu_us"] == split["cpu"]
+
+
+def test_the_tick_records_the_bus_io_every_component_reported(paced):
+    manager, _ = paced
+    (plant,) = manager.resources.components
+    plant.io_s = 0.25e-3
+    manager.tick()
+    assert manager.stats.ios[manager.stats.ticks - 1] == pytest.approx(0.25e-3)
+
+
+def test_a_run_measures_no_period_across_the_gap_before_its_schedule_starts(paced):
+    manager, clock = paced
+    manager.tick()  # a tick before the loop (the session's first), then a long pause
+    clock.now += 0.5
+    manager.run(duration=0.1, between_ticks=lambda: None)
+    periods = manager.stats.periods[1:manager.stats.ticks]
+    assert np.isnan(periods[0])  # the pause is not a period of the loop
+    assert periods[1:] * 1e3 == pytest.approx([20.0] * (len(periods) - 1), abs=0.01)
+
+
+def test_between_ticks_runs_after_each_tick_outside_its_measured_cost(paced):
+    manager, clock = paced
+    calls = []
+
+    def housekeeping():
+        calls.append(manager.tick_count)
+        clock.now += 0.005  # 5 ms of collection: not the tick's cost
+
+    manager.run(duration=0.1, between_ticks=housekeeping)
+    assert calls == [1, 2, 3, 4, 5]
+    assert manager.stats.costs[:5].max() < 0.005

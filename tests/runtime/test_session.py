@@ -157,3 +157,12 @@ def test_until_the_session_is_up_the_socket_answers_not_ready(doubled, tmp_path)
     claim_control_socket(plan, doubled.stack)
     with pytest.raises(PrimeError, match="starting up or shutting down"):
         request(path, {"op": "mode", "mode": "STANDBY"})
+
+
+def test_the_bringup_loop_runs_at_least_twice_as_fast_as_sync0_up_to_the_erobs_2_khz():
+    from humanoid_prime.runtime.session import default_bringup_rate
+
+    assert default_bringup_rate(1000.0, 50.0) == 1000.0
+    assert default_bringup_rate(1000.0, 1000.0) == 2000.0
+    assert default_bringup_rate(1000.0, 2000.0) == 2000.0
+    assert default_bringup_rate(1500.0, 50.0) == 1500.0

@@ -17,7 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from humanoid_prime.bench.floors import can_frame_s, ethercat_cycle_s
+from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE
 from humanoid_prime.errors import PrimeError
+
+SITO_MOTORS = 4
 
 SEQUENCE = "DAMPING,STANDBY,DAMPING,STANDBY,DAMPING,STANDBY,DAMPING"
 
@@ -38,6 +42,9 @@ def bench_bringup(dwell: float = 2.0, *, sequential: bool = False, timeout: floa
     switches = [s for s in summary["mode_switches"] if s["mode"] in ("DAMPING", "STANDBY")]
     walls = np.array([s["wall_seconds"] for s in switches]) if switches else np.array([np.nan])
     skews = np.array([s["skew_seconds"] for s in switches]) if switches else np.array([np.nan])
+    slaves = len(summary["ethercat_bringup"]["rated_torque_nm"]) if summary.get("ethercat_bringup") else 10
+    period_s = 1.0 / summary["update_rate"]
+    can_frames = 2 * SITO_MOTORS  # per tick: a command to each wrist, and its feedback at the control period
     return {
         "bringup_seconds": summary["bringup_seconds"],
         "ethercat_bringup": summary["ethercat_bringup"],
@@ -48,6 +55,15 @@ def bench_bringup(dwell: float = 2.0, *, sequential: bool = False, timeout: floa
         "switch_seconds": {"median": float(np.median(walls)), "max": float(np.max(walls))},
         "skew_seconds": {"median": float(np.median(skews)), "max": float(np.max(skews))},
         "tick_us": summary["tick_us"],
+        "tick_cpu_us": summary["tick_cpu_us"],
+        "tick_io_us": summary["tick_io_us"],
+        "floors": {
+            "ethercat_cycle_us": round(ethercat_cycle_s(slaves, RX_DTYPE.itemsize, TX_DTYPE.itemsize) * 1e6, 1),
+            "can_tick_us": [round(can_frames * can_frame_s() * 1e6, 1),
+                            round(can_frames * can_frame_s(worst_stuffing=True) * 1e6, 1)],
+            "can_load_percent_at_1khz": round(can_frames * can_frame_s() / 1e-3 * 100, 1),
+            "period_us": round(period_s * 1e6, 1),
+        },
         "jitter_us": summary["jitter_us"],
         "ticks": summary["ticks"],
         "overruns": summary["overruns"],

@@ -125,6 +125,31 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     return options
 
 
+def add_realtime_options(parser: argparse.ArgumentParser, *, rate_help: str) -> None:
+    """--rate, --cpu and --no-realtime: the loop's rate and how it holds its period on a busy machine."""
+    from humanoid_prime.config.controllers import MAX_BRINGUP_RATE_HZ
+
+    parser.add_argument("--rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ", help=rate_help)
+    parser.add_argument("--cpu", type=cpu_number, metavar="N",
+                        help="pin the control loop to CPU N (and the process's other threads off it)")
+    parser.add_argument("--no-realtime", dest="realtime", action="store_false",
+                        help="leave the control thread at normal priority, its memory unlocked and the garbage "
+                             "collector automatic (default: real-time scheduling and locked memory where allowed, "
+                             "the GC frozen after start-up and run only between ticks)")
+
+
+def cpu_number(text: str) -> int:
+    """argparse type of a CPU this process may run on."""
+    from humanoid_prime.runtime.realtime import check_cpu
+
+    value = whole(at_least=0)(text)
+    try:
+        check_cpu(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return value
+
+
 def real(*, above: float | None = None, at_least: float | None = None, at_most: float | None = None,
          below: float | None = None) -> Callable[[str], float]:
     """argparse type of a finite number within bounds; a bad value is one line naming the option."""

@@ -16,6 +16,7 @@ from humanoid_prime.cli._common import (
     add_dds_options,
     add_emulation_options,
     add_json_option,
+    add_realtime_options,
     add_record_option,
     add_socket_option,
     add_web_option,
@@ -65,6 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "refused with the reason")
     p.add_argument("--bringup-rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ",
                    help="EtherCAT bring-up loop rate (default: 1000; at most 2000, the eRob's minimum cycle)")
+    add_realtime_options(p, rate_help="control loop rate (default: update_rate of the controllers file; at most "
+                                      "2000, the eRob's minimum 500 us cycle); SYNC0, the bring-up loop and the "
+                                      "Sito feedback interval follow it")
     p.add_argument("--sequential-sdo", action="store_true",
                    help="write the eRob gains one slave after another (the slow baseline) instead of in parallel")
     p.add_argument("--mode", metavar="MODE", help="switch to MODE once up")
@@ -111,7 +115,8 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         can_interface=args.can_interface, can_channel=args.can_channel, sync0_period_s=args.sync0_period,
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
         duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
-        erob_config_dir=args.erob_config_dir, control_socket=args.socket)
+        erob_config_dir=args.erob_config_dir, control_socket=args.socket, update_rate=args.rate,
+        realtime=args.realtime, cpu=args.cpu)
 
 
 def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:
@@ -176,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
                 stack.enter_context(ModeKeys(session.manager.request_mode if full else _refuse, stop.set,
                                              on_reset=session.manager.request_reset))
             stack.enter_context(LiveTable(session.manager, keys=full, reset_key=sys.stdin.isatty()))
-        run_loop(session, stop)
+        run_loop(session, stop, report=lambda line: print(line, file=sys.stderr if args.json else sys.stdout))
         if load_test is not None:
             load_test.join(timeout=30.0)
     summary = session.summary()
@@ -273,9 +278,11 @@ def _print_report(summary: dict) -> None:
         print(f"mode {switch['mode']:<12} gains on all slaves in {switch['wall_seconds'] * 1e3:6.1f} ms, "
               f"skew {switch['skew_seconds'] * 1e3:5.1f} ms, retries {switch['retries']}: {state}")
     tick, jitter = summary["tick_us"], summary["jitter_us"]
+    cpu, io = summary["tick_cpu_us"], summary["tick_io_us"]
     if summary["ticks"]:
         print(f"loop: {summary['ticks']} ticks at {summary['update_rate']:g} Hz, "
-              f"tick median {tick['median']:.0f} us p99 {tick['p99']:.0f} us, "
+              f"tick median {tick['median']:.0f} us p99 {tick['p99']:.0f} us (our CPU {cpu['median']:.0f} / "
+              f"{cpu['p99']:.0f} us, bus I/O {io['median']:.0f} / {io['p99']:.0f} us), "
               f"period jitter p99 {jitter['p99']:.0f} us, overruns {summary['overruns']}")
     for row in summary["load_test"]:
         print(f"load test {row['joint']:<22} kp nominal {row['kp_nominal']:5.1f}  realised {row['kp_realised']:5.1f} "

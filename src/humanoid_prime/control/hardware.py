@@ -40,6 +40,10 @@ class HardwareComponent(SafetyFlags, ABC):
         self.joints = tuple(joints)
         self.indices = np.array([robot.index(joint) for joint in self.joints], dtype=np.intp)
         self.lifecycle = Lifecycle.UNCONFIGURED
+        # Seconds of the last read + write spent in bus I/O: the system calls that send and collect frames, with
+        # any wait for the wire (and, on an emulated bus, for the emulator). The tick's cost minus this is the
+        # CPU of our own code.
+        self.io_s = 0.0
 
     # Lifecycle. Subclasses override the on_* hooks; these wrappers keep the state machine honest.
     def configure(self) -> None:
@@ -86,7 +90,8 @@ class HardwareComponent(SafetyFlags, ABC):
 
     @abstractmethod
     def read(self, now: float, state: StateArrays) -> None:
-        """Fill ``state`` at ``self.indices`` with the latest measurements (joint frame)."""
+        """Fill ``state`` at ``self.indices`` with the latest measurements (joint frame); ``io_s`` starts
+        counting here."""
 
     @abstractmethod
     def write(self, now: float, command: CommandArrays) -> None:

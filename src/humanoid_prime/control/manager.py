@@ -55,25 +55,42 @@ FALLBACK: dict[Mode, Mode | None] = {
 
 @dataclass
 class LoopStats:
-    """Tick cost (read + update + write, without the wait) and tick-to-tick period, in ring buffers."""
+    """Tick cost (read + update + write, without the wait), the part of it spent in bus I/O (the hardware
+    components' ``io_s``), and tick-to-tick period, in ring buffers."""
 
     period: float
     capacity: int = 1 << 16
     ticks: int = 0
     overruns: int = 0
     costs: np.ndarray = field(init=False, repr=False)
+    ios: np.ndarray = field(init=False, repr=False)
     periods: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.costs = np.zeros(self.capacity)
+        self.ios = np.zeros(self.capacity)
         self.periods = np.full(self.capacity, np.nan)
 
-    def record(self, cost: float, period: float) -> None:
+    def record(self, cost: float, period: float, io: float = 0.0) -> None:
         """``period`` is NaN for the first tick."""
         i = self.ticks % self.capacity
         self.costs[i] = cost
+        self.ios[i] = io
         self.periods[i] = period
         self.ticks += 1
+
+    def split_us(self) -> dict[str, dict[str, float | None]]:
+        """The tick cost split in our CPU (cost minus bus I/O) and bus I/O: median, p99 and max of each."""
+        k = min(self.ticks, self.capacity)
+        if not k:
+            empty = {"median": None, "p99": None, "max": None}
+            return {"cpu": dict(empty), "io": dict(empty)}
+        figures = {}
+        for name, values in (("cpu", self.costs[:k] - self.ios[:k]), ("io", self.ios[:k])):
+            median, p99, top = np.percentile(values, (50, 99, 100)) * 1e6
+            figures[name] = {"median": round(float(median), 3), "p99": round(float(p99), 3),
+                             "max": round(float(top), 3)}
+        return figures
 
     def tick_us(self) -> dict[str, float | None]:
         """Tick cost median, p99 and max over the last ``capacity`` ticks, in one pass (the live table asks
@@ -98,6 +115,7 @@ class LoopStats:
             "ticks": self.ticks,
             "overruns": self.overruns,
             "tick_us": self.tick_us(),
+            **{f"tick_{part}_us": figures for part, figures in self.split_us().items()},
             "period_ms": {"mean": stat(periods * 1e3, np.mean)},
             "jitter_us": {"p99": stat(jitter_us, lambda v: np.percentile(v, 99))},
         }
@@ -147,6 +165,7 @@ class ControllerManager:
         self._started = False
         self._closed = False
         self._last_now: float | None = None
+        self._fresh_schedule = False  # the next tick starts a run's schedule: no period to measure before it
         # Preallocated for the per-tick output check.
         n = robot.n
         self._names = robot.names
@@ -346,7 +365,11 @@ class ControllerManager:
         for hook in self._end_of_tick:
             hook()
         self.tick_count += 1
-        self.stats.record(self.clock() - began, math.nan if last is None else dt)
+        io = 0.0
+        for component in resources.components:
+            io += component.io_s
+        fresh, self._fresh_schedule = self._fresh_schedule, False
+        self.stats.record(self.clock() - began, math.nan if last is None or fresh else dt, io)
 
     def _broadcast(self, now: float, dt: float) -> None:
         broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
@@ -428,8 +451,11 @@ class ControllerManager:
         self.topics.publish(SAFETY_STATUS, SafetyStatus(ok=not flags, flags=flags, levels=levels, stamp=now))
 
     def run(self, duration: float | None = None, stop: threading.Event | None = None,
-            on_tick: Callable[[ControllerManager], None] | None = None) -> None:
+            on_tick: Callable[[ControllerManager], None] | None = None,
+            between_ticks: Callable[[], None] | None = None) -> None:
         """Tick at ``update_rate`` until ``duration`` seconds (that many periods) have run or ``stop`` is set.
+        ``between_ticks`` runs after each tick and its ``on_tick``, before the wait (housekeeping that must not
+        land inside a tick, such as a garbage collection).
 
         Paced by ``Rate`` (its overrun policy: a tick, with ``on_tick``, that ends after the next deadline is
         counted in ``stats.overruns`` and the schedule restarts from then instead of bursting to catch up);
@@ -439,6 +465,7 @@ class ControllerManager:
             self.start()
         total = None if duration is None else max(1, round(duration * self.update_rate))
         rate = Rate(self.update_rate, clock=self.clock, sleep=self.sleep, spin_s=SPIN_S)
+        self._fresh_schedule = True
         k = 0
         while (total is None or k < total) and not (stop is not None and stop.is_set()):
             if not rate.wait():
@@ -446,6 +473,8 @@ class ControllerManager:
             self.tick()
             if on_tick is not None:
                 on_tick(self)
+            if between_ticks is not None:
+                between_ticks()
             k += 1
         if k and rate.deadline is not None and self.clock() > rate.deadline + self.period:
             self.stats.overruns += 1  # the last tick overran too

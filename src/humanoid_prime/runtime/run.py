@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.realtime import GcBetweenTicks, enter_realtime, leave_realtime
 from humanoid_prime.runtime.session import Session
 
 
@@ -32,8 +33,11 @@ class ModeSequence:
 
 
 def run_loop(session: Session, stop: threading.Event,
-             on_tick: Callable[[ControllerManager], None] | None = None) -> None:
-    """The control-rate loop until ``stop``, the duration, or the end of the mode sequence plus one dwell."""
+             on_tick: Callable[[ControllerManager], None] | None = None,
+             report: Callable[[str], None] | None = None) -> None:
+    """The control-rate loop until ``stop``, the duration, or the end of the mode sequence plus one dwell.
+    With ``options.realtime`` this thread becomes the real-time control thread for the loop and the gate reset
+    after it (``runtime/realtime.py``; ``report`` is told what it could and could not take)."""
     options = session.options
     if options.mode is not None:
         session.manager.request_mode(options.mode)
@@ -53,13 +57,27 @@ def run_loop(session: Session, stop: threading.Event,
                                                           and options.duration is None):
             stop.set()
 
-    session.manager.run(stop=stop, on_tick=tick)
-    if session.impedance is not None:
-        session.impedance.wait_idle(5.0)
-        close_impedance_while_ticking(session)
+    realtime = None
+    between_ticks = None
+    if options.realtime:
+        realtime = enter_realtime(session.manager.period, cpu=options.cpu)
+        between_ticks = GcBetweenTicks()
+        session.reports["realtime"] = realtime.as_dict()
+        if report is not None:
+            report(realtime.line())
+    try:
+        session.manager.run(stop=stop, on_tick=tick, between_ticks=between_ticks)
+        if session.impedance is not None:
+            session.impedance.wait_idle(5.0)
+            close_impedance_while_ticking(session, between_ticks)
+    finally:
+        if realtime is not None:
+            leave_realtime(realtime)
+            session.reports["realtime"]["gc_between_ticks"] = between_ticks.collections
 
 
-def close_impedance_while_ticking(session: Session, timeout: float = 10.0) -> None:
+def close_impedance_while_ticking(session: Session, between_ticks: Callable[[], None] | None = None,
+                                  timeout: float = 10.0) -> None:
     """Reset the eRob gain gate with the loop still running, so every drive keeps a live target (the
     active mode's, or the actual position while limp) at the moment its factory gains take over; a
     stopped loop would leave a stale target that the stiff factory gains snap to."""
@@ -79,4 +97,4 @@ def close_impedance_while_ticking(session: Session, timeout: float = 10.0) -> No
         if time.monotonic() > deadline:
             done.set()
 
-    session.manager.run(stop=done, on_tick=until_done)
+    session.manager.run(stop=done, on_tick=until_done, between_ticks=between_ticks)

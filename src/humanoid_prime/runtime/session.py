@@ -34,6 +34,7 @@ from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus, Snapshot
+from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S
 from humanoid_prime.drivers.erob.gains import check_mode_gains
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
@@ -70,6 +71,9 @@ class BringupOptions:
     dwell: float = 2.0
     erob_config_dir: str | Path | None = None  # also write the folded per-slave configs here
     control_socket: str | Path | None = None
+    update_rate: float | None = None  # Hz of the control loop (default: prime_controllers.yaml)
+    realtime: bool = False  # the loop thread takes real-time scheduling, locked memory, a frozen GC
+    cpu: int | None = None  # (with realtime) pin the loop thread to this CPU
 
 
 @dataclass
@@ -116,6 +120,12 @@ def check_robot_config(robot: Robot, config: ControllersConfig, calibration: Cal
     check_foldable(robot, calibration)
 
 
+def default_bringup_rate(configured: float, update_rate: float) -> float:
+    """The bring-up loop runs at least twice as fast as SYNC0 (up to the eRob's 2 kHz), so a late frame
+    still leaves every SYNC0 cycle a fresh one while the drives lock onto the distributed clock."""
+    return max(configured, min(2.0 * update_rate, 1.0 / MIN_CYCLE_S))
+
+
 def plan_session(options: BringupOptions) -> Plan:
     """Load and cross-check the configuration for ``options``; nothing is opened."""
     if options.backends not in BACKEND_BLOCKS:
@@ -125,10 +135,13 @@ def plan_session(options: BringupOptions) -> Plan:
     config = load_controllers(robot.names, options.controllers_file)
     calibration = options.calibration or load_calibration(robot.hardware, options.calibration_file)
     check_robot_config(robot, config, calibration)
-    sync0_period_ns(config.update_rate, sync0_period_s=options.sync0_period_s)  # refuse a mismatch before the bus
+    update_rate = config.update_rate if options.update_rate is None else options.update_rate
+    if options.update_rate is not None:
+        sync0_period_ns(update_rate)  # the eRob's minimum cycle bounds --rate as it bounds the file's rate
+    sync0_period_ns(update_rate, sync0_period_s=options.sync0_period_s)  # refuse a mismatch before the bus
     broadcaster_only = options.backends != "all" if options.broadcaster_only is None else options.broadcaster_only
-    plan = Plan(options, robot, config, calibration, update_rate=config.update_rate,
-                bringup_rate=options.bringup_rate or config.bringup_rate,
+    plan = Plan(options, robot, config, calibration, update_rate=update_rate,
+                bringup_rate=options.bringup_rate or default_bringup_rate(config.bringup_rate, update_rate),
                 parallel_sdo=config.impedance.parallel_sdo if options.parallel_sdo is None else options.parallel_sdo,
                 broadcaster_only=broadcaster_only, began=began)
     plan.stage("configuration", began)
@@ -269,6 +282,8 @@ class Session:
             "modes_visited": list(self.manager.modes_visited),
             "ticks": stats["ticks"],
             "tick_us": stats["tick_us"],
+            "tick_cpu_us": stats["tick_cpu_us"],
+            "tick_io_us": stats["tick_io_us"],
             "jitter_us": stats["jitter_us"],
             "overruns": stats["overruns"],
             "fallbacks": list(self.manager.fallbacks),

@@ -120,7 +120,7 @@ def _record_emulator(virtual: VirtualPrime, record: dict[str, Any]) -> None:
     """The drives' final state and their log of gain-register writes, as the emulator saw them."""
     with contextlib.suppress(PrimeError):
         slaves = virtual.control.call("status")
-        record["slaves"] = [{"position": s["position"], "al_state": s["al_state"],
+        record["slaves"] = [{"position": s["position"], "al_state": s["al_state"], "state": s["drive"]["state"],
                              "mailbox_faults": s["mailbox_faults"], "error_history": s["drive"]["error_history"],
                              **{k: s["drive"][k] for k in ("gate", "pos_reg", "vel_reg", "integral")}}
                             for s in slaves]

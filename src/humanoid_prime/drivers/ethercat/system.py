@@ -353,7 +353,9 @@ class EthercatSystem(HardwareComponent):
 
     def read(self, now: float, state: StateArrays) -> None:
         master = self.master
+        began = time.perf_counter()
         wkc = master.receive()
+        self.io_s = time.perf_counter() - began
         self._gather()
         x3 = self._x3
         np.multiply(self._raw, self.state_factor, out=x3)
@@ -408,7 +410,9 @@ class EthercatSystem(HardwareComponent):
         self._out_tq[self.ring] = self._ff_tq
         self._out_mode[:] = MODE_CSP
         self._step_controlwords()
+        began = time.perf_counter()
         self.master.send()
+        self.io_s += time.perf_counter() - began
 
     # ------------------------------------------------------------------------------- flags
     def _update_wkc_flag(self, wkc: int) -> None:

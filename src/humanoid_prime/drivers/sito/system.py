@@ -438,6 +438,7 @@ class SitoSystem(HardwareComponent):
         np.logical_or(self._gains_due, self._refresh_due, out=self._gains_due)
         bus = self._bus
         failed = False
+        began = time.perf_counter()  # the sends are this component's bus I/O (``io_s``)
         for i in range(len(self.can_ids)):
             if self._gains_due[i]:
                 msg = self._gains_msgs[i]
@@ -451,6 +452,7 @@ class SitoSystem(HardwareComponent):
             msg.data[:] = self._command_bytes[i]
             if not self._send(bus, msg):
                 failed = True
+        self.io_s = time.perf_counter() - began
 
         if failed != self._tx_failed:
             self._tx_failed = failed

@@ -1,0 +1,323 @@
+"""The soak: the emulated robot for minutes at its control rate, cycling through all five modes with a remote
+stream, while both cores are loaded and faults are injected on both buses.
+
+It runs in-process (inside the emulation's private network namespace, as ``prime bringup --emulate`` does),
+on the run path of ``prime bringup``: real-time loop, impedance manager, gate reset on the way out. A
+helper thread injects one fault every ``fault_every_s`` through the virtual Prime's control socket, in
+turn from ``FAULTS``; each fault states what the stack must do about it:
+
+- ``counted``: absorbed without a flag (one lost or garbage frame), and visible in a counter;
+- ``recovered``: flagged under ``flag``, then cleared by the stack itself;
+- ``latched``: flagged, held until the operator's reset (which the soak then sends), then cleared;
+- ``refused``: an SDO the drive aborts reaches its caller as that abort, and nothing else changes.
+
+Each injection is judged from the run's own fault history (the summary's), and every ERROR flag that no
+injection explains (a drive fault nobody injected above all) is reported as unexpected. The REMOTE stream
+publishes one MIT command per tick on the remote topic, the path the DDS bridge feeds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fnmatch
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from humanoid_prime.drivers.erob.objects import RATED_TORQUE
+from humanoid_prime.drivers.ethercat.master import SdoError
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.run import run_loop
+from humanoid_prime.runtime.session import BringupOptions, claim_control_socket, open_session, plan_session
+
+# the demonstration's order: every mode is entered from one whose pose is near its own
+MODE_CYCLE = (Mode.ZERO_TORQUE, Mode.DAMPING, Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE, Mode.STANDBY, Mode.DAMPING)
+SETTLE_S = 3.0  # how long after an injection (or its end) the stack has to flag and recover
+LOST_RING = 9  # the last slave: losing it leaves the rest of the line reachable
+READ_ONLY_ABORT = "0X06010002"  # CiA 301 abort: attempt to write a read-only object
+
+
+@dataclass
+class Fault:
+    name: str
+    bus: str
+    expect: str  # counted, recovered, latched, refused
+    flag: str | None  # fnmatch pattern of the flag key it raises (None: it must raise none)
+    inject: Callable[[Any, Any], Any]  # (virtual prime control, session) -> what happened
+    hold_s: float = 0.0  # how long the fault lasts before ``end`` undoes it
+    end: Callable[[Any], None] | None = None
+    also: tuple[str, ...] = ()  # flags it may raise besides ``flag`` (consequences, not surprises)
+
+
+def _sito(joint: str, **fields: object) -> Callable[[Any], Any]:
+    return lambda control, session=None: control.call("sito", joint=joint, **fields)
+
+
+def _sdo_abort(control: Any, session: Any) -> str:
+    """Write the read-only rated torque (0x6076) of ring 0, as a mistyped `prime ec sdo` would."""
+    try:
+        session.ethercat.master.sdo_write(0, RATED_TORQUE, 0, b"\x00\x00\x00\x00")
+    except SdoError as exc:
+        return str(exc)
+    raise PrimeError("the drive accepted a write to its read-only 0x6076")
+
+
+FAULTS: tuple[Fault, ...] = (
+    Fault("one EtherCAT frame lost", "ethercat", "counted", None,
+          lambda c, s: c.call("drop", count=1, where="request")),
+    Fault("EtherCAT replies lost, 20 frames", "ethercat", "recovered", "*/ethercat/wkc",
+          lambda c, s: c.call("drop", count=20, where="reply")),
+    Fault("EtherCAT frames delayed 30 ms, 30 frames", "ethercat", "recovered", "*/ethercat/wkc",
+          lambda c, s: c.call("delay", seconds=0.03, count=30), also=("*/ethercat/ring*/lost",)),
+    Fault("garbage EtherCAT frames", "ethercat", "counted", None, lambda c, s: c.call("garbage", count=5)),
+    Fault("slave lost and returned", "ethercat", "recovered", f"*/ethercat/ring{LOST_RING}/lost",
+          lambda c, s: c.call("lose", position=LOST_RING), hold_s=1.0,
+          end=lambda c: c.call("restore", position=LOST_RING),
+          also=("*/ethercat/wkc", "*/erob/impedance/ring*")),  # a mode switch meanwhile is refused, and flagged
+    Fault("drive fault 0x7500", "ethercat", "latched", "*/ethercat/ring6/fault",
+          lambda c, s: c.call("fault", position=6, code=0x7500)),
+    Fault("SDO abort", "ethercat", "refused", None, _sdo_abort),
+    Fault("silent Sito", "can", "recovered", "*/rx_timeout/*", lambda c, s: _sito("left_wrist_roll", silent=True)(c),
+          hold_s=1.0, end=_sito("left_wrist_roll", silent=False)),
+    Fault("garbage CAN frames", "can", "recovered", "*/invalid_frame",
+          lambda c, s: _sito("right_wrist_roll", garbage=True)(c), hold_s=1.0,
+          end=_sito("right_wrist_roll", garbage=False)),
+    Fault("Sito frames dropped (30 %)", "can", "counted", None,
+          lambda c, s: _sito("right_wrist_pitch", drop_fraction=0.3)(c), hold_s=2.0,
+          end=_sito("right_wrist_pitch", drop_fraction=0.0)),
+)
+
+
+@dataclass
+class Injection:
+    fault: Fault
+    at_s: float  # since the run began
+    done_s: float = 0.0  # when the fault ended (its ``end`` ran)
+    outcome: str = ""
+    detail: str = ""
+    reset: bool = False  # the soak sent the operator's reset for it
+    flags: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"fault": self.fault.name, "bus": self.fault.bus, "expected": self.fault.expect,
+                "at_s": round(self.at_s, 3),
+                "outcome": self.outcome, "as_designed": self.outcome == self.fault.expect, "detail": self.detail,
+                "flags": self.flags}
+
+
+class Load:
+    """Both cores kept busy: ``stress-ng --cpu N`` where installed, else N spinning interpreters."""
+
+    def __init__(self, cpus: int) -> None:
+        self.cpus = cpus
+        if shutil.which("stress-ng"):
+            self.how = f"stress-ng --cpu {cpus}"
+            command = ["stress-ng", "--cpu", str(cpus), "--quiet"]
+            self._processes = [subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                                start_new_session=True)]
+        else:
+            self.how = f"{cpus} spinning Python processes"
+            self._processes = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True)
+                               for _ in range(cpus)]
+
+    def close(self) -> None:
+        for process in self._processes:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGTERM)
+            process.wait(timeout=10)
+
+
+class Injector(threading.Thread):
+    """One fault every ``every_s`` in turn; the operator's reset for a latched one once it has been seen."""
+
+    def __init__(self, control: Any, session: Any, every_s: float, stop: threading.Event) -> None:
+        super().__init__(name="soak-faults", daemon=True)
+        self.control, self.session, self.every_s, self.stop = control, session, every_s, stop
+        self.injections: list[Injection] = []
+        self.error: str | None = None
+
+    def _now(self) -> float:
+        return time.monotonic() - self.session.plan.began
+
+    def run(self) -> None:
+        try:
+            k = 0
+            while not self.stop.wait(self.every_s):
+                fault = FAULTS[k % len(FAULTS)]
+                k += 1
+                injection = Injection(fault, self._now())
+                self.injections.append(injection)
+                result = fault.inject(self.control, self.session)
+                injection.detail = result if isinstance(result, str) else ""
+                if fault.hold_s and self.stop.wait(fault.hold_s):
+                    fault.end(self.control)
+                    return
+                if fault.end is not None:
+                    fault.end(self.control)
+                injection.done_s = self._now()
+                if fault.expect == "latched":
+                    self._reset_when_flagged(injection)
+        except Exception as exc:  # a control call that failed ends the soak's injections, and says why
+            self.error = f"{type(exc).__name__}: {exc}"
+
+    def _reset_when_flagged(self, injection: Injection) -> None:
+        deadline = time.monotonic() + SETTLE_S
+        while time.monotonic() < deadline and not self.stop.is_set():
+            if any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
+                   for r in list(self.session.faults)):
+                self.session.manager.request_reset()
+                injection.reset = True
+                return
+            time.sleep(0.02)
+
+
+def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: float = float("inf")) -> None:
+    """``injection.outcome`` from the run's fault history (module docstring); a fault that must raise no flag
+    is judged until the next injection at the latest."""
+    fault = injection.fault
+    window_end = (injection.done_s or injection.at_s) + SETTLE_S
+    if fault.flag is None:
+        window_end = min(window_end, next_at_s)
+        raised = [r for r in faults if injection.at_s <= r.since_s <= window_end and r.level.name == "ERROR"]
+        injection.flags = [r.key for r in raised]
+        if fault.expect == "refused":
+            # the drive's abort, or the master's refusal while a slave is recovering: either way nothing was written
+            refused = READ_ONLY_ABORT in injection.detail.upper() or "refused:" in injection.detail
+            injection.outcome = "refused" if refused and not raised else "not refused"
+        else:
+            injection.outcome = "counted" if not raised else "flagged"
+        return
+    raised = [r for r in faults if fnmatch.fnmatch(r.key, fault.flag) and injection.at_s <= r.since_s <= window_end]
+    injection.flags = [r.key for r in raised]
+    if not raised:
+        injection.outcome = "not flagged"
+    elif any(r.until_s is None for r in raised) and window_end < ended_s:
+        injection.outcome = "held"  # still flagged long after it ended
+    elif fault.expect == "latched":
+        injection.outcome = "latched" if injection.reset else "recovered without a reset"
+    else:
+        injection.outcome = "recovered"
+
+
+def explained(record: Any, injections: list[Injection]) -> bool:
+    """A flag is explained by an injection whose flag (or a consequence of it) it matches, in its window."""
+    for injection in injections:
+        window_end = (injection.done_s or injection.at_s) + SETTLE_S
+        patterns = (*((injection.fault.flag,) if injection.fault.flag else ()), *injection.fault.also)
+        if injection.at_s <= record.since_s <= window_end and any(fnmatch.fnmatch(record.key, p) for p in patterns):
+            return True
+    return False
+
+
+def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool = True, cpu: int | None = None,
+               fault_every_s: float = 6.0, dwell_s: float = 10.0, report: Callable[[str], None] = print,
+               hardware_file: str | None = None) -> dict[str, Any]:
+    """Run the soak (module docstring) in this process, which must be in a private network namespace."""
+    from humanoid_prime.sim.demo import demo_stream
+    from humanoid_prime.virtual.harness import attach_virtual_prime
+
+    options = BringupOptions(emulated=True, duration=minutes * 60.0, update_rate=rate, realtime=True, cpu=cpu,
+                             hardware_file=hardware_file, control_socket=None)
+    stop = threading.Event()
+    emulator: dict[str, Any] = {}
+    load_process = None
+    with contextlib.ExitStack() as stack:
+        plan = plan_session(options)
+        plan.options.control_socket = os.path.join(stack.enter_context(_tempdir()), "control.sock")
+        claim_control_socket(plan, stack)
+        virtual = attach_virtual_prime(stack, hardware_file=hardware_file, record=emulator)
+        options.interface = virtual.master_interface
+        options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+        session = open_session(plan, stack)
+        manager = session.manager
+        stream = demo_stream(session.robot, session.config, manager)
+        if load:
+            load_process = Load(os.cpu_count() or 2)
+            stack.callback(load_process.close)
+        injector = Injector(virtual.control, session, fault_every_s, stop)
+        modes = {"next": 0, "at": 0.0}
+
+        def on_tick(m: Any) -> None:
+            now = time.monotonic()
+            if now >= modes["at"]:
+                m.request_mode(MODE_CYCLE[modes["next"] % len(MODE_CYCLE)])
+                modes["next"] += 1
+                modes["at"] = now + dwell_s
+            stream.publish(now)
+
+        report(f"soak: {minutes:g} min at {manager.update_rate:g} Hz, modes every {dwell_s:g} s, a fault every "
+               f"{fault_every_s:g} s, load: {load_process.how if load_process else 'none'}")
+        injector.start()
+        loop_began_s = time.monotonic() - plan.began
+        try:
+            run_loop(session, stop, on_tick=on_tick, report=report)
+        finally:
+            stop.set()
+            injector.join(timeout=SETTLE_S + 5.0)
+        ended_s = time.monotonic() - plan.began
+        injections = injector.injections
+        for k, injection in enumerate(injections):
+            judge(injection, session.faults, ended_s, injections[k + 1].at_s if k + 1 < len(injections) else ended_s)
+        stats = manager.stats
+        ethercat, sito = session.ethercat, session.sito
+        counters = {"ethercat_wkc_errors": ethercat.wkc_errors, "sito_send_failures": sito.send_failures,
+                    "stream_published": stream.published, "operator_resets": manager.resets}
+    summary = session.summary()  # after teardown: the end state, the gate reset
+    unexpected = [r.as_dict() for r in session.faults
+                  if r.level.name == "ERROR" and not explained(r, injector.injections)]
+    k = min(stats.ticks, stats.capacity)
+    periods = stats.periods[:k]
+    jitter = np.abs(periods[np.isfinite(periods)] - stats.period) * 1e6
+    # an overrun: a tick that took, or a period that lasted, more than twice the period
+    late = np.flatnonzero((stats.costs[:k] > 2 * stats.period) | (periods > 2 * stats.period))
+    since_start = np.nancumsum(periods)  # seconds from the first tick (ring not wrapped at 50 Hz for 20 min)
+    overruns = int(late.size)
+    drives_on = [s["position"] for s in emulator.get("slaves", []) if s.get("state") == "OPERATION_ENABLED"]
+    gates_set = [s["position"] for s in emulator.get("slaves", []) if s.get("gate")]
+    return {
+        "minutes": minutes,
+        "update_rate": manager.update_rate,
+        "load": load_process.how if load_process else None,
+        "realtime": summary.get("realtime"),
+        "ticks": stats.ticks,
+        "overruns": overruns,
+        "loop_overruns": stats.overruns,
+        "overrun_ticks": [{"tick": int(i), "at_s": round(float(since_start[i]) + loop_began_s, 2),
+                           "cost_ms": round(float(stats.costs[i]) * 1e3, 2),
+                           "period_ms": round(float(periods[i]) * 1e3, 2)} for i in late[:50]],
+        "tick_us": summary["tick_us"],
+        "tick_cpu_us": summary["tick_cpu_us"],
+        "worst_tick_us": summary["tick_us"]["max"],
+        "jitter_us": {f"p{p}": round(float(np.percentile(jitter, p)), 1) for p in (50, 99, 99.9, 100)}
+                     if jitter.size else {},
+        "modes_visited": sorted(set(manager.modes_visited)),
+        "injections": [i.as_dict() for i in injector.injections],
+        "injected": len(injector.injections),
+        "as_designed": sum(1 for i in injector.injections if i.outcome == i.fault.expect),
+        "injector_error": injector.error,
+        "unexpected_faults": unexpected,
+        "counters": counters,
+        "end": summary["end"],
+        "gate_reset_failures": summary["gate_reset_failures"],
+        "gates_left_set": gates_set,
+        "drives_left_enabled": drives_on,
+        "problems_at_end": [p for p in summary["problems"] if "at the end" in p or p.startswith("gate")],
+    }
+
+
+@contextlib.contextmanager
+def _tempdir():
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="prime-soak-") as tmp:
+        yield tmp

@@ -1,0 +1,134 @@
+"""Holding the control period on a busy machine: real-time scheduling, locked memory, CPU affinity, and the
+garbage collector kept out of the tick.
+
+``enter_realtime`` is called by the control thread just before its loop. Each measure is taken where the
+process is allowed to and reported where it is not; the run goes on either way:
+
+- ``SCHED_FIFO`` for the control thread (root or ``CAP_SYS_NICE``), with ``SCHED_RESET_ON_FORK`` so the
+  threads it starts later (a gate reset, a recorder) run at normal priority instead of inheriting it;
+- ``mlockall`` of current and future memory (root, ``CAP_IPC_LOCK``, or a large enough ``ulimit -l``), so no
+  page fault in the tick waits for the disk;
+- with ``cpu``, the control thread pinned to that CPU and every other thread of the process moved off it;
+- the interpreter's thread switch interval cut to a tenth of the period (at most its 5 ms default): a thread
+  that returns from C (a frame received with the GIL released) waits at most that long for the interpreter;
+- ``gc.freeze()`` of everything built during start-up and automatic collection off; ``GcBetweenTicks``
+  then runs the young-generation collections the allocator asks for, between ticks, never inside one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import gc
+import os
+import sys
+import threading
+from dataclasses import dataclass, field
+
+FIFO_PRIORITY = 80  # above the kernel's threaded IRQs (50), below its watchdogs (99)
+_MCL_CURRENT, _MCL_FUTURE = 1, 2
+
+
+@dataclass
+class RealtimeReport:
+    """What ``enter_realtime`` could do; ``refused`` has one line per measure the process was not allowed."""
+
+    scheduling: str = "SCHED_OTHER"
+    memory_locked: bool = False
+    cpu: int | None = None
+    switch_interval_s: float = 0.005
+    gc_frozen: int = 0
+    refused: list[str] = field(default_factory=list)
+
+    def line(self) -> str:
+        parts = [self.scheduling, "memory locked" if self.memory_locked else "memory not locked",
+                 f"CPU {self.cpu}" if self.cpu is not None else "any CPU",
+                 f"GC frozen ({self.gc_frozen} objects) and run between ticks"]
+        text = "real time: " + ", ".join(parts)
+        return text + ("; NOT real time: " + "; ".join(self.refused) if self.refused else "")
+
+    def as_dict(self) -> dict[str, object]:
+        return {"scheduling": self.scheduling, "memory_locked": self.memory_locked, "cpu": self.cpu,
+                "switch_interval_s": self.switch_interval_s, "gc_frozen": self.gc_frozen, "refused": self.refused}
+
+
+def check_cpu(cpu: int) -> None:
+    """Raise ValueError unless this process may run on ``cpu`` (for argument checking before anything opens)."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if cpu not in allowed:
+        raise ValueError(f"CPU {cpu} is not one this process may run on (allowed: "
+                         f"{', '.join(map(str, allowed))})")
+
+
+def enter_realtime(period_s: float, *, cpu: int | None = None, priority: int = FIFO_PRIORITY,
+                   lock_memory: bool = True) -> RealtimeReport:
+    """Make the calling thread the real-time control thread (module docstring)."""
+    report = RealtimeReport()
+    if cpu is not None:
+        check_cpu(cpu)
+        _pin(cpu)
+        report.cpu = cpu
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+        report.scheduling = f"SCHED_FIFO {priority}"
+    except PermissionError:
+        report.refused.append("real-time scheduling refused (run as root or grant CAP_SYS_NICE)")
+    except OSError as exc:
+        report.refused.append(f"real-time scheduling unavailable ({exc.strerror})")
+    if lock_memory:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            report.memory_locked = True
+        else:
+            why = os.strerror(ctypes.get_errno())
+            report.refused.append(f"memory not locked ({why}: run as root, grant CAP_IPC_LOCK or raise ulimit -l)")
+    report.switch_interval_s = min(sys.getswitchinterval(), period_s / 10)
+    sys.setswitchinterval(report.switch_interval_s)
+    gc.collect()
+    gc.freeze()
+    report.gc_frozen = gc.get_freeze_count()
+    gc.disable()
+    return report
+
+
+def leave_realtime(report: RealtimeReport) -> None:
+    """Back to normal scheduling and automatic collection (the teardown after the loop allocates freely)."""
+    with contextlib.suppress(OSError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    gc.unfreeze()
+    gc.enable()
+    sys.setswitchinterval(0.005)
+
+
+class GcBetweenTicks:
+    """The collections automatic GC would have run, run by the loop between ticks instead (with automatic
+    collection off and the start-up heap frozen, only what the loop allocates since is looked at)."""
+
+    def __init__(self) -> None:
+        self.threshold0, self.threshold1, self.threshold2 = gc.get_threshold()
+        self.collections = [0, 0, 0]
+
+    def __call__(self) -> None:
+        young, middle, old = gc.get_count()
+        if young < self.threshold0:
+            return
+        generation = 0
+        if middle >= self.threshold1:
+            generation = 2 if old >= self.threshold2 else 1
+        gc.collect(generation)
+        self.collections[generation] += 1
+
+
+def _pin(cpu: int) -> None:
+    """The calling thread on ``cpu``; every other thread of the process on the rest."""
+    me = threading.get_native_id()
+    others = set(os.sched_getaffinity(0)) - {cpu}
+    os.sched_setaffinity(me, {cpu})
+    if not others:
+        return
+    for task in os.listdir("/proc/self/task"):
+        tid = int(task)
+        if tid != me:
+            with contextlib.suppress(OSError):  # a thread that has just ended
+                os.sched_setaffinity(tid, others)

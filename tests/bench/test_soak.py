@@ -1,0 +1,78 @@
+"""The soak's verdicts: each injected fault judged from the run's own fault history, and every flag no injection
+explains reported."""
+
+from humanoid_prime.bench.soak import FAULTS, SETTLE_S, Injection, explained, judge
+from humanoid_prime.control.flags import Level
+from humanoid_prime.runtime.session import FaultRecord
+
+BY_NAME = {fault.name: fault for fault in FAULTS}
+LOST = BY_NAME["slave lost and returned"]
+DRIVE_FAULT = BY_NAME["drive fault 0x7500"]
+ONE_FRAME = BY_NAME["one EtherCAT frame lost"]
+SDO_ABORT = BY_NAME["SDO abort"]
+
+
+def record(key, since, until=None, level=Level.ERROR):
+    return FaultRecord(key, "text", level, since, until)
+
+
+def test_a_flag_raised_and_cleared_after_the_injection_is_recovered():
+    injection = Injection(LOST, at_s=10.0, done_s=11.0)
+    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.1, 12.0)], ended_s=60.0)
+    assert injection.outcome == "recovered" == LOST.expect
+
+
+def test_a_flag_still_up_long_after_the_fault_ended_is_held():
+    injection = Injection(LOST, at_s=10.0, done_s=11.0)
+    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.1)], ended_s=60.0)
+    assert injection.outcome == "held"
+
+
+def test_a_fault_nobody_flagged_is_not_flagged():
+    injection = Injection(LOST, at_s=10.0, done_s=11.0)
+    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 11.0 + SETTLE_S + 1, 20.0)], ended_s=60.0)
+    assert injection.outcome == "not flagged"
+
+
+def test_a_drive_fault_is_latched_only_when_the_operators_reset_cleared_it():
+    reset = Injection(DRIVE_FAULT, at_s=10.0, done_s=10.0, reset=True)
+    judge(reset, [record("PrimeEtherCATSide/ethercat/ring6/fault", 10.05, 10.5)], ended_s=60.0)
+    assert reset.outcome == "latched" == DRIVE_FAULT.expect
+    unreset = Injection(DRIVE_FAULT, at_s=10.0, done_s=10.0)
+    judge(unreset, [record("PrimeEtherCATSide/ethercat/ring6/fault", 10.05, 10.5)], ended_s=60.0)
+    assert unreset.outcome == "recovered without a reset"
+
+
+def test_a_lost_frame_that_raised_an_error_was_not_merely_counted():
+    quiet = Injection(ONE_FRAME, at_s=10.0)
+    judge(quiet, [record("PrimeSitoCAN/x/invalid_frame", 10.5, 11.0, Level.WARN)], ended_s=60.0)
+    assert quiet.outcome == "counted"
+    loud = Injection(ONE_FRAME, at_s=10.0)
+    judge(loud, [record("PrimeEtherCATSide/ethercat/wkc", 10.5, 11.0)], ended_s=60.0)
+    assert loud.outcome == "flagged"
+
+
+def test_an_sdo_abort_is_refused_only_with_the_read_only_abort_code():
+    refused = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: abort 0x06010002 (read only)")
+    judge(refused, [], ended_s=60.0)
+    assert refused.outcome == "refused"
+    recovering = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: refused: the ring is recovering")
+    judge(recovering, [], ended_s=60.0)
+    assert recovering.outcome == "refused"  # the master's refusal: nothing reached the drive either
+    lost = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: no reply")
+    judge(lost, [], ended_s=60.0)
+    assert lost.outcome == "not refused"
+
+
+def test_a_flag_is_explained_by_its_injection_or_a_consequence_in_its_window_only():
+    lost = Injection(LOST, at_s=10.0, done_s=11.0)
+    assert explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2), [lost])
+    assert explained(record("PrimeEtherCATSide/ethercat/wkc", 10.2), [lost])  # a consequence it lists
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring3/fault", 10.2), [lost])  # a drive nobody touched
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 30.0), [lost])  # long after
+
+
+def test_a_fault_that_must_raise_no_flag_is_not_blamed_for_the_next_injections_flag():
+    injection = Injection(ONE_FRAME, at_s=10.0)
+    judge(injection, [record("PrimeEtherCATSide/ethercat/wkc", 12.1, 12.5)], ended_s=60.0, next_at_s=12.0)
+    assert injection.outcome == "counted"

@@ -1,0 +1,65 @@
+"""Real-time measures of the control thread: each taken where allowed, each refusal said, the GC between ticks."""
+
+import gc
+import os
+import sys
+
+import pytest
+
+from humanoid_prime.runtime import realtime
+from humanoid_prime.runtime.realtime import GcBetweenTicks, check_cpu, enter_realtime, leave_realtime
+
+
+@pytest.fixture
+def restored():
+    interval, enabled = sys.getswitchinterval(), gc.isenabled()
+    yield
+    sys.setswitchinterval(interval)
+    gc.unfreeze()
+    (gc.enable if enabled else gc.disable)()
+
+
+def refuse_scheduling(*_args):
+    raise PermissionError(1, "Operation not permitted")
+
+
+def test_a_refused_real_time_scheduler_is_said_and_the_rest_still_applies(monkeypatch, restored):
+    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse_scheduling)
+    report = enter_realtime(0.001, lock_memory=False)
+    try:
+        assert report.scheduling == "SCHED_OTHER"
+        assert report.refused == ["real-time scheduling refused (run as root or grant CAP_SYS_NICE)"]
+        assert "NOT real time: real-time scheduling refused" in report.line()
+        assert report.switch_interval_s == pytest.approx(0.0001)
+        assert sys.getswitchinterval() == pytest.approx(0.0001)
+        assert not gc.isenabled() and report.gc_frozen > 0 and gc.get_freeze_count() > 0
+    finally:
+        leave_realtime(report)
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+
+
+def test_the_switch_interval_is_never_raised_above_the_interpreters_default(monkeypatch, restored):
+    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse_scheduling)
+    report = enter_realtime(1.0, lock_memory=False)  # a tenth of 1 s would be 100 ms
+    leave_realtime(report)
+    assert report.switch_interval_s == pytest.approx(0.005)
+
+
+def test_a_cpu_this_process_may_not_use_is_refused_by_number():
+    allowed = sorted(os.sched_getaffinity(0))
+    check_cpu(allowed[0])
+    with pytest.raises(ValueError, match=rf"CPU {max(allowed) + 1} is not one this process may run on"):
+        check_cpu(max(allowed) + 1)
+
+
+def test_young_collections_run_between_ticks_once_the_allocator_asks_for_them(restored):
+    gc.disable()
+    gc.collect()
+    between = GcBetweenTicks()
+    between()
+    assert between.collections == [0, 0, 0]
+    kept = [[] for _ in range(between.threshold0 + 10)]  # containers count toward generation 0
+    between()
+    assert between.collections == [1, 0, 0]
+    assert gc.get_count()[0] < between.threshold0
+    del kept

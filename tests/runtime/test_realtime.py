@@ -36,6 +36,7 @@ def test_a_refused_real_time_scheduler_is_said_and_the_rest_still_applies(monkey
     finally:
         leave_realtime(report)
     assert gc.isenabled() and gc.get_freeze_count() == 0
+    assert sys.getswitchinterval() == pytest.approx(report.previous_switch_interval_s)
 
 
 def test_the_switch_interval_is_never_raised_above_the_interpreters_default(monkeypatch, restored):

@@ -38,6 +38,7 @@ class RealtimeReport:
     memory_locked: bool = False
     cpu: int | None = None
     switch_interval_s: float = 0.005
+    previous_switch_interval_s: float = 0.005
     gc_frozen: int = 0
     refused: list[str] = field(default_factory=list)
 
@@ -83,7 +84,8 @@ def enter_realtime(period_s: float, *, cpu: int | None = None, priority: int = F
         else:
             why = os.strerror(ctypes.get_errno())
             report.refused.append(f"memory not locked ({why}: run as root, grant CAP_IPC_LOCK or raise ulimit -l)")
-    report.switch_interval_s = min(sys.getswitchinterval(), period_s / 10)
+    report.previous_switch_interval_s = sys.getswitchinterval()
+    report.switch_interval_s = min(report.previous_switch_interval_s, period_s / 10)
     sys.setswitchinterval(report.switch_interval_s)
     gc.collect()
     gc.freeze()
@@ -98,7 +100,7 @@ def leave_realtime(report: RealtimeReport) -> None:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     gc.unfreeze()
     gc.enable()
-    sys.setswitchinterval(0.005)
+    sys.setswitchinterval(report.previous_switch_interval_s)
 
 
 class GcBetweenTicks:

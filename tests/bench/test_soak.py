@@ -66,10 +66,19 @@ def test_an_sdo_abort_is_refused_only_with_the_read_only_abort_code():
 
 def test_a_flag_is_explained_by_its_injection_or_a_consequence_in_its_window_only():
     lost = Injection(LOST, at_s=10.0, done_s=11.0)
-    assert explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2), [lost])
-    assert explained(record("PrimeEtherCATSide/ethercat/wkc", 10.2), [lost])  # a consequence it lists
-    assert not explained(record("PrimeEtherCATSide/ethercat/ring3/fault", 10.2), [lost])  # a drive nobody touched
-    assert not explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 30.0), [lost])  # long after
+    faults = [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2, 11.5)]
+    assert explained(faults[0], [lost], faults)
+    assert explained(record("PrimeEtherCATSide/ethercat/wkc", 10.2), [lost], faults)  # a consequence it lists
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring3/fault", 10.2), [lost], faults)  # nobody's
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 30.0), [lost], faults)  # long after
+
+
+def test_a_mode_switch_refused_while_the_returned_slave_still_recovers_is_explained_by_its_loss():
+    lost = Injection(LOST, at_s=10.0, done_s=11.0)
+    faults = [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2, 18.0)]  # back in OP 7 s after its return
+    refused = record("erob_impedance_manager/erob/impedance/ring0", 17.0, 27.0)
+    assert explained(refused, [lost], faults)
+    assert not explained(record("erob_impedance_manager/erob/impedance/ring0", 22.0), [lost], faults)
 
 
 def test_a_fault_that_must_raise_no_flag_is_not_blamed_for_the_next_injections_flag():

@@ -209,10 +209,16 @@ def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: fl
         injection.outcome = "recovered"
 
 
-def explained(record: Any, injections: list[Injection]) -> bool:
-    """A flag is explained by an injection whose flag (or a consequence of it) it matches, in its window."""
+def explained(record: Any, injections: list[Injection], faults: list[Any]) -> bool:
+    """A flag is explained by an injection whose flag (or a consequence of it) it matches, in its window: from
+    the injection until ``SETTLE_S`` after the fault ended, or after its own flag cleared if that was later (a
+    mode switch while a returned slave is still recovering is refused, as it must be)."""
     for injection in injections:
-        window_end = (injection.done_s or injection.at_s) + SETTLE_S
+        ended = injection.done_s or injection.at_s
+        own = [r for r in faults if injection.fault.flag and fnmatch.fnmatch(r.key, injection.fault.flag)
+               and injection.at_s <= r.since_s <= ended + SETTLE_S]
+        cleared = max((float("inf") if r.until_s is None else r.until_s for r in own), default=ended)
+        window_end = max(ended, cleared) + SETTLE_S
         patterns = (*((injection.fault.flag,) if injection.fault.flag else ()), *injection.fault.also)
         if injection.at_s <= record.since_s <= window_end and any(fnmatch.fnmatch(record.key, p) for p in patterns):
             return True
@@ -274,7 +280,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
                     "stream_published": stream.published, "operator_resets": manager.resets}
     summary = session.summary()  # after teardown: the end state, the gate reset
     unexpected = [r.as_dict() for r in session.faults
-                  if r.level.name == "ERROR" and not explained(r, injector.injections)]
+                  if r.level.name == "ERROR" and not explained(r, injector.injections, session.faults)]
     k = min(stats.ticks, stats.capacity)
     periods = stats.periods[:k]
     jitter = np.abs(periods[np.isfinite(periods)] - stats.period) * 1e6

@@ -1,8 +1,10 @@
 """Holding the control period on a busy machine: real-time scheduling, locked memory, CPU affinity, and the
 garbage collector kept out of the tick.
 
-``enter_realtime`` is called by the control thread just before its loop. Each measure is taken where the
-process is allowed to and reported where it is not; the run goes on either way:
+``lock_memory`` is called before the buses open and ``enter_realtime`` by the control thread just before its
+loop (locking hundreds of MB faults every page in with the address space held: done once the ring is cycling,
+it stalls the frames past the drives' 100 ms watchdog). Each measure is taken where the process is allowed to
+and reported where it is not; the run goes on either way:
 
 - ``SCHED_FIFO`` for the control thread (root or ``CAP_SYS_NICE``), with ``SCHED_RESET_ON_FORK`` so the
   threads it starts later (a gate reset, a recorder) run at normal priority instead of inheriting it;
@@ -11,8 +13,9 @@ process is allowed to and reported where it is not; the run goes on either way:
 - with ``cpu``, the control thread pinned to that CPU and every other thread of the process moved off it;
 - the interpreter's thread switch interval cut to a tenth of the period (at most its 5 ms default): a thread
   that returns from C (a frame received with the GIL released) waits at most that long for the interpreter;
-- ``gc.freeze()`` of everything built during start-up and automatic collection off; ``GcBetweenTicks``
-  then runs the young-generation collections the allocator asks for, between ticks, never inside one.
+- ``gc.freeze()`` of everything built during start-up (without a full collection first: that holds the
+  interpreter for tens of ms) and automatic collection off; ``GcBetweenTicks`` then runs the collections the
+  allocator asks for, between ticks, never inside one.
 """
 
 from __future__ import annotations
@@ -62,9 +65,19 @@ def check_cpu(cpu: int) -> None:
                          f"{', '.join(map(str, allowed))})")
 
 
+def lock_memory() -> str | None:
+    """Lock the process's current and future memory; None when done, else the refusal, in one line."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+        return None
+    why = os.strerror(ctypes.get_errno())
+    return f"memory not locked ({why}: run as root, grant CAP_IPC_LOCK or raise ulimit -l)"
+
+
 def enter_realtime(period_s: float, *, cpu: int | None = None, priority: int = FIFO_PRIORITY,
-                   lock_memory: bool = True) -> RealtimeReport:
-    """Make the calling thread the real-time control thread (module docstring)."""
+                   memory_refused: str | None = "memory not locked (lock_memory was not called)") -> RealtimeReport:
+    """Make the calling thread the real-time control thread (module docstring); ``memory_refused`` is what
+    ``lock_memory`` returned."""
     report = RealtimeReport()
     if cpu is not None:
         check_cpu(cpu)
@@ -77,17 +90,13 @@ def enter_realtime(period_s: float, *, cpu: int | None = None, priority: int = F
         report.refused.append("real-time scheduling refused (run as root or grant CAP_SYS_NICE)")
     except OSError as exc:
         report.refused.append(f"real-time scheduling unavailable ({exc.strerror})")
-    if lock_memory:
-        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
-            report.memory_locked = True
-        else:
-            why = os.strerror(ctypes.get_errno())
-            report.refused.append(f"memory not locked ({why}: run as root, grant CAP_IPC_LOCK or raise ulimit -l)")
+    if memory_refused is None:
+        report.memory_locked = True
+    else:
+        report.refused.append(memory_refused)
     report.previous_switch_interval_s = sys.getswitchinterval()
     report.switch_interval_s = min(report.previous_switch_interval_s, period_s / 10)
     sys.setswitchinterval(report.switch_interval_s)
-    gc.collect()
     gc.freeze()
     report.gc_frozen = gc.get_freeze_count()
     gc.disable()

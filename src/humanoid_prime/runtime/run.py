@@ -60,7 +60,7 @@ def run_loop(session: Session, stop: threading.Event,
     realtime = None
     between_ticks = None
     if options.realtime:
-        realtime = enter_realtime(session.manager.period, cpu=options.cpu)
+        realtime = enter_realtime(session.manager.period, cpu=options.cpu, memory_refused=session.plan.memory_refused)
         between_ticks = GcBetweenTicks()
         session.reports["realtime"] = realtime.as_dict()
         if report is not None:

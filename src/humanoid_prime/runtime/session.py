@@ -43,6 +43,7 @@ from humanoid_prime.drivers.ethercat.sdo import SizedSdo
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
+from humanoid_prime.runtime.realtime import lock_memory
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
 from humanoid_prime.runtime.socket import ControlServer
 
@@ -91,6 +92,7 @@ class Plan:
     began: float
     stages: list[tuple[str, float]] = field(default_factory=list)
     control: ControlServer | None = None  # the run's control socket, claimed before any bus
+    memory_refused: str | None = None  # (with options.realtime) why memory could not be locked; None: locked
     on_stage: Callable[[str], None] | None = None  # told each bring-up stage as it completes (a live status)
 
     def stage(self, name: str, since: float) -> float:
@@ -296,6 +298,8 @@ class Session:
 def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     """Bring Prime up as ``plan`` says; everything opened is registered on ``stack`` for teardown."""
     options, robot = plan.options, plan.robot
+    if options.realtime:
+        plan.memory_refused = lock_memory()  # before the buses cycle: faulting every page in stalls them
     settings = ComponentSettings(
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
         ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s,

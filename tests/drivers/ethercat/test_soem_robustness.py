@@ -131,3 +131,17 @@ def test_a_slave_back_in_pre_op_is_remapped_on_reconfiguration(clock):
         master._check_ring()
         assert slave.reconfigured == 1 and slave.writes == MAPPING_WRITES
         assert master.recoveries == 1
+
+
+def test_a_frame_that_never_came_back_does_not_wake_the_supervision_but_a_short_one_does(clock):
+    # pysoem's state reads hold the GIL while SOEM waits out their timeouts: reading states while every frame
+    # is lost would stall the cycle and learn nothing
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        master._check.clear()
+        master.wkc = -1  # EC_NOFRAME
+        master._wkc_mismatch()
+        assert not master._check.is_set()
+        master.wkc = master.expected_wkc - 3  # one slave short
+        master._wkc_mismatch()
+        assert master._check.is_set()

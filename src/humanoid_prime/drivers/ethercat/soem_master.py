@@ -233,7 +233,11 @@ class SoemMaster(EthercatMaster):
         return wkc
 
     def _wkc_mismatch(self) -> None:
-        self._check.set()
+        # A frame that did not come back at all (lost, or late past its timeout) says nothing about the slaves,
+        # and a state read now would be lost the same way: pysoem's state calls hold the GIL while SOEM waits
+        # out their timeouts, stalling the cycle. The supervision looks once frames return with a wrong count.
+        if self.wkc > 0:
+            self._check.set()
 
     # ---------------------------------------------------------------------------- supervision
     def _supervise(self) -> None:

@@ -2,14 +2,15 @@
 garbage collector kept out of the tick.
 
 ``lock_memory`` is called before the buses open and ``enter_realtime`` by the control thread just before its
-loop (locking hundreds of MB faults every page in with the address space held: done once the ring is cycling,
-it stalls the frames past the drives' 100 ms watchdog). Each measure is taken where the process is allowed to
-and reported where it is not; the run goes on either way:
+loop. Each measure is taken where the process is allowed to and reported where it is not; the run goes on
+either way:
 
 - ``SCHED_FIFO`` for the control thread (root or ``CAP_SYS_NICE``), with ``SCHED_RESET_ON_FORK`` so the
   threads it starts later (a gate reset, a recorder) run at normal priority instead of inheriting it;
-- ``mlockall`` of current and future memory (root, ``CAP_IPC_LOCK``, or a large enough ``ulimit -l``), so no
-  page fault in the tick waits for the disk;
+- ``mlockall`` of current and future memory as it is touched (root, ``CAP_IPC_LOCK``, or a large enough
+  ``ulimit -l``), so a page the tick has used is never paged out; ``MCL_ONFAULT``, because populating every
+  mapping at once (400 MB, and 8 MB of stack for each new thread) holds the address space long enough, on a
+  busy machine, to stall the frames past the drives' 100 ms watchdog;
 - with ``cpu``, the control thread pinned to that CPU and every other thread of the process moved off it;
 - the interpreter's thread switch interval cut to a tenth of the period (at most its 5 ms default): a thread
   that returns from C (a frame received with the GIL released) waits at most that long for the interpreter;
@@ -30,7 +31,7 @@ import threading
 from dataclasses import dataclass, field
 
 FIFO_PRIORITY = 80  # above the kernel's threaded IRQs (50), below its watchdogs (99)
-_MCL_CURRENT, _MCL_FUTURE = 1, 2
+_MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
 
 
 @dataclass
@@ -68,7 +69,7 @@ def check_cpu(cpu: int) -> None:
 def lock_memory() -> str | None:
     """Lock the process's current and future memory; None when done, else the refusal, in one line."""
     libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-    if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+    if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE | _MCL_ONFAULT) == 0:
         return None
     why = os.strerror(ctypes.get_errno())
     return f"memory not locked ({why}: run as root, grant CAP_IPC_LOCK or raise ulimit -l)"

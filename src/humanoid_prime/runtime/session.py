@@ -299,7 +299,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     """Bring Prime up as ``plan`` says; everything opened is registered on ``stack`` for teardown."""
     options, robot = plan.options, plan.robot
     if options.realtime:
-        plan.memory_refused = lock_memory()  # before the buses cycle: faulting every page in stalls them
+        plan.memory_refused = lock_memory()
     settings = ComponentSettings(
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
         ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s,

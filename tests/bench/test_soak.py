@@ -7,6 +7,7 @@ from humanoid_prime.runtime.session import FaultRecord
 
 BY_NAME = {fault.name: fault for fault in FAULTS}
 LOST = BY_NAME["slave lost and returned"]
+SILENT = BY_NAME["silent Sito"]
 DRIVE_FAULT = BY_NAME["drive fault 0x7500"]
 ONE_FRAME = BY_NAME["one EtherCAT frame lost"]
 SDO_ABORT = BY_NAME["SDO abort"]
@@ -17,21 +18,28 @@ def record(key, since, until=None, level=Level.ERROR):
 
 
 def test_a_flag_raised_and_cleared_after_the_injection_is_recovered():
-    injection = Injection(LOST, at_s=10.0, done_s=11.0)
-    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.1, 12.0)], ended_s=60.0)
-    assert injection.outcome == "recovered" == LOST.expect
+    injection = Injection(SILENT, at_s=10.0, done_s=11.0)
+    judge(injection, [record("PrimeSitoCAN/x/rx_timeout/22", 10.3, 11.1)], ended_s=60.0)
+    assert injection.outcome == "recovered" == SILENT.expect
 
 
 def test_a_flag_still_up_long_after_the_fault_ended_is_held():
-    injection = Injection(LOST, at_s=10.0, done_s=11.0)
-    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.1)], ended_s=60.0)
+    injection = Injection(SILENT, at_s=10.0, done_s=11.0)
+    judge(injection, [record("PrimeSitoCAN/x/rx_timeout/22", 10.3)], ended_s=60.0)
     assert injection.outcome == "held"
 
 
 def test_a_fault_nobody_flagged_is_not_flagged():
-    injection = Injection(LOST, at_s=10.0, done_s=11.0)
-    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 11.0 + SETTLE_S + 1, 20.0)], ended_s=60.0)
+    injection = Injection(SILENT, at_s=10.0, done_s=11.0)
+    judge(injection, [record("PrimeSitoCAN/x/rx_timeout/22", 11.0 + SETTLE_S + 1, 20.0)], ended_s=60.0)
     assert injection.outcome == "not flagged"
+
+
+def test_a_returned_slave_is_latched_when_its_drive_waited_disabled_for_the_operators_reset():
+    injection = Injection(LOST, at_s=10.0, done_s=11.0, reset=True)
+    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.1, 18.0),
+                      record("PrimeEtherCATSide/ethercat/ring9/disabled", 18.0, 18.1)], ended_s=60.0)
+    assert injection.outcome == "latched" == LOST.expect
 
 
 def test_a_drive_fault_is_latched_only_when_the_operators_reset_cleared_it():
@@ -67,18 +75,19 @@ def test_an_sdo_abort_is_refused_only_with_the_read_only_abort_code():
 def test_a_flag_is_explained_by_its_injection_or_a_consequence_in_its_window_only():
     lost = Injection(LOST, at_s=10.0, done_s=11.0)
     faults = [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2, 11.5)]
-    assert explained(faults[0], [lost], faults)
+    assert explained(faults[0], [lost], faults)  # a consequence it lists
     assert explained(record("PrimeEtherCATSide/ethercat/wkc", 10.2), [lost], faults)  # a consequence it lists
     assert not explained(record("PrimeEtherCATSide/ethercat/ring3/fault", 10.2), [lost], faults)  # nobody's
-    assert not explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 30.0), [lost], faults)  # long after
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring9/lost", 40.0), [lost], faults)  # long after
 
 
 def test_a_mode_switch_refused_while_the_returned_slave_still_recovers_is_explained_by_its_loss():
     lost = Injection(LOST, at_s=10.0, done_s=11.0)
-    faults = [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2, 18.0)]  # back in OP 7 s after its return
+    faults = [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.2, 18.0),  # back in OP 7 s after its return
+              record("PrimeEtherCATSide/ethercat/ring9/disabled", 18.0, 18.1)]  # until the operator's reset
     refused = record("erob_impedance_manager/erob/impedance/ring0", 17.0, 27.0)
     assert explained(refused, [lost], faults)
-    assert not explained(record("erob_impedance_manager/erob/impedance/ring0", 22.0), [lost], faults)
+    assert not explained(record("erob_impedance_manager/erob/impedance/ring0", 35.0), [lost], faults)
 
 
 def test_a_fault_that_must_raise_no_flag_is_not_blamed_for_the_next_injections_flag():

@@ -8,7 +8,8 @@ turn from ``FAULTS``; each fault states what the stack must do about it:
 
 - ``counted``: absorbed without a flag (one lost or garbage frame), and visible in a counter;
 - ``recovered``: flagged under ``flag``, then cleared by the stack itself;
-- ``latched``: flagged, held until the operator's reset (which the soak then sends), then cleared;
+- ``latched``: flagged, held until the operator's reset (which the soak then sends), then cleared (a drive
+  fault, and a drive whose slave was lost and came back: it stays disabled until the operator says so);
 - ``refused``: an SDO the drive aborts reaches its caller as that abort, and nothing else changes.
 
 Each injection is judged from the run's own fault history (the summary's), and every ERROR flag that no
@@ -57,6 +58,7 @@ class Fault:
     hold_s: float = 0.0  # how long the fault lasts before ``end`` undoes it
     end: Callable[[Any], None] | None = None
     also: tuple[str, ...] = ()  # flags it may raise besides ``flag`` (consequences, not surprises)
+    settle_s: float = SETTLE_S  # how long after it ended the stack has to flag (and, latched, be reset)
 
 
 def _sito(joint: str, **fields: object) -> Callable[[Any], Any]:
@@ -81,10 +83,12 @@ FAULTS: tuple[Fault, ...] = (
     Fault("EtherCAT frames delayed 30 ms, 30 frames", "ethercat", "recovered", "*/ethercat/wkc",
           lambda c, s: c.call("delay", seconds=0.03, count=30), also=("*/ethercat/ring*/lost",)),
     Fault("garbage EtherCAT frames", "ethercat", "counted", None, lambda c, s: c.call("garbage", count=5)),
-    Fault("slave lost and returned", "ethercat", "recovered", f"*/ethercat/ring{LOST_RING}/lost",
+    # back in OP once it has relocked (350 frames at the control rate: 7 s at 50 Hz), its drive held disabled
+    Fault("slave lost and returned", "ethercat", "latched", f"*/ethercat/ring{LOST_RING}/disabled",
           lambda c, s: c.call("lose", position=LOST_RING), hold_s=1.0,
-          end=lambda c: c.call("restore", position=LOST_RING),
-          also=("*/ethercat/wkc", "*/erob/impedance/ring*")),  # a mode switch meanwhile is refused, and flagged
+          end=lambda c: c.call("restore", position=LOST_RING), settle_s=15.0,
+          also=(f"*/ethercat/ring{LOST_RING}/lost", "*/ethercat/wkc",
+                "*/erob/impedance/ring*")),  # a mode switch meanwhile is refused, and flagged
     Fault("drive fault 0x7500", "ethercat", "latched", "*/ethercat/ring6/fault",
           lambda c, s: c.call("fault", position=6, code=0x7500)),
     Fault("SDO abort", "ethercat", "refused", None, _sdo_abort),
@@ -172,7 +176,7 @@ class Injector(threading.Thread):
             self.error = f"{type(exc).__name__}: {exc}"
 
     def _reset_when_flagged(self, injection: Injection) -> None:
-        deadline = time.monotonic() + SETTLE_S
+        deadline = time.monotonic() + injection.fault.settle_s
         while time.monotonic() < deadline and not self.stop.is_set():
             if any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
                    for r in list(self.session.faults)):
@@ -186,7 +190,7 @@ def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: fl
     """``injection.outcome`` from the run's fault history (module docstring); a fault that must raise no flag
     is judged until the next injection at the latest."""
     fault = injection.fault
-    window_end = (injection.done_s or injection.at_s) + SETTLE_S
+    window_end = (injection.done_s or injection.at_s) + fault.settle_s
     if fault.flag is None:
         window_end = min(window_end, next_at_s)
         raised = [r for r in faults if injection.at_s <= r.since_s <= window_end and r.level.name == "ERROR"]
@@ -216,10 +220,11 @@ def explained(record: Any, injections: list[Injection], faults: list[Any]) -> bo
     mode switch while a returned slave is still recovering is refused, as it must be)."""
     for injection in injections:
         ended = injection.done_s or injection.at_s
+        settle = injection.fault.settle_s
         own = [r for r in faults if injection.fault.flag and fnmatch.fnmatch(r.key, injection.fault.flag)
-               and injection.at_s <= r.since_s <= ended + SETTLE_S]
-        cleared = max((float("inf") if r.until_s is None else r.until_s for r in own), default=ended)
-        window_end = max(ended, cleared) + SETTLE_S
+               and injection.at_s <= r.since_s <= ended + settle]
+        cleared = max((float("inf") if r.until_s is None else r.until_s for r in own), default=ended + settle)
+        window_end = max(ended + settle, cleared + SETTLE_S)
         patterns = (*((injection.fault.flag,) if injection.fault.flag else ()), *injection.fault.also)
         if injection.at_s <= record.since_s <= window_end and any(fnmatch.fnmatch(record.key, p) for p in patterns):
             return True

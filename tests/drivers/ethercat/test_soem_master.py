@@ -237,12 +237,17 @@ def test_a_lost_slave_raises_flags_while_the_loop_keeps_running(system, ring, ro
         wait_for(lambda: loop.ticks > ticks + 5, what="loop still running")
 
 
-def test_a_restored_slave_is_recovered_to_op_and_its_flags_clear(system, ring, robot):
+def test_a_restored_slave_is_recovered_to_op_and_its_drive_held_disabled_until_the_operators_reset(
+        system, ring, robot):
     ring.control.set_options(dc_lock_cycles=20)  # a recovering slave relocks at the 50 Hz control rate
     with Loop(system, robot.n):
         ring.control.lose_slave(9)
         wait_for(lambda: "ethercat/ring9/lost" in system.flags, what="lost flag")
         ring.control.restore_slave(9)
-        wait_for(lambda: not system.flags, timeout_s=10.0, what="every flag cleared")
+        wait_for(lambda: set(system.flags) == {"ethercat/ring9/disabled"}, timeout_s=10.0,
+                 what="back in OP, its drive held disabled")
+        assert ring.control.slave(9)["drive"]["state"] != "OPERATION_ENABLED"
+        system.reset_faults()
+        wait_for(lambda: not system.flags, what="every flag cleared after the reset")
         wait_for(lambda: ring.control.slave(9)["drive"]["statusword"] == 5687, what="drive enabled again")
     assert system.master.recoveries >= 1

@@ -153,6 +153,13 @@ class EthercatSystem(HardwareComponent):
         self._cw = np.zeros(n, np.uint16)
         self._cw_prev = np.zeros(n, np.uint16)
         self._enabled = np.zeros(n, dtype=bool)
+        self._was_enabled = np.zeros(n, dtype=bool)  # in the last frame read
+        # Drives that left operation enabled mid-run without a fault (their slave lost power or link and came
+        # back in switch-on disabled): held disabled until the operator's reset, because enabling one on its own
+        # would drive the joint, which hung limp meanwhile, straight to the active mode's target.
+        self._held_off = np.zeros(n, dtype=bool)
+        self._dropped = np.zeros(n, dtype=bool)
+        self._held_off_seen = np.zeros(n, dtype=bool)
         self._fault = np.zeros(n, dtype=bool)
         self._follow = np.zeros(n, dtype=bool)
         self._mask = np.zeros(n, dtype=bool)  # scratch masks
@@ -301,6 +308,7 @@ class EthercatSystem(HardwareComponent):
             np.logical_not(transient, out=latched)
             np.logical_and(latched, self._fault, out=latched)
             if (self._enabled | latched).all():
+                np.copyto(self._was_enabled, self._enabled)
                 np.take(self._out_target, self.ring, out=self._i32)
                 np.copyto(self._held, self._i32)  # a NaN command holds the position the drive was enabled at
                 return
@@ -319,6 +327,8 @@ class EthercatSystem(HardwareComponent):
         return [self._describe_drive(k) for k in np.flatnonzero(self._fault)]
 
     def reset_faults(self) -> None:
+        """The operator's reset: every faulted drive gets one fault reset with the next write, and every drive
+        held disabled after dropping out is enabled again, once its slave is back in OP."""
         self._reset_requested = True
 
     # ---------------------------------------------------------------------------- hot path
@@ -344,6 +354,10 @@ class EthercatSystem(HardwareComponent):
         if self._reset_requested:
             self._reset_requested = False
             np.copyto(self._cw, FAULT_RESET, where=self._fault)
+            back = self.master.slave_ok[self.ring]
+            self._held_off &= ~back  # a drive whose slave is still away stays held: it cannot be reset yet
+        if self._held_off.any():
+            np.copyto(self._cw, DISABLE_VOLTAGE, where=self._held_off)
         np.equal(self._cw, FAULT_RESET, out=self._scratch)
         np.equal(self._cw_prev, FAULT_RESET, out=self._mask)
         np.logical_and(self._scratch, self._mask, out=self._scratch)
@@ -357,6 +371,12 @@ class EthercatSystem(HardwareComponent):
         wkc = master.receive()
         self.io_s = time.perf_counter() - began
         self._gather()
+        dropped = self._dropped  # enabled in the last frame, now neither enabled nor in fault
+        np.logical_or(self._enabled, self._fault, out=dropped)
+        np.logical_not(dropped, out=dropped)
+        np.logical_and(dropped, self._was_enabled, out=dropped)
+        np.logical_or(self._held_off, dropped, out=self._held_off)
+        np.copyto(self._was_enabled, self._enabled)  # scratch above, allocation-free: these run every tick
         x3 = self._x3
         np.multiply(self._raw, self.state_factor, out=x3)
         np.add(x3, self.state_offset, out=x3)
@@ -372,6 +392,8 @@ class EthercatSystem(HardwareComponent):
             self._update_health_flags()
         if self._fault_seen or np.count_nonzero(self._fault):
             self._update_fault_flags()
+        if not np.array_equal(self._held_off, self._held_off_seen):
+            self._update_held_flags()
 
     def write(self, now: float, command: CommandArrays) -> None:
         idx = self.indices
@@ -451,6 +473,17 @@ class EthercatSystem(HardwareComponent):
             self.set_flag(f"ethercat/ring{int(self.ring[k])}/fault",
                           f"{self._describe_drive(k)} (latched: r in the live table, or `prime reset`)")
         self._fault_seen = faulted
+
+    def _update_held_flags(self) -> None:
+        for k in np.flatnonzero(self._held_off != self._held_off_seen):
+            key = f"ethercat/ring{int(self.ring[k])}/disabled"
+            if self._held_off[k]:
+                self.set_flag(key, f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out of operation "
+                                   "(power or link) and is held disabled, so it cannot snap to the target when it "
+                                   "comes back (latched: r in the live table, or `prime reset`, once it is in OP)")
+            else:
+                self.clear_flag(key)
+        np.copyto(self._held_off_seen, self._held_off)
 
     def _describe_drive(self, k: int) -> str:
         sw, err = int(self._rec_sw[k]), int(self._rec_err[k])

@@ -64,7 +64,7 @@ def test_an_sdo_abort_is_refused_only_with_the_read_only_abort_code():
     refused = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: abort 0x06010002 (read only)")
     judge(refused, [], ended_s=60.0)
     assert refused.outcome == "refused"
-    recovering = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: refused: the ring is recovering")
+    recovering = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: refused: ring 0 is not in OP")
     judge(recovering, [], ended_s=60.0)
     assert recovering.outcome == "refused"  # the master's refusal: nothing reached the drive either
     lost = Injection(SDO_ABORT, at_s=10.0, detail="SDO 0x6076:00 on ring 0: no reply")

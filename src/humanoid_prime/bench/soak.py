@@ -178,8 +178,9 @@ class Injector(threading.Thread):
     def _reset_when_flagged(self, injection: Injection) -> None:
         deadline = time.monotonic() + injection.fault.settle_s
         while time.monotonic() < deadline and not self.stop.is_set():
-            if any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
-                   for r in list(self.session.faults)):
+            whole = injection.fault.bus != "ethercat" or self.session.ethercat.master.slave_ok.all()
+            if whole and any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
+                             for r in list(self.session.faults)):  # the operator resets once the ring is whole
                 self.session.manager.request_reset()
                 injection.reset = True
                 return
@@ -196,7 +197,7 @@ def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: fl
         raised = [r for r in faults if injection.at_s <= r.since_s <= window_end and r.level.name == "ERROR"]
         injection.flags = [r.key for r in raised]
         if fault.expect == "refused":
-            # the drive's abort, or the master's refusal while a slave is recovering: either way nothing was written
+            # the drive's abort, or the master's refusal while ring 0 recovers: either way nothing was written
             refused = READ_ONLY_ABORT in injection.detail.upper() or "refused:" in injection.detail
             injection.outcome = "refused" if refused and not raised else "not refused"
         else:

@@ -325,6 +325,17 @@ def test_an_sdo_is_refused_while_a_slave_is_out_of_op(rig):
         rig.master.sdo_read(5, 0x603F, 0)
 
 
+def test_while_one_slave_recovers_the_others_still_take_sdos(rig):
+    # a gate reset at the end of a run must not be refused on nine drives because the tenth is relocking
+    rig.tick()
+    rig.master.slave_ok[9] = False
+    assert not rig.system.bus_ready
+    rig.master.sdo_write(4, 0x2383, 0, b"\x00")
+    assert rig.master.objects[(4, 0x2383, 0)] == b"\x00"
+    with pytest.raises(SdoRefused, match="ring 9 is not in OP"):
+        rig.master.sdo_write(9, 0x2383, 0, b"\x00")
+
+
 def test_the_unsafe_path_lets_an_sdo_through_before_op(robot, tmp_path):
     r = Rig(robot, tmp_path)
     r.system.configure()
@@ -435,3 +446,37 @@ def test_the_torque_offset_is_clamped_to_the_drive_s_range(rig):
     rig.command.effort[j] = -1e4
     rig.tick()
     assert rig.master.sent["torque_offset"][0] == -3000
+
+
+def test_a_drive_that_drops_out_mid_run_stays_disabled_until_the_operators_reset(rig):
+    from doubles.master import SWITCH_ON_DISABLED
+
+    rig.tick()
+    ring = rig.ring_of("left_elbow_pitch")
+    rig.master.statusword[ring] = SWITCH_ON_DISABLED  # its slave lost power and came back
+    for _ in range(5):  # enabling takes three steps: five ticks would have enabled it
+        rig.tick()
+    assert rig.master.statusword[ring] == SWITCH_ON_DISABLED
+    assert rig.master.sent["controlword"][ring] == 0
+    flag = rig.system.flags[f"ethercat/ring{ring}/disabled"]
+    assert f"left_elbow_pitch (ring {ring}): the drive dropped out of operation" in flag
+    assert (rig.master.statusword[np.arange(10) != ring] == OPERATION_ENABLED).all()
+    rig.system.reset_faults()
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[ring] == OPERATION_ENABLED
+    assert f"ethercat/ring{ring}/disabled" not in rig.system.flags
+
+
+def test_a_reset_while_the_slave_is_still_away_leaves_its_drive_held(rig):
+    from doubles.master import SWITCH_ON_DISABLED
+
+    rig.tick()
+    rig.master.statusword[7] = SWITCH_ON_DISABLED
+    rig.master.slave_ok[7] = False
+    rig.tick()
+    rig.system.reset_faults()
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[7] == SWITCH_ON_DISABLED
+    assert "ethercat/ring7/disabled" in rig.system.flags

@@ -405,10 +405,10 @@ class EthercatMaster(ABC):
                 self.kept_cycles += 1
 
     # ----------------------------------------------------------------------------------- SDO
-    # ----------------------------------------------------------------------------------- SDO
     @property
     def sdo_ready(self) -> bool:
-        """True once every slave is in OP and process data flows; SDOs are refused before."""
+        """True once every slave is in OP and process data flows. SDOs are refused before; afterwards, while a
+        slave recovers, only that slave's."""
         return self.operational and self.flowing and bool(self.slave_ok.all())
 
     def _gate(self, position: int, index: int, sub_index: int, unsafe_before_op: bool) -> None:
@@ -417,13 +417,12 @@ class EthercatMaster(ABC):
                            f"no slave at that ring position (the ring has {len(self.slaves)} slaves)")
         if self.sdo_ready or unsafe_before_op:
             return
+        if self.operational and self.flowing and self.slave_ok[position]:
+            return  # another slave is recovering; this one is in OP, its mailbox traffic disturbs no DC lock
         if not self.operational:
             why = "the ring is still being brought up"
         elif not self.slave_ok[position]:
             why = f"ring {position} is not in OP ({describe_al_state(int(self.al_state[position]))})"
-        elif not self.slave_ok.all():
-            lost = ", ".join(str(p) for p in np.flatnonzero(~self.slave_ok))
-            why = f"the ring is recovering (ring {lost} not in OP)"
         else:
             why = "no process data has flowed yet"
         raise SdoRefused(position, index, sub_index,

@@ -21,7 +21,7 @@ if REASON is not None:
 @pytest.fixture(scope="module")
 def soak(tmp_path_factory) -> tuple[subprocess.CompletedProcess, dict]:
     out = tmp_path_factory.mktemp("soak") / "soak.json"
-    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "bench", "soak", "--minutes", "0.6", "--no-load",
+    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "bench", "soak", "--minutes", "0.7", "--no-load",
                            "--fault-every", "2", "--dwell", "2", "--output", str(out)],
                           capture_output=True, text=True, timeout=240)
     return proc, json.loads(out.read_text())

@@ -145,9 +145,10 @@ class Load:
 class Injector(threading.Thread):
     """One fault every ``every_s`` in turn; the operator's reset for a latched one once it has been seen."""
 
-    def __init__(self, control: Any, session: Any, every_s: float, stop: threading.Event) -> None:
+    def __init__(self, control: Any, session: Any, every_s: float, stop: threading.Event, run_s: float) -> None:
         super().__init__(name="soak-faults", daemon=True)
         self.control, self.session, self.every_s, self.stop = control, session, every_s, stop
+        self.ends_s = self._now() + run_s  # no fault is injected that could not settle before the run ends
         self.injections: list[Injection] = []
         self.error: str | None = None
 
@@ -160,6 +161,8 @@ class Injector(threading.Thread):
             while not self.stop.wait(self.every_s):
                 fault = FAULTS[k % len(FAULTS)]
                 k += 1
+                if self._now() + fault.hold_s + fault.settle_s + 1.0 > self.ends_s:
+                    return
                 injection = Injection(fault, self._now())
                 self.injections.append(injection)
                 result = fault.inject(self.control, self.session)
@@ -257,7 +260,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         if load:
             load_process = Load(os.cpu_count() or 2)
             stack.callback(load_process.close)
-        injector = Injector(virtual.control, session, fault_every_s, stop)
+        injector = Injector(virtual.control, session, fault_every_s, stop, minutes * 60.0)
         modes = {"next": 0, "at": 0.0}
 
         def on_tick(m: Any) -> None:

@@ -21,8 +21,6 @@ from humanoid_prime.bench.floors import can_frame_s, ethercat_cycle_s
 from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE
 from humanoid_prime.errors import PrimeError
 
-SITO_MOTORS = 4
-
 SEQUENCE = "DAMPING,STANDBY,DAMPING,STANDBY,DAMPING,STANDBY,DAMPING"
 
 
@@ -42,9 +40,9 @@ def bench_bringup(dwell: float = 2.0, *, sequential: bool = False, timeout: floa
     switches = [s for s in summary["mode_switches"] if s["mode"] in ("DAMPING", "STANDBY")]
     walls = np.array([s["wall_seconds"] for s in switches]) if switches else np.array([np.nan])
     skews = np.array([s["skew_seconds"] for s in switches]) if switches else np.array([np.nan])
-    slaves = len(summary["ethercat_bringup"]["rated_torque_nm"]) if summary.get("ethercat_bringup") else 10
+    slaves, wrists = summary["end"]["slaves"], summary["end"]["sito"]  # as the hardware file has them
     period_s = 1.0 / summary["update_rate"]
-    can_frames = 2 * SITO_MOTORS  # per tick: a command to each wrist, and its feedback at the control period
+    can_frames = 2 * wrists  # per tick: a command to each wrist, and its feedback at the control period
     return {
         "bringup_seconds": summary["bringup_seconds"],
         "ethercat_bringup": summary["ethercat_bringup"],

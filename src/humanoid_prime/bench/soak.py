@@ -26,6 +26,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -60,8 +61,14 @@ class Fault:
     also: tuple[str, ...] = ()  # flags it may raise besides ``flag`` (consequences, not surprises)
     settle_s: float = SETTLE_S  # how long after it ended the stack has to flag (and, latched, be reset)
 
+    @property
+    def patterns(self) -> tuple[str, ...]:
+        """Every flag key pattern it may raise: its own, then its consequences."""
+        return (*((self.flag,) if self.flag else ()), *self.also)
 
-def _sito(joint: str, **fields: object) -> Callable[[Any], Any]:
+
+def _sito(joint: str, **fields: object) -> Callable[..., Any]:
+    """One wrist's fault setting, as an injection (control, session) or its end (control)."""
     return lambda control, session=None: control.call("sito", joint=joint, **fields)
 
 
@@ -92,13 +99,12 @@ FAULTS: tuple[Fault, ...] = (
     Fault("drive fault 0x7500", "ethercat", "latched", "*/ethercat/ring6/fault",
           lambda c, s: c.call("fault", position=6, code=0x7500)),
     Fault("SDO abort", "ethercat", "refused", None, _sdo_abort),
-    Fault("silent Sito", "can", "recovered", "*/rx_timeout/*", lambda c, s: _sito("left_wrist_roll", silent=True)(c),
+    Fault("silent Sito", "can", "recovered", "*/rx_timeout/*", _sito("left_wrist_roll", silent=True),
           hold_s=1.0, end=_sito("left_wrist_roll", silent=False)),
-    Fault("garbage CAN frames", "can", "recovered", "*/invalid_frame",
-          lambda c, s: _sito("right_wrist_roll", garbage=True)(c), hold_s=1.0,
-          end=_sito("right_wrist_roll", garbage=False)),
+    Fault("garbage CAN frames", "can", "recovered", "*/invalid_frame", _sito("right_wrist_roll", garbage=True),
+          hold_s=1.0, end=_sito("right_wrist_roll", garbage=False)),
     Fault("Sito frames dropped (30 %)", "can", "counted", None,
-          lambda c, s: _sito("right_wrist_pitch", drop_fraction=0.3)(c), hold_s=2.0,
+          _sito("right_wrist_pitch", drop_fraction=0.3), hold_s=2.0,
           end=_sito("right_wrist_pitch", drop_fraction=0.0)),
 )
 
@@ -112,6 +118,10 @@ class Injection:
     detail: str = ""
     reset: bool = False  # the soak sent the operator's reset for it
     flags: list[str] = field(default_factory=list)
+
+    @property
+    def ended_s(self) -> float:
+        return self.done_s or self.at_s
 
     def as_dict(self) -> dict[str, Any]:
         return {"fault": self.fault.name, "bus": self.fault.bus, "expected": self.fault.expect,
@@ -194,7 +204,7 @@ def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: fl
     """``injection.outcome`` from the run's fault history (module docstring); a fault that must raise no flag
     is judged until the next injection at the latest."""
     fault = injection.fault
-    window_end = (injection.done_s or injection.at_s) + fault.settle_s
+    window_end = injection.ended_s + fault.settle_s
     if fault.flag is None:
         window_end = min(window_end, next_at_s)
         raised = [r for r in faults if injection.at_s <= r.since_s <= window_end and r.level.name == "ERROR"]
@@ -223,14 +233,14 @@ def explained(record: Any, injections: list[Injection], faults: list[Any]) -> bo
     the injection until ``SETTLE_S`` after the fault ended, or after its own flag cleared if that was later (a
     mode switch while a returned slave is still recovering is refused, as it must be)."""
     for injection in injections:
-        ended = injection.done_s or injection.at_s
+        ended = injection.ended_s
         settle = injection.fault.settle_s
         own = [r for r in faults if injection.fault.flag and fnmatch.fnmatch(r.key, injection.fault.flag)
                and injection.at_s <= r.since_s <= ended + settle]
         cleared = max((float("inf") if r.until_s is None else r.until_s for r in own), default=ended + settle)
         window_end = max(ended + settle, cleared + SETTLE_S)
-        patterns = (*((injection.fault.flag,) if injection.fault.flag else ()), *injection.fault.also)
-        if injection.at_s <= record.since_s <= window_end and any(fnmatch.fnmatch(record.key, p) for p in patterns):
+        if injection.at_s <= record.since_s <= window_end and any(fnmatch.fnmatch(record.key, p)
+                                                                   for p in injection.fault.patterns):
             return True
     return False
 
@@ -249,7 +259,8 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
     load_process = None
     with contextlib.ExitStack() as stack:
         plan = plan_session(options)
-        plan.options.control_socket = os.path.join(stack.enter_context(_tempdir()), "control.sock")
+        folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="prime-soak-"))
+        plan.options.control_socket = os.path.join(folder, "control.sock")
         claim_control_socket(plan, stack)
         virtual = attach_virtual_prime(stack, hardware_file=hardware_file, record=emulator)
         options.interface = virtual.master_interface
@@ -293,7 +304,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
                   if r.level.name == "ERROR" and not explained(r, injector.injections, session.faults)]
     k = min(stats.ticks, stats.capacity)
     periods = stats.periods[:k]
-    jitter = np.abs(periods[np.isfinite(periods)] - stats.period) * 1e6
+    jitter = stats.jitter_us((50, 99, 99.9, 100))
     # an overrun: a tick that took, or a period that lasted, more than twice the period
     late = np.flatnonzero((stats.costs[:k] > 2 * stats.period) | (periods > 2 * stats.period))
     since_start = np.nancumsum(periods)  # seconds from the first tick (ring not wrapped at 50 Hz for 20 min)
@@ -314,8 +325,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         "tick_us": summary["tick_us"],
         "tick_cpu_us": summary["tick_cpu_us"],
         "worst_tick_us": summary["tick_us"]["max"],
-        "jitter_us": {f"p{p}": round(float(np.percentile(jitter, p)), 1) for p in (50, 99, 99.9, 100)}
-                     if jitter.size else {},
+        "jitter_us": {f"p{p:g}": round(v, 1) for p, v in jitter.items()} if jitter else {},
         "modes_visited": sorted(set(manager.modes_visited)),
         "injections": [i.as_dict() for i in injector.injections],
         "injected": len(injector.injections),
@@ -330,10 +340,3 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         "problems_at_end": [p for p in summary["problems"] if "at the end" in p or p.startswith("gate")],
     }
 
-
-@contextlib.contextmanager
-def _tempdir():
-    import tempfile
-
-    with tempfile.TemporaryDirectory(prefix="prime-soak-") as tmp:
-        yield tmp

@@ -92,6 +92,16 @@ class LoopStats:
                              "max": round(float(top), 3)}
         return figures
 
+    def jitter_us(self, percentiles: tuple[float, ...]) -> dict[float, float]:
+        """Percentiles of |period - nominal| in us over the last ``capacity`` ticks (empty before two ticks)."""
+        k = min(self.ticks, self.capacity)
+        periods = self.periods[:k]
+        periods = periods[np.isfinite(periods)]
+        if not periods.size:
+            return {}
+        values = np.percentile(np.abs(periods - self.period) * 1e6, percentiles)
+        return {p: float(v) for p, v in zip(percentiles, values, strict=True)}
+
     def tick_us(self) -> dict[str, float | None]:
         """Tick cost median, p99 and max over the last ``capacity`` ticks, in one pass (the live table asks
         for these several times a second, from a thread that shares the interpreter with the loop)."""
@@ -106,7 +116,7 @@ class LoopStats:
         k = min(self.ticks, self.capacity)
         periods = self.periods[:k]
         periods = periods[np.isfinite(periods)]
-        jitter_us = np.abs(periods - self.period) * 1e6
+        jitter = self.jitter_us((99,))
 
         def stat(values: np.ndarray, fn: Callable[[np.ndarray], Any]) -> float | None:
             return round(float(fn(values)), 3) if values.size else None
@@ -117,7 +127,7 @@ class LoopStats:
             "tick_us": self.tick_us(),
             **{f"tick_{part}_us": figures for part, figures in self.split_us().items()},
             "period_ms": {"mean": stat(periods * 1e3, np.mean)},
-            "jitter_us": {"p99": stat(jitter_us, lambda v: np.percentile(v, 99))},
+            "jitter_us": {"p99": round(jitter[99], 3) if jitter else None},
         }
 
 

@@ -66,6 +66,10 @@ class DiagnosticStatus(IdlStruct, typename=dds_type_name("diagnostic_msgs/msg/Di
     values: sequence[KeyValue] = field(default_factory=list)
 
 
+LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
+               DiagnosticStatus.STALE: "STALE"}
+
+
 @dataclass
 class DiagnosticArray(IdlStruct, typename=dds_type_name("diagnostic_msgs/msg/DiagnosticArray")):
     header: Header = field(default_factory=Header)

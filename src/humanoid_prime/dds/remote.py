@@ -27,8 +27,6 @@ from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.bridge import MODE_REQUEST
 from humanoid_prime.dds.node import DdsNode, take
 
-LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
-
 
 @dataclass
 class Motion:
@@ -116,7 +114,7 @@ class RemoteClient:
         for sample in take(self.control_mode):
             self.seen.modes.append(sample.data)
         for sample in take(self.safety_status):
-            self.seen.safety = [(s.name, LEVELS.get(s.level, str(s.level)), s.message) for s in sample.status]
+            self.seen.safety = [(s.name, msg.LEVEL_NAMES.get(s.level, str(s.level)), s.message) for s in sample.status]
 
     def wait_for_joint_states(self, timeout: float, sleep: Callable[[float], None] = time.sleep) -> bool:
         """Poll until a joint state of Prime arrived or ``timeout`` seconds passed."""

@@ -3,7 +3,6 @@ the ROS 2 graph (``prime view --dds``); and where its mode buttons send requests
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -49,7 +48,6 @@ class DdsSource:
         self._mode = self.node.reader(CONTROL_MODE, msg.String, latched=True, depth=1)
         self._safety = self.node.reader(SAFETY_STATUS, msg.DiagnosticArray, latched=True, depth=1)
         self._requests = self.node.writer(MODE_REQUEST, msg.String)
-        self._lock = threading.Lock()
         self.latest: dict[str, Any] = {}
 
     def __call__(self) -> dict[str, Any]:
@@ -66,7 +64,7 @@ class DdsSource:
                 for value in status.values:
                     key = f"{status.name.removeprefix('prime/')}/{value.key}"
                     flags[key] = value.value
-                    levels[key] = {1: "WARN", 2: "ERROR"}.get(status.level, "ERROR")
+                    levels[key] = "WARN" if status.level == self._msg.DiagnosticStatus.WARN else "ERROR"
             self.latest.update(flags=flags, levels=levels)
         if "position" not in self.latest:
             raise ConnectionError("no /prime/joint_states on the ROS 2 graph yet")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
+from humanoid_prime.control.interfaces import COMMAND_NAMES, STATE_NAMES
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.errors import PrimeError
@@ -76,9 +77,8 @@ def read_recording(path: str | Path) -> Recording:
     def rows(samples, fields):
         return np.array([[getattr(s, f) for f in fields] for s in samples], dtype=np.float64)
 
-    state = rows(states, ("position", "velocity", "effort"))
-    command = rows(commands, ("position", "velocity", "effort", "stiffness", "damping")) if commands else \
-        np.zeros((0, 5, len(names)))
+    state = rows(states, STATE_NAMES)
+    command = rows(commands, COMMAND_NAMES) if commands else np.zeros((0, len(COMMAND_NAMES), len(names)))
     return Recording(path, names, (np.array(state_times) - t0) * 1e-9, state[:, 0], state[:, 1], state[:, 2],
                      (np.array(command_times, dtype=np.int64) - t0) * 1e-9, command,
                      [((t - t0) * 1e-9, mode) for t, mode in modes])

@@ -121,10 +121,6 @@ def listen(domain: int) -> dict[str, Any]:
                            "p99": float(np.percentile(values, 99)) if values.size else None}}
 
 
-if __name__ == "__main__":
-    print(json.dumps(listen(int(sys.argv[1]))))
-
-
 def bench_record(seconds: float = 10.0) -> dict[str, Any]:
     """--record on the loop: the simulated Prime in STANDBY at 50 Hz and 1 kHz, without and with a recorder."""
     import tempfile
@@ -142,3 +138,7 @@ def bench_record(seconds: float = 10.0) -> dict[str, Any]:
     results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] for rate in RATES_HZ)
     results["dropped_ticks"] = sum(results[f"{rate:g}_hz"]["with"]["recorder"]["dropped_ticks"] for rate in RATES_HZ)
     return results
+
+
+if __name__ == "__main__":
+    print(json.dumps(listen(int(sys.argv[1]))))

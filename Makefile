@@ -3,10 +3,14 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view.
 TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium
+# The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.
+PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")
+BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
 
 .PHONY: sim test bench soak lint clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*/*.pyx)
+	tools/install-debs $(BUILD_DEBS)
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
@@ -28,3 +32,4 @@ soak: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info .pytest_cache
+	find src \( -name '*.so' -o -name '*.c' \) -delete

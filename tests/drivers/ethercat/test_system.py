@@ -14,7 +14,8 @@ from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
-from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_SAFE_OP, SdoRefused
+from humanoid_prime.drivers.ethercat._tick import layouts
+from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_SAFE_OP, RX_DTYPE, TX_DTYPE, SdoRefused
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 
 C = COUNTS_PER_RAD
@@ -480,3 +481,43 @@ def test_a_reset_while_the_slave_is_still_away_leaves_its_drive_held(rig):
         rig.tick()
     assert rig.master.statusword[7] == SWITCH_ON_DISABLED
     assert "ethercat/ring7/disabled" in rig.system.flags
+
+
+def test_a_non_finite_feed_forward_goes_out_as_zero_and_targets_clamp_to_the_pdo_type(rig):
+    j = rig.robot.index("left_shoulder_pitch")
+    rig.command.stiffness[j] = 20.0
+    rig.command.velocity[j], rig.command.effort[j] = math.inf, math.nan
+    rig.command.position[j] = 1e9  # rad: far past INTEGER32 counts
+    rig.tick()
+    assert rig.master.sent["velocity_offset"][0] == 0
+    assert rig.master.sent["torque_offset"][0] == 0
+    assert rig.master.sent["target_position"][0] == np.iinfo(np.int32).max
+    rig.command.position[j] = -1e9
+    rig.tick()
+    assert rig.master.sent["target_position"][0] == np.iinfo(np.int32).min
+
+
+def test_the_compiled_tick_s_structs_are_the_pdo_layout():
+    for key, dtype in (("rx", RX_DTYPE), ("tx", TX_DTYPE)):
+        fields, size = layouts()[key]
+        assert fields == tuple((name, dtype.fields[name][1]) for name in dtype.names)
+        assert size == dtype.itemsize
+
+
+def test_the_compiled_tick_refuses_a_process_image_of_another_layout(robot, tmp_path):
+    """The kernel reaches the process image through C structs: a layout that differs fails at binding,
+    before anything is written at the wrong offset."""
+    narrow = np.dtype([(name, "<i2" if name == "position_actual" else TX_DTYPE.fields[name][0])
+                       for name in TX_DTYPE.names])
+    r = Rig(robot, tmp_path)
+    configure_ring = r.master._configure
+
+    def inputs_with_a_16_bit_position():
+        configure_ring()
+        r.master.inputs = np.zeros(len(r.master.inputs), narrow)
+
+    r.master._configure = inputs_with_a_16_bit_position
+    r.system.configure()
+    with pytest.raises(ValueError, match="dtype mismatch"):
+        r.system.activate()
+    r.system.shutdown()

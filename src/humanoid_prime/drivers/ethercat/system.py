@@ -9,8 +9,8 @@ Per tick, ``read`` collects the frame and converts position, velocity and effort
 is zero, or its drive is not operation-enabled, its CSP target follows the actual position, so a limp arm
 never accumulates following error (0x8500) and enabling never jumps. A NaN position means no command:
 the drive keeps its last target and holds there with its own gains (e.g. the joints nobody sweeps during
-calibration). Both are allocation-free: every
-array is preallocated and the process image is reached through views bound once.
+calibration). Both are one compiled call each (``_tick.pyx``) on arrays preallocated here, and the
+process image is reached through views bound once.
 
 Safety flags: ``ethercat/wkc`` (working counter mismatch for ``wkc_tolerance_cycles`` cycles in a row),
 ``ethercat/ring<N>/lost`` (slave not in OP or not answering), ``ethercat/ring<N>/fault`` (drive fault:
@@ -58,6 +58,7 @@ from humanoid_prime.drivers.erob.objects import (
     VELOCITY_ACTUAL,
     VELOCITY_OFFSET,
 )
+from humanoid_prime.drivers.ethercat._tick import EcTick
 from humanoid_prime.drivers.ethercat.fold import check_foldable, fold_slave_config, write_folded_configs
 from humanoid_prime.drivers.ethercat.master import (
     RX_DTYPE,
@@ -71,26 +72,16 @@ from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, p
 from humanoid_prime.errors import ConfigError, PrimeError
 
 
-def _pdo_limits(*fields: str) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) of the mapped integer types of ``fields``, one row each, as floats for np.clip."""
-    ranges = [np.iinfo(RX_DTYPE[f]) for f in fields]
-    return (np.array([[r.min] for r in ranges], float), np.array([[r.max] for r in ranges], float))
+def _pdo_limits(field: str) -> tuple[float, float]:
+    """(min, max) of the mapped integer type of ``field``."""
+    limits = np.iinfo(RX_DTYPE[field])
+    return float(limits.min), float(limits.max)
 
 
-def _round_clamp(raw: np.ndarray, limits: tuple[np.ndarray, np.ndarray], out: np.ndarray) -> None:
-    """Round half up and clamp to the PDO type into ``out`` (as ``Channel.command_raw`` does), in place."""
-    np.add(raw, 0.5, out=raw)
-    np.floor(raw, out=raw)
-    np.clip(raw, limits[0], limits[1], out=raw)
-    np.copyto(out, raw, casting="unsafe")
-
-
-_TARGET_LIMITS = tuple(row[0] for row in _pdo_limits("target_position"))
-_FF_LIMITS = _pdo_limits("velocity_offset", "torque_offset")  # one row each
+_TARGET_LIMITS = _pdo_limits("target_position")
+_VELOCITY_OFFSET_LIMITS = _pdo_limits("velocity_offset")
 # 0x60B2 accepts +-3000 per mille of the rated torque (ZeroErr EDS V1.5), narrower than its INTEGER16
-_FF_LIMITS[0][1], _FF_LIMITS[1][1] = -TORQUE_OFFSET_LIMIT_PER_MILLE, TORQUE_OFFSET_LIMIT_PER_MILLE
-_OPERATION_ENABLED_MASK, _OPERATION_ENABLED = OPERATION_ENABLED_PATTERN
-_FAULT_MASK, _FAULT = FAULT_PATTERN
+_TORQUE_OFFSET_LIMITS = (-float(TORQUE_OFFSET_LIMIT_PER_MILLE), float(TORQUE_OFFSET_LIMIT_PER_MILLE))
 _MIT = ("position", "velocity", "effort")
 _STATE_OBJECTS = (POSITION_ACTUAL, VELOCITY_ACTUAL, TORQUE_ACTUAL)
 _COMMAND_OBJECTS = (TARGET_POSITION, VELOCITY_OFFSET, TORQUE_OFFSET)
@@ -144,38 +135,19 @@ class EthercatSystem(HardwareComponent):
         self._reset_requested = False
         # raw process values in joint order
         self._rec = np.zeros(n, TX_DTYPE)  # the inputs of this component's slaves, joint order
-        self._rec_pos, self._rec_vel, self._rec_tq = (self._rec[f] for f in
-                                                      ("position_actual", "velocity_actual", "torque_actual"))
         self._rec_sw, self._rec_err = self._rec["statusword"], self._rec["error_code"]
         self._raw = np.zeros((3, n))  # position, velocity, effort as raw counts / per mille
-        self._raw_pos, self._raw_vel, self._raw_tq = self._raw
-        self._sw7 = np.zeros(n, np.uint16)
-        self._cw = np.zeros(n, np.uint16)
-        self._cw_prev = np.zeros(n, np.uint16)
+        self._cw_prev = np.zeros(n, np.uint16)  # the controlword last sent
         self._enabled = np.zeros(n, dtype=bool)
         self._was_enabled = np.zeros(n, dtype=bool)  # in the last frame read
         # Drives that left operation enabled mid-run without a fault (their slave lost power or link and came
         # back in switch-on disabled): held disabled until the operator's reset, because enabling one on its own
         # would drive the joint, which hung limp meanwhile, straight to the active mode's target.
         self._held_off = np.zeros(n, dtype=bool)
-        self._dropped = np.zeros(n, dtype=bool)
         self._held_off_seen = np.zeros(n, dtype=bool)
         self._fault = np.zeros(n, dtype=bool)
-        self._follow = np.zeros(n, dtype=bool)
-        self._mask = np.zeros(n, dtype=bool)  # scratch masks
-        self._scratch = np.zeros(n, dtype=bool)
-        self._mask2 = np.zeros((2, n), dtype=bool)
-        self._x = np.zeros(n)  # scratch, joint frame
-        self._t = np.zeros(n)  # scratch, raw
-        self._x2 = np.zeros((2, n))  # velocity and effort feed-forward
-        self._x2_vel, self._x2_eff = self._x2
-        self._ff_factor, self._ff_offset = self.command_factor[1:], self.command_offset[1:]
-        self._x3 = np.zeros((3, n))  # position, velocity, effort state
-        self._kp = np.zeros(n)
-        self._i32 = np.zeros(n, np.int32)  # the rounded raw value before it goes into the process image
-        self._i32_2 = np.zeros((2, n), np.int32)
-        self._ff_vel, self._ff_tq = self._i32_2
         self._held = np.zeros(n)  # the last CSP target sent (raw), what a NaN position command keeps
+        self._tick: EcTick | None = None  # the compiled read and write, bound to the process image at start
         self._wkc_flagged = False
         self._fault_seen: tuple = ()
         self._health_seen = -1
@@ -222,8 +194,8 @@ class EthercatSystem(HardwareComponent):
         master = self._master()
         if not master.operational:
             self.bringup = master.start(self.expected)
-            self._bind_views()
             self._scale_efforts()
+        self._bind_views()
         self._enable()
 
     def _scale_efforts(self) -> None:
@@ -281,13 +253,18 @@ class EthercatSystem(HardwareComponent):
     def _bind_views(self) -> None:
         master = self._master()
         inputs, outputs = master.inputs, master.outputs
-        self._inputs = inputs
         self._in_pos = inputs["position_actual"]
         self._out_cw = outputs["controlword"]
         self._out_target = outputs["target_position"]
         self._out_vel = outputs["velocity_offset"]
         self._out_tq = outputs["torque_offset"]
         self._out_mode = outputs["mode_of_operation"]
+        flags = (self._enabled, self._fault, self._was_enabled, self._held_off, self._held_off_seen)
+        self._tick = EcTick(inputs, outputs, self._rec, self.ring, self.indices, self._raw, self.state_factor,
+                            self.state_offset, self.command_factor, self.command_offset, self._held,
+                            *(flag.view(np.uint8) for flag in flags), self._cw_table, self._cw_prev,
+                            OPERATION_ENABLED_PATTERN, FAULT_PATTERN, FAULT_RESET, DISABLE_VOLTAGE, MODE_CSP,
+                            _TARGET_LIMITS, _VELOCITY_OFFSET_LIMITS, _TORQUE_OFFSET_LIMITS)
 
     def _enable(self) -> None:
         """CiA402 enable at the bring-up rate: target on the actual position first, then step to enabled.
@@ -309,8 +286,7 @@ class EthercatSystem(HardwareComponent):
             np.logical_and(latched, self._fault, out=latched)
             if (self._enabled | latched).all():
                 np.copyto(self._was_enabled, self._enabled)
-                np.take(self._out_target, self.ring, out=self._i32)
-                np.copyto(self._held, self._i32)  # a NaN command holds the position the drive was enabled at
+                self._held[:] = self._out_target[self.ring]  # a NaN command holds the position enabled at
                 return
             np.copyto(self._out_target, self._in_pos)
             self._out_vel[:] = 0
@@ -334,53 +310,31 @@ class EthercatSystem(HardwareComponent):
     # ---------------------------------------------------------------------------- hot path
     def _gather(self) -> None:
         """Raw inputs into joint order, and which drives are enabled or faulted."""
-        np.take(self._inputs, self.ring, out=self._rec)
-        np.copyto(self._raw_pos, self._rec_pos)
-        np.copyto(self._raw_vel, self._rec_vel)
-        np.copyto(self._raw_tq, self._rec_tq)
-        np.bitwise_and(self._rec_sw, _OPERATION_ENABLED_MASK, out=self._sw7)
-        np.equal(self._sw7, _OPERATION_ENABLED, out=self._enabled)
-        np.bitwise_and(self._rec_sw, _FAULT_MASK, out=self._sw7)
-        np.equal(self._sw7, _FAULT, out=self._fault)
+        self._tick.gather()
+
+    def _take_reset(self) -> bool:
+        """Whether the operator asked for a reset since the last controlwords. A drive held disabled after
+        dropping out is released by it only once its slave is back in OP: until then it cannot be reset."""
+        if not self._reset_requested:
+            return False
+        self._reset_requested = False
+        self._held_off &= ~self.master.slave_ok[self.ring]
+        return True
 
     def _step_controlwords(self, reset: np.ndarray | None = None) -> None:
         """Per drive, the controlword one step toward enabled; drives in ``reset`` that are in fault get a
         fault reset (as does every faulted drive once after ``reset_faults``). A fault reset is a rising edge,
         so it alternates."""
-        np.bitwise_and(self._rec_sw, 0x7F, out=self._sw7)
-        np.take(self._cw_table, self._sw7, out=self._cw)
-        if reset is not None:
-            np.copyto(self._cw, FAULT_RESET, where=reset & self._fault)
-        if self._reset_requested:
-            self._reset_requested = False
-            np.copyto(self._cw, FAULT_RESET, where=self._fault)
-            back = self.master.slave_ok[self.ring]
-            self._held_off &= ~back  # a drive whose slave is still away stays held: it cannot be reset yet
-        if self._held_off.any():
-            np.copyto(self._cw, DISABLE_VOLTAGE, where=self._held_off)
-        np.equal(self._cw, FAULT_RESET, out=self._scratch)
-        np.equal(self._cw_prev, FAULT_RESET, out=self._mask)
-        np.logical_and(self._scratch, self._mask, out=self._scratch)
-        np.copyto(self._cw, DISABLE_VOLTAGE, where=self._scratch)
-        np.copyto(self._cw_prev, self._cw)
-        self._out_cw[self.ring] = self._cw
+        self._tick.controlwords(None if reset is None else reset.view(np.uint8), self._take_reset())
 
     def read(self, now: float, state: StateArrays) -> None:
         master = self.master
         began = time.perf_counter()
         wkc = master.receive()
         self.io_s = time.perf_counter() - began
-        self._gather()
-        dropped = self._dropped  # enabled in the last frame, now neither enabled nor in fault
-        np.logical_or(self._enabled, self._fault, out=dropped)
-        np.logical_not(dropped, out=dropped)
-        np.logical_and(dropped, self._was_enabled, out=dropped)
-        np.logical_or(self._held_off, dropped, out=self._held_off)
-        np.copyto(self._was_enabled, self._enabled)  # scratch above, allocation-free: these run every tick
-        x3 = self._x3
-        np.multiply(self._raw, self.state_factor, out=x3)
-        np.add(x3, self.state_offset, out=x3)
-        state.data[:, self.indices] = x3
+        # also holds disabled every drive that was enabled in the last frame and is now neither enabled nor in
+        # fault: it dropped out (power or link)
+        faulted, held_changed = self._tick.read(state.data)
         if wkc != master.expected_wkc:
             self.wkc_errors += 1
             self._wkc_bad_cycles += 1
@@ -390,48 +344,16 @@ class EthercatSystem(HardwareComponent):
             self._update_wkc_flag(wkc)
         if master.health_version != self._health_seen:
             self._update_health_flags()
-        if self._fault_seen or np.count_nonzero(self._fault):
+        if self._fault_seen or faulted:
             self._update_fault_flags()
-        if not np.array_equal(self._held_off, self._held_off_seen):
+        if held_changed:
             self._update_held_flags()
 
     def write(self, now: float, command: CommandArrays) -> None:
-        idx = self.indices
-        x, t, follow, hold, scratch = self._x, self._t, self._follow, self._mask, self._scratch
-        # position: the CSP target; NaN holds the last target; zero stiffness or a drive that is not
-        # enabled follows the actual position
-        np.take(command.position, idx, out=x)
-        np.multiply(x, self.command_factor[0], out=t)
-        np.add(t, self.command_offset[0], out=t)
-        np.isfinite(t, out=hold)
-        np.logical_not(hold, out=hold)
-        np.copyto(t, self._held, where=hold)
-        np.take(command.stiffness, idx, out=self._kp)
-        np.equal(self._kp, 0.0, out=follow)
-        np.logical_not(hold, out=scratch)
-        np.logical_and(follow, scratch, out=follow)
-        np.logical_not(self._enabled, out=scratch)
-        np.logical_or(follow, scratch, out=follow)
-        np.copyto(t, self._raw_pos, where=follow)
-        _round_clamp(t, _TARGET_LIMITS, self._i32)
-        self._out_target[self.ring] = self._i32
-        np.copyto(self._held, self._i32)
-        # velocity offset (the damping term's feed-forward) and torque offset (effort feed-forward), zero
-        # where not finite or the drive is not enabled
-        x2, bad2 = self._x2, self._mask2
-        np.take(command.velocity, idx, out=self._x2_vel)
-        np.take(command.effort, idx, out=self._x2_eff)
-        np.multiply(x2, self._ff_factor, out=x2)
-        np.add(x2, self._ff_offset, out=x2)
-        np.isfinite(x2, out=bad2)
-        np.logical_and(bad2, self._enabled, out=bad2)
-        np.logical_not(bad2, out=bad2)
-        np.copyto(x2, 0.0, where=bad2)
-        _round_clamp(x2, _FF_LIMITS, self._i32_2)
-        self._out_vel[self.ring] = self._ff_vel
-        self._out_tq[self.ring] = self._ff_tq
-        self._out_mode[:] = MODE_CSP
-        self._step_controlwords()
+        """Position is the CSP target: NaN holds the last target, and zero stiffness or a drive that is not
+        enabled follows the actual position. The velocity and torque offsets carry the damping term's and the
+        effort's feed-forward, zero where not finite or where the drive is not enabled."""
+        self._tick.write(command.data, self._take_reset())
         began = time.perf_counter()
         self.master.send()
         self.io_s += time.perf_counter() - began

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import math
 import os
 import signal
 import threading
@@ -30,6 +29,7 @@ from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.drivers.sito._tick import SitoTick
 from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF, is_interface_down, open_bus
 from humanoid_prime.drivers.sito.protocol import (
     COMMAND_DTYPE,
@@ -44,9 +44,6 @@ from humanoid_prime.drivers.sito.protocol import (
     ID_PREFIX,
     ID_PREFIX_MASK,
     INT16_MAX,
-    INT16_MIN,
-    INT32_MAX,
-    INT32_MIN,
     MODE_MIT,
     UNDECODED_FEEDBACK_TYPES,
     FrameType,
@@ -191,32 +188,19 @@ class SitoSystem(HardwareComponent):
         self._to_wire = np.stack([direction * COUNTS_PER_RAD, direction * COUNTS_PER_RAD,
                                   direction / self.model.nm_per_mA])
         self._wire_bias = np.stack([self._offset * COUNTS_PER_RAD, np.zeros(n), np.zeros(n)])
-        self._wire_high = np.array([[INT32_MAX], [INT16_MAX], [INT16_MAX]], dtype=np.float64)
-        self._wire_low = np.array([[INT32_MIN], [INT16_MIN], [INT16_MIN]], dtype=np.float64)
         # wire -> joint frame: rows position, velocity, effort (position also subtracts direction * offset)
         self._from_wire = np.stack([direction / COUNTS_PER_RAD, direction / COUNTS_PER_RAD,
                                     direction * self.model.nm_per_mA])
         self._state_bias = direction * self._offset
 
         # Hot-path buffers.
-        self._cmd = np.zeros((5, n))
-        self._ok = np.zeros((5, n), dtype=bool)
-        self._valid = np.zeros(n, dtype=bool)
-        self._no_position = np.zeros(n, dtype=bool)
-        self._wire = np.zeros((3, n))  # position counts, velocity counts/s, ff current mA
-        self._clipped = np.zeros((3, n))
-        self._raw = np.zeros((3, n))
-        self._stamp = np.zeros((2, n))
-        self._oldest = np.zeros(n)
         self._late = np.zeros(n, dtype=bool)
-        self._state = np.zeros((3, n))
         self._command_payload = np.zeros(n, dtype=COMMAND_DTYPE)
         self._gains_payload = np.zeros(n, dtype=GAINS_DTYPE)
         self._gains_word = self._gains_payload.view(np.uint64)  # one word per motor: compare gains bitwise
         self._gains_sent = np.zeros(n, dtype=np.uint64)
         self._gains_stamp = np.zeros(n)
         self._gains_due = np.zeros(n, dtype=bool)
-        self._refresh_due = np.zeros(n, dtype=bool)
         command_rows = self._command_payload.view(np.uint8).reshape(n, DATA_LENGTH)
         gains_rows = self._gains_payload.view(np.uint8).reshape(n, DATA_LENGTH)
         self._command_bytes = [memoryview(command_rows[i]) for i in range(n)]
@@ -229,9 +213,14 @@ class SitoSystem(HardwareComponent):
         # Per-motor command problems, rows: velocity clamped, effort clamped, invalid command.
         self._problems = np.zeros((3, n), dtype=bool)
         self._problems_raised = np.zeros((3, n), dtype=bool)
-        self._problems_changed = np.zeros((3, n), dtype=bool)
         self._rx_raised = np.zeros(n, dtype=bool)
-        self._rx_changed = np.zeros(n, dtype=bool)
+        # the compiled read and write (``_tick.pyx``), bound to the arrays above
+        u8 = np.uint8
+        self._tick = SitoTick(self.indices, self._to_wire, self._wire_bias, self._from_wire, self._state_bias,
+                              self._rx.raw, self._rx.stamp, self._late.view(u8), self._rx_raised.view(u8),
+                              self._problems.view(u8), self._problems_raised.view(u8), command_rows, gains_rows,
+                              self._gains_word, self._gains_sent, self._gains_stamp, self._gains_due.view(u8),
+                              self.model.kp_divisor, self.model.kd_divisor)
 
         # Flags: keys and texts built once; per tick only the raised/cleared state is compared.
         ch = self.channel
@@ -372,20 +361,11 @@ class SitoSystem(HardwareComponent):
 
     def read(self, now: float, state: StateArrays) -> None:
         rx = self._rx
-        with rx.lock:
-            np.copyto(self._raw, rx.raw)
-            np.copyto(self._stamp, rx.stamp)
-        out = self._state
-        np.multiply(self._raw, self._from_wire, out=out)
-        out[0] -= self._state_bias
-        state.data[:, self.indices] = out
-
         limit = self._clock() - self.rx_timeout_s
-        np.min(self._stamp, axis=0, out=self._oldest)
-        np.less(self._oldest, limit, out=self._late)
-        np.not_equal(self._late, self._rx_raised, out=self._rx_changed)
-        if self._rx_changed.any():
-            for i in np.flatnonzero(self._rx_changed):
+        with rx.lock:
+            rx_changed = self._tick.read(state.data, limit)
+        if rx_changed:
+            for i in np.flatnonzero(self._late != self._rx_raised):
                 self._flag(bool(self._late[i]), self._rx_keys[i], self._rx_texts[i], Level.ERROR)
             np.copyto(self._rx_raised, self._late)
         self._flag(rx.last_invalid_stamp >= limit, self._invalid_key, self._invalid_text, Level.WARN)
@@ -398,44 +378,9 @@ class SitoSystem(HardwareComponent):
                                           f"{self.robot.hardware.can.bitrate}) and re-activate the wrists")
 
     def write(self, now: float, command: CommandArrays) -> None:
-        cmd = self._cmd
-        np.take(command.data, self.indices, axis=1, out=cmd)
-        problems = self._problems
-        # Fast path: a finite sum and non-negative gains mean every value is usable.
-        if math.isfinite(cmd.sum()) and cmd[3:].min() >= 0.0:
-            problems[2] = False
-        else:
-            # "No command" (NaN position, everything else zero: nothing claims the joint) is limp, not a fault.
-            np.isnan(cmd[0], out=self._no_position)
-            np.equal(cmd[1:], 0.0, out=self._ok[1:])
-            np.logical_and.reduce(self._ok[1:], axis=0, out=self._valid)
-            np.logical_and(self._no_position, self._valid, out=self._no_position)
-            np.isfinite(cmd, out=self._ok)
-            np.greater_equal(cmd[3:], 0.0, out=self._ok[3:], where=self._ok[3:])
-            np.logical_and.reduce(self._ok, axis=0, out=self._valid)
-            np.logical_not(self._valid, out=self._valid)
-            np.copyto(cmd, 0.0, where=self._valid)  # limp: zero gains, zero effort
-            np.logical_not(self._no_position, out=self._no_position)
-            np.logical_and(self._valid, self._no_position, out=problems[2])
-
-        wire, clipped = self._wire, self._clipped
-        np.multiply(cmd[:3], self._to_wire, out=wire)
-        wire += self._wire_bias
-        np.rint(wire, out=wire)
-        np.minimum(wire, self._wire_high, out=clipped)
-        np.maximum(clipped, self._wire_low, out=clipped)
-        np.not_equal(wire[1:], clipped[1:], out=problems[:2])
-        payload = self._command_payload
-        payload["position"] = clipped[0]
-        payload["velocity"] = clipped[1]
-        payload["current"] = clipped[2]
-        np.divide(cmd[3], self.model.kp_divisor, out=self._gains_payload["kp"], casting="same_kind")
-        np.divide(cmd[4], self.model.kd_divisor, out=self._gains_payload["kd"], casting="same_kind")
-
         clock_now = self._clock()
-        np.not_equal(self._gains_word, self._gains_sent, out=self._gains_due)
-        np.less_equal(self._gains_stamp, clock_now - self.gain_refresh_s, out=self._refresh_due)
-        np.logical_or(self._gains_due, self._refresh_due, out=self._gains_due)
+        # the payloads, which gains are due, and the command's problems (see SitoTick.write)
+        problems_changed = self._tick.write(command.data, clock_now - self.gain_refresh_s)
         bus = self._bus
         failed = False
         began = time.perf_counter()  # the sends are this component's bus I/O (``io_s``)
@@ -457,9 +402,9 @@ class SitoSystem(HardwareComponent):
         if failed != self._tx_failed:
             self._tx_failed = failed
             self._flag(failed and not self._tx_down_error, self._tx_key, self._tx_text, Level.WARN)
-        np.not_equal(problems, self._problems_raised, out=self._problems_changed)
-        if self._problems_changed.any():
-            for row, i in zip(*np.nonzero(self._problems_changed), strict=True):
+        if problems_changed:
+            problems = self._problems
+            for row, i in zip(*np.nonzero(problems != self._problems_raised), strict=True):
                 keys, texts = self._problem_flags[row]
                 self._flag(bool(problems[row, i]), keys[i], texts[i], Level.WARN)
             np.copyto(self._problems_raised, problems)

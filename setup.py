@@ -1,0 +1,8 @@
+"""The compiled tick kernels (Cython); everything else about the package is in pyproject.toml."""
+
+from setuptools import Extension, setup
+
+setup(ext_modules=[
+    Extension("humanoid_prime.drivers.ethercat._tick", ["src/humanoid_prime/drivers/ethercat/_tick.pyx"]),
+    Extension("humanoid_prime.drivers.sito._tick", ["src/humanoid_prime/drivers/sito/_tick.pyx"]),
+])

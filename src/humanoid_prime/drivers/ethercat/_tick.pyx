@@ -1,0 +1,203 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, initializedcheck=False, cdivision=True
+"""The eRob component's per-tick work, compiled: one call reads the ring into joint state, one call turns the
+MIT command into the process image. At 50 Hz the tick's cost was Python's and NumPy's per-call overhead on
+ten-element arrays (dozens of calls, each paying for a cold interpreter path), not the arithmetic.
+
+Every array is the component's own, bound once; the kernel holds no state of its own."""
+
+from libc.math cimport floor, isfinite
+
+
+cdef packed struct RxPdo:  # master -> drive, objects.RXPDO
+    unsigned short controlword
+    int target_position
+    int velocity_offset
+    short torque_offset
+    signed char mode_of_operation
+    unsigned char pad
+
+
+cdef packed struct TxPdo:  # drive -> master, objects.TXPDO
+    unsigned short statusword
+    int position_actual
+    int velocity_actual
+    short torque_actual
+    unsigned short error_code
+    signed char mode_display
+    unsigned char pad
+
+
+def layouts():
+    """{"rx"|"tx": ((field, byte offset), ...), plus the size}: what the structs above read and write, for the
+    test that holds them to objects.RXPDO/TXPDO (a buffer check compares types, not names)."""
+    cdef RxPdo rx
+    cdef TxPdo tx
+    cdef char* r = <char*>&rx
+    cdef char* t = <char*>&tx
+    return {
+        "rx": ((("controlword", <char*>&rx.controlword - r), ("target_position", <char*>&rx.target_position - r),
+                ("velocity_offset", <char*>&rx.velocity_offset - r), ("torque_offset", <char*>&rx.torque_offset - r),
+                ("mode_of_operation", <char*>&rx.mode_of_operation - r), ("pad", <char*>&rx.pad - r)),
+               sizeof(RxPdo)),
+        "tx": ((("statusword", <char*>&tx.statusword - t), ("position_actual", <char*>&tx.position_actual - t),
+                ("velocity_actual", <char*>&tx.velocity_actual - t), ("torque_actual", <char*>&tx.torque_actual - t),
+                ("error_code", <char*>&tx.error_code - t), ("mode_display", <char*>&tx.mode_display - t),
+                ("pad", <char*>&tx.pad - t)),
+               sizeof(TxPdo)),
+    }
+
+
+cdef inline double _round_clamp(double value, double low, double high) noexcept nogil:
+    """Round half up and clamp to the PDO type (as Channel.command_raw does)."""
+    value = floor(value + 0.5)
+    if value < low:
+        return low
+    if value > high:
+        return high
+    return value
+
+
+cdef class EcTick:
+    """Bound to one EthercatSystem's arrays (joint order ``k``; ``ring[k]`` is the slave, ``index[k]`` the joint
+    in the robot's arrays). Booleans are passed as uint8 views of the component's bool arrays."""
+
+    cdef TxPdo[::1] inputs, rec
+    cdef RxPdo[::1] outputs
+    cdef const Py_ssize_t[::1] ring, index
+    cdef double[:, ::1] raw, state_factor, state_offset, command_factor, command_offset
+    cdef double[::1] held
+    cdef unsigned char[::1] enabled, fault, was_enabled, held_off, held_off_seen
+    cdef const unsigned short[::1] cw_table
+    cdef unsigned short[::1] cw_prev
+    cdef unsigned short enabled_mask, enabled_value, fault_mask, fault_value, fault_reset, disable_voltage
+    cdef signed char mode
+    cdef double target_low, target_high, velocity_low, velocity_high, torque_low, torque_high
+    cdef Py_ssize_t n
+
+    def __init__(self, TxPdo[::1] inputs not None, RxPdo[::1] outputs not None, TxPdo[::1] rec not None,
+                 const Py_ssize_t[::1] ring not None, const Py_ssize_t[::1] index not None,
+                 double[:, ::1] raw not None, double[:, ::1] state_factor not None,
+                 double[:, ::1] state_offset not None, double[:, ::1] command_factor not None,
+                 double[:, ::1] command_offset not None, double[::1] held not None,
+                 unsigned char[::1] enabled not None, unsigned char[::1] fault not None,
+                 unsigned char[::1] was_enabled not None, unsigned char[::1] held_off not None,
+                 unsigned char[::1] held_off_seen not None, const unsigned short[::1] cw_table not None,
+                 unsigned short[::1] cw_prev not None, tuple enabled_pattern, tuple fault_pattern,
+                 unsigned short fault_reset, unsigned short disable_voltage, signed char mode,
+                 tuple target_limits, tuple velocity_limits, tuple torque_limits):
+        cdef Py_ssize_t n = ring.shape[0], k
+        if cw_table.shape[0] != 0x80:
+            raise ValueError(f"controlword table has {cw_table.shape[0]} entries, expected 128")
+        for k in range(n):
+            if not 0 <= ring[k] < inputs.shape[0] or ring[k] >= outputs.shape[0]:
+                raise ValueError(f"ring position {ring[k]} outside the process image of {inputs.shape[0]} slaves")
+        for name, length in (("index", index.shape[0]), ("rec", rec.shape[0]), ("held", held.shape[0]),
+                             ("enabled", enabled.shape[0]), ("fault", fault.shape[0]),
+                             ("was_enabled", was_enabled.shape[0]), ("held_off", held_off.shape[0]),
+                             ("held_off_seen", held_off_seen.shape[0]), ("cw_prev", cw_prev.shape[0])):
+            if length != n:
+                raise ValueError(f"{name} has {length} entries for {n} joints")
+        for name, rows, columns in (("raw", raw.shape[0], raw.shape[1]),
+                                    ("state_factor", state_factor.shape[0], state_factor.shape[1]),
+                                    ("state_offset", state_offset.shape[0], state_offset.shape[1]),
+                                    ("command_factor", command_factor.shape[0], command_factor.shape[1]),
+                                    ("command_offset", command_offset.shape[0], command_offset.shape[1])):
+            if rows != 3 or columns != n:
+                raise ValueError(f"{name} is {rows}x{columns}, expected 3x{n}")
+        self.inputs, self.outputs, self.rec, self.ring, self.index = inputs, outputs, rec, ring, index
+        self.raw, self.held = raw, held
+        self.state_factor, self.state_offset = state_factor, state_offset
+        self.command_factor, self.command_offset = command_factor, command_offset
+        self.enabled, self.fault, self.was_enabled = enabled, fault, was_enabled
+        self.held_off, self.held_off_seen = held_off, held_off_seen
+        self.cw_table, self.cw_prev = cw_table, cw_prev
+        self.enabled_mask, self.enabled_value = enabled_pattern
+        self.fault_mask, self.fault_value = fault_pattern
+        self.fault_reset, self.disable_voltage, self.mode = fault_reset, disable_voltage, mode
+        self.target_low, self.target_high = target_limits
+        self.velocity_low, self.velocity_high = velocity_limits
+        self.torque_low, self.torque_high = torque_limits
+        self.n = n
+
+    cpdef int gather(self):
+        """The inputs of this component's slaves into joint order (``rec``, ``raw``), and which drives are
+        enabled or faulted; returns how many are faulted."""
+        cdef Py_ssize_t k
+        cdef int faulted = 0
+        cdef unsigned short sw
+        for k in range(self.n):
+            self.rec[k] = self.inputs[self.ring[k]]
+            sw = self.rec[k].statusword
+            self.raw[0, k] = self.rec[k].position_actual
+            self.raw[1, k] = self.rec[k].velocity_actual
+            self.raw[2, k] = self.rec[k].torque_actual
+            self.enabled[k] = (sw & self.enabled_mask) == self.enabled_value
+            self.fault[k] = (sw & self.fault_mask) == self.fault_value
+            faulted += self.fault[k]
+        return faulted
+
+    def read(self, double[:, ::1] state not None):
+        """Gather, hold disabled every drive that was enabled in the last frame and is now neither enabled nor
+        in fault (it dropped out: power or link), and write position, velocity and effort into ``state``.
+        Returns (drives in fault, whether the held-disabled set differs from ``held_off_seen``)."""
+        cdef Py_ssize_t k, row
+        cdef int faulted = self.gather()
+        cdef bint held_changed = False
+        for k in range(self.n):
+            if self.was_enabled[k] and not self.enabled[k] and not self.fault[k]:
+                self.held_off[k] = True
+            self.was_enabled[k] = self.enabled[k]
+            held_changed |= self.held_off[k] != self.held_off_seen[k]
+            for row in range(3):
+                state[row, self.index[k]] = self.raw[row, k] * self.state_factor[row, k] + self.state_offset[row, k]
+        return faulted, held_changed
+
+    def controlwords(self, const unsigned char[::1] reset=None, bint reset_all=False):
+        """Per drive, the controlword one step toward enabled. Drives in ``reset`` that are in fault get a fault
+        reset, as does every faulted drive when ``reset_all``; a fault reset is a rising edge, so it
+        alternates with disable voltage. A drive held disabled gets disable voltage."""
+        cdef Py_ssize_t k
+        cdef unsigned short cw
+        for k in range(self.n):
+            cw = self.cw_table[self.rec[k].statusword & 0x7F]
+            if self.fault[k] and (reset_all or (reset is not None and reset[k])):
+                cw = self.fault_reset
+            if self.held_off[k]:
+                cw = self.disable_voltage
+            if cw == self.fault_reset and self.cw_prev[k] == self.fault_reset:
+                cw = self.disable_voltage
+            self.cw_prev[k] = cw
+            self.outputs[self.ring[k]].controlword = cw
+
+    def write(self, const double[:, ::1] command not None, bint reset_all=False):
+        """The MIT command (rows position, velocity, effort, stiffness, damping; robot order) into the
+        process image, then the controlwords.
+
+        Position is the CSP target; NaN holds the last target sent; zero stiffness, or a drive that is not
+        enabled, follows the actual position. The velocity and torque offsets (the damping term's and the
+        effort's feed-forward) are zero where not finite or where the drive is not enabled."""
+        cdef Py_ssize_t k, j, slave
+        cdef double target, velocity, torque
+        for k in range(self.n):
+            j, slave = self.index[k], self.ring[k]
+            target = command[0, j] * self.command_factor[0, k] + self.command_offset[0, k]
+            if not isfinite(target):
+                target = self.held[k]
+            elif command[3, j] == 0.0:
+                target = self.raw[0, k]
+            if not self.enabled[k]:
+                target = self.raw[0, k]
+            target = _round_clamp(target, self.target_low, self.target_high)
+            self.held[k] = target
+            self.outputs[slave].target_position = <int>target
+            velocity = command[1, j] * self.command_factor[1, k] + self.command_offset[1, k]
+            torque = command[2, j] * self.command_factor[2, k] + self.command_offset[2, k]
+            if not (isfinite(velocity) and self.enabled[k]):
+                velocity = 0.0
+            if not (isfinite(torque) and self.enabled[k]):
+                torque = 0.0
+            self.outputs[slave].velocity_offset = <int>_round_clamp(velocity, self.velocity_low, self.velocity_high)
+            self.outputs[slave].torque_offset = <short>_round_clamp(torque, self.torque_low, self.torque_high)
+        for slave in range(self.outputs.shape[0]):
+            self.outputs[slave].mode_of_operation = self.mode
+        self.controlwords(None, reset_all)

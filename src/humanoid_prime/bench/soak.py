@@ -153,11 +153,14 @@ class Load:
 
 
 class Injector(threading.Thread):
-    """One fault every ``every_s`` in turn; the operator's reset for a latched one once it has been seen."""
+    """One fault every ``every_s`` in turn; the operator's reset for a latched one once it has been seen. With
+    ``once``, one pass: after every fault has been injected once and the last has had its settle time, it ends
+    the run (``stop``)."""
 
-    def __init__(self, control: Any, session: Any, every_s: float, stop: threading.Event, run_s: float) -> None:
+    def __init__(self, control: Any, session: Any, every_s: float, stop: threading.Event, run_s: float,
+                 once: bool = False) -> None:
         super().__init__(name="soak-faults", daemon=True)
-        self.control, self.session, self.every_s, self.stop = control, session, every_s, stop
+        self.control, self.session, self.every_s, self.stop, self.once = control, session, every_s, stop, once
         self.ends_s = self._now() + run_s  # no fault is injected that could not settle before the run ends
         self.injections: list[Injection] = []
         self.error: str | None = None
@@ -169,6 +172,10 @@ class Injector(threading.Thread):
         try:
             k = 0
             while not self.stop.wait(self.every_s):
+                if self.once and k == len(FAULTS):
+                    self.stop.wait(FAULTS[-1].settle_s)
+                    self.stop.set()
+                    return
                 fault = FAULTS[k % len(FAULTS)]
                 k += 1
                 if self._now() + fault.hold_s + fault.settle_s + 1.0 > self.ends_s:
@@ -246,9 +253,10 @@ def explained(record: Any, injections: list[Injection], faults: list[Any]) -> bo
 
 
 def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool = True, cpu: int | None = None,
-               fault_every_s: float = 6.0, dwell_s: float = 10.0, report: Callable[[str], None] = print,
-               hardware_file: str | None = None) -> dict[str, Any]:
-    """Run the soak (module docstring) in this process, which must be in a private network namespace."""
+               fault_every_s: float = 6.0, dwell_s: float = 10.0, faults_once: bool = False,
+               report: Callable[[str], None] = print, hardware_file: str | None = None) -> dict[str, Any]:
+    """Run the soak (module docstring) in this process, which must be in a private network namespace. With
+    ``faults_once`` it ends after one pass of every fault (``minutes`` is then the most it may take)."""
     from humanoid_prime.sim.demo import demo_stream
     from humanoid_prime.virtual.harness import attach_virtual_prime
 
@@ -271,7 +279,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         if load:
             load_process = Load(os.cpu_count() or 2)
             stack.callback(load_process.close)
-        injector = Injector(virtual.control, session, fault_every_s, stop, minutes * 60.0)
+        injector = Injector(virtual.control, session, fault_every_s, stop, minutes * 60.0, once=faults_once)
         modes = {"next": 0, "at": 0.0}
 
         def on_tick(m: Any) -> None:
@@ -329,6 +337,9 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         "modes_visited": sorted(set(manager.modes_visited)),
         "injections": [i.as_dict() for i in injector.injections],
         "injected": len(injector.injections),
+        # one pass asked for: the faults it ended without (the run's length ran out first)
+        "not_injected": [f.name for f in FAULTS if f.name not in {i.fault.name for i in injector.injections}]
+                        if faults_once else [],
         "as_designed": sum(1 for i in injector.injections if i.outcome == i.fault.expect),
         "injector_error": injector.error,
         "unexpected_faults": unexpected,

@@ -87,6 +87,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="seconds between injected faults (default 6)")
     soak.add_argument("--dwell", type=real(at_least=1.0), default=10.0, metavar="S",
                       help="seconds in each mode (default 10)")
+    soak.add_argument("--faults-once", action="store_true",
+                      help="one pass: end once every fault has been injected and has settled (--minutes is then "
+                           "the most it may take)")
     soak.add_argument("--output", metavar="FILE", type=output_file, help="also write the figures as JSON")
     soak.add_argument("--json", action="store_true", help="print the figures as JSON instead of the report")
     soak.set_defaults(func=run_soak)
@@ -99,7 +102,7 @@ def run_soak(args: argparse.Namespace) -> int:
     enter_private_netns()  # re-executes this command in a private network namespace (returns inside)
     console = make_console(stderr=args.json)
     result = bench_soak(args.minutes, rate=args.rate, load=args.load, cpu=args.cpu, fault_every_s=args.fault_every,
-                        dwell_s=args.dwell,
+                        dwell_s=args.dwell, faults_once=args.faults_once,
                         report=lambda line: console.print(line, markup=False, highlight=False))
     if args.output:
         atomic_write_text(args.output, json.dumps(result, indent=2) + "\n")
@@ -122,6 +125,8 @@ def soak_failures(result: dict[str, Any]) -> list[str]:
                  for i in result["injections"] if not i["as_designed"]]
     failures += [f"{f['key']} at {f['since_s']:.1f} s, injected by nobody: {f['text']}"
                  for f in result["unexpected_faults"]]
+    if result["not_injected"]:
+        failures.append(f"the pass ended before these faults were injected: {', '.join(result['not_injected'])}")
     if result["injector_error"]:
         failures.append(f"fault injection stopped: {result['injector_error']}")
     if result["gate_reset_failures"] or result["gates_left_set"]:

@@ -212,6 +212,16 @@ def test_velocity_beyond_int16_is_sent_clamped_and_flagged(rig):
     assert "3.14 rad/s" in rig.system.flags["can2/velocity_clamped/38"]
 
 
+def test_effort_beyond_int16_is_sent_clamped_at_either_end_and_flagged(rig):
+    sent = set()
+    for effort in (1e6, -1e6):
+        rig.command.effort[11] = effort
+        rig.tick()
+        sent.add(dict(rig.host_frames())[0x05062609][0:2])  # current, whichever way the joint is wired
+        assert "can2/effort_clamped/38" in rig.system.flags
+    assert sent == {bytes.fromhex("7fff"), bytes.fromhex("8000")}
+
+
 def test_velocity_clamp_flag_clears_when_back_in_range(rig):
     rig.command.velocity[11] = 5.0
     rig.tick()

@@ -5,11 +5,9 @@ the tick's cost had been Python's and NumPy's per-call overhead on four-element 
 
 Every array is the component's own, bound once; the frames themselves are sent by the component."""
 
+from libc.limits cimport INT_MAX, INT_MIN, SHRT_MAX, SHRT_MIN
 from libc.math cimport isfinite, isnan, rint
 from libc.string cimport memcpy
-
-cdef double _INT16_MIN = -32768.0, _INT16_MAX = 32767.0
-cdef double _INT32_MIN = -2147483648.0, _INT32_MAX = 2147483647.0
 
 
 cdef inline double _clamp(double value, double low, double high) noexcept nogil:
@@ -111,7 +109,7 @@ cdef class SitoTick:
         earlier (``gains_due``). Returns whether ``problems`` (rows velocity clamped, effort clamped, invalid
         command) differs from ``problems_raised``."""
         cdef Py_ssize_t k, j
-        cdef double position, velocity, effort, kp, kd, wire
+        cdef double position, velocity, effort, kp, kd, wire, clamped
         cdef bint changed = False
         cdef unsigned char* row
         for k in range(self.n):
@@ -127,13 +125,15 @@ cdef class SitoTick:
                 position = velocity = effort = kp = kd = 0.0
             row = &self.command_rows[k, 0]
             wire = rint(effort * self.to_wire[2, k] + self.wire_bias[2, k])
-            self.problems[1, k] = wire != _clamp(wire, _INT16_MIN, _INT16_MAX)
-            _put16(row, _clamp(wire, _INT16_MIN, _INT16_MAX))
+            clamped = _clamp(wire, SHRT_MIN, SHRT_MAX)
+            self.problems[1, k] = wire != clamped
+            _put16(row, clamped)
             wire = rint(velocity * self.to_wire[1, k] + self.wire_bias[1, k])
-            self.problems[0, k] = wire != _clamp(wire, _INT16_MIN, _INT16_MAX)
-            _put16(row + 2, _clamp(wire, _INT16_MIN, _INT16_MAX))
+            clamped = _clamp(wire, SHRT_MIN, SHRT_MAX)
+            self.problems[0, k] = wire != clamped
+            _put16(row + 2, clamped)
             wire = rint(position * self.to_wire[0, k] + self.wire_bias[0, k])
-            _put32(row + 4, <unsigned int><int>_clamp(wire, _INT32_MIN, _INT32_MAX))
+            _put32(row + 4, <unsigned int><int>_clamp(wire, INT_MIN, INT_MAX))
             row = &self.gains_rows[k, 0]
             _put_float(row, kp / self.kp_divisor)
             _put_float(row + 4, kd / self.kd_divisor)

@@ -308,6 +308,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         counters = {"ethercat_wkc_errors": ethercat.wkc_errors, "sito_send_failures": sito.send_failures,
                     "stream_published": stream.published, "operator_resets": manager.resets}
     summary = session.summary()  # after teardown: the end state, the gate reset
+    injected = {i.fault.name for i in injector.injections}
     unexpected = [r.as_dict() for r in session.faults
                   if r.level.name == "ERROR" and not explained(r, injector.injections, session.faults)]
     k = min(stats.ticks, stats.capacity)
@@ -338,8 +339,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         "injections": [i.as_dict() for i in injector.injections],
         "injected": len(injector.injections),
         # one pass asked for: the faults it ended without (the run's length ran out first)
-        "not_injected": [f.name for f in FAULTS if f.name not in {i.fault.name for i in injector.injections}]
-                        if faults_once else [],
+        "not_injected": [f.name for f in FAULTS if f.name not in injected] if faults_once else [],
         "as_designed": sum(1 for i in injector.injections if i.outcome == i.fault.expect),
         "injector_error": injector.error,
         "unexpected_faults": unexpected,

@@ -9,7 +9,7 @@ BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
 
 .PHONY: sim test bench soak lint clean
 
-$(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*/*.pyx)
+$(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/humanoid_prime/*/*/*.pyx)
 	tools/install-debs $(BUILD_DEBS)
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip

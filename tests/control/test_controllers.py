@@ -70,6 +70,19 @@ def test_zero_torque_commands_nothing_and_keeps_the_target_on_the_measured_posit
     assert plant.last[1:].tolist() == [[0.0] * 14] * 4
 
 
+def test_zero_torque_keeps_the_last_target_of_a_joint_whose_measurement_is_lost(manager, plant):
+    plant.position[:] = np.linspace(-1.0, 0.0, 14)
+    manager.tick(0.0)
+    before = plant.position.copy()
+    plant.position[:] += 0.1
+    plant.position[3] = np.nan
+    manager.tick(0.02)
+    expected = plant.position.copy()
+    expected[3] = before[3]
+    np.testing.assert_array_equal(plant.last[0], expected)
+    assert plant.last[1:].tolist() == [[0.0] * 14] * 4
+
+
 # ---- DAMPING -------------------------------------------------------------------------------------
 
 def test_damping_holds_the_captured_position_with_zero_stiffness(manager, plant):

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import itertools
 from enum import IntEnum
+
+_changes = itertools.count(1)  # next() on it is one C call, so two threads never draw the same number
 
 
 class Level(IntEnum):
@@ -13,7 +16,13 @@ class Level(IntEnum):
 
 
 class SafetyFlags:
-    """Problems observed now, keyed by source; ``flags_version`` grows on every change (cheap to poll)."""
+    """Problems observed now, keyed by source; ``flags_version`` grows on every change (cheap to poll).
+
+    ``SafetyFlags.last_change`` is a number never used before, written after every change of any source's
+    flags: a poller that saw it unchanged since its last look knows that no source has changed, without
+    asking each one."""
+
+    last_change = 0
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -26,9 +35,11 @@ class SafetyFlags:
             self.flags[key] = text
             self.levels[key] = level
             self.flags_version += 1
+            SafetyFlags.last_change = next(_changes)
 
     def clear_flag(self, key: str) -> None:
         if key in self.flags:
             del self.flags[key]
             self.levels.pop(key, None)
             self.flags_version += 1
+            SafetyFlags.last_change = next(_changes)

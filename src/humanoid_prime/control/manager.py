@@ -32,6 +32,7 @@ import numpy as np
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control._tick import EFFORT, NEGATIVE_GAIN, NON_FINITE, OK, OutputCheck
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.flags import Level, SafetyFlags
@@ -168,6 +169,7 @@ class ControllerManager:
         self._flag_sources: tuple[SafetyFlags, ...] = (*self.resources.components, *self.controllers.values(),
                                                         self.flags)
         self._flags_seen = -1
+        self._change_seen = -1
         self._end_of_tick: tuple[Callable[[], None], ...] = ()
         self._lock = threading.Lock()
         self._request: Mode | None = None
@@ -176,19 +178,15 @@ class ControllerManager:
         self._closed = False
         self._last_now: float | None = None
         self._fresh_schedule = False  # the next tick starts a run's schedule: no period to measure before it
-        # Preallocated for the per-tick output check.
-        n = robot.n
+        # The per-tick command handling and output check, compiled (control/_tick), bound to the proposal,
+        # the command and the limits.
         self._names = robot.names
-        self._proposal = CommandArrays(n)
-        self._finite = np.zeros((5, n), dtype=bool)
-        self._mask = np.zeros(n, dtype=bool)
-        self._stiff = np.zeros(n, dtype=bool)
-        self._work = np.zeros(n)
-        self._lower = robot.lower
-        self._upper = robot.upper
-        self._lower_margin = self._lower - POSITION_MARGIN
-        self._upper_margin = self._upper + POSITION_MARGIN
-        self._effort_limit = robot.effort_limit
+        self._proposal = CommandArrays(robot.n)
+        self._lower = np.ascontiguousarray(robot.lower, dtype=np.float64)
+        self._upper = np.ascontiguousarray(robot.upper, dtype=np.float64)
+        self._effort_limit = np.ascontiguousarray(robot.effort_limit, dtype=np.float64)
+        self._output = OutputCheck(self._proposal.data, self.resources.command.data, self._lower, self._upper,
+                                   self._effort_limit, POSITION_MARGIN)
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
@@ -270,6 +268,7 @@ class ControllerManager:
         """Publish ``source``'s flags on /safety_status too (e.g. the eRob impedance manager)."""
         self._flag_sources = (*self._flag_sources, source)
         self._flags_seen = -1
+        self._change_seen = -1
 
     def request_mode(self, mode: Mode | str) -> None:
         """Ask for ``mode`` (thread-safe); it is applied at the start of the next tick. The latest request
@@ -389,8 +388,8 @@ class ControllerManager:
             self.flags.set_flag("broadcast", f"{broadcaster.name} failed: {_describe(exc)}", Level.WARN)
 
     def _update(self, now: float, dt: float) -> None:
-        proposal, command = self._proposal, self.resources.command
-        np.copyto(proposal.data, command.data)
+        output = self._output
+        output.propose()
         reason = self._run_active(now, dt)
         while reason is not None:
             failed = self.active_mode
@@ -398,14 +397,14 @@ class ControllerManager:
             if fallback is None:
                 # Last resort: limp on every joint, target left on the last valid command.
                 self._record_fallback(failed, failed, f"{reason}; writing a limp command")
-                np.copyto(proposal.data, command.data)
-                proposal.data[1:] = 0.0
+                output.propose()
+                self._proposal.data[1:] = 0.0
                 break
             self._record_fallback(failed, fallback, reason)
             self._activate(fallback, now)
-            np.copyto(proposal.data, command.data)
+            output.propose()
             reason = self._run_active(now, dt)
-        np.copyto(command.data, proposal.data)
+        output.commit()
 
     def _run_active(self, now: float, dt: float) -> str | None:
         controller = self.active
@@ -413,39 +412,33 @@ class ControllerManager:
             controller.update(now, dt, self.resources.state, self._proposal)
         except Exception as exc:
             return f"{controller.name}: {_describe(exc)}"
-        problem = self._check(self._proposal)
+        problem = self._check()
         return None if problem is None else f"{controller.name} {problem}"
 
-    def _check(self, command: CommandArrays) -> str | None:
-        """The output check (module docstring); clips targets within the margin in place."""
-        names = self._names
-        data = command.data
-        np.isfinite(data, out=self._finite)
-        if not self._finite.all():
-            row, col = np.argwhere(~self._finite)[0]
-            return f"produced a non-finite {COMMAND_NAMES[row]} ({data[row, col]}) for {names[col]}"
-        for row in (3, 4):
-            if data[row].min() < 0.0:
-                col = int(np.argmin(data[row]))
-                return f"produced a negative {COMMAND_NAMES[row]} ({data[row, col]:.6g}) for {names[col]}"
-        np.abs(command.effort, out=self._work)
-        np.greater(self._work, self._effort_limit, out=self._mask)
-        if self._mask.any():
-            col = int(np.argmax(self._mask))
-            return (f"produced an effort of {command.effort[col]:.6g} Nm for {names[col]}, beyond its limit of "
+    def _check(self) -> str | None:
+        """The output check (module docstring) on the proposal, which clips targets within the margin in place;
+        what it found, in words."""
+        output = self._output
+        found = output.check()
+        if found == OK:
+            return None
+        row, col = output.row, output.col
+        value, name = self._proposal.data[row, col], self._names[col]
+        if found == NON_FINITE:
+            return f"produced a non-finite {COMMAND_NAMES[row]} ({value}) for {name}"
+        if found == NEGATIVE_GAIN:
+            return f"produced a negative {COMMAND_NAMES[row]} ({value:.6g}) for {name}"
+        if found == EFFORT:
+            return (f"produced an effort of {value:.6g} Nm for {name}, beyond its limit of "
                     f"{self._effort_limit[col]:g} Nm")
-        np.greater(command.stiffness, 0.0, out=self._stiff)
-        for beyond, bound in ((np.less, self._lower_margin), (np.greater, self._upper_margin)):
-            beyond(command.position, bound, out=self._mask)
-            np.logical_and(self._mask, self._stiff, out=self._mask)
-            if self._mask.any():
-                col = int(np.argmax(self._mask))
-                return (f"produced a position target of {command.position[col]:.6g} rad for {names[col]}, outside "
-                        f"its limits [{self._lower[col]:g}, {self._upper[col]:g}]")
-        np.clip(command.position, self._lower, self._upper, out=command.position, where=self._stiff)
-        return None
+        return (f"produced a position target of {value:.6g} rad for {name}, outside "
+                f"its limits [{self._lower[col]:g}, {self._upper[col]:g}]")
 
     def _publish_safety(self, now: float) -> None:
+        change = SafetyFlags.last_change
+        if change == self._change_seen:
+            return  # no source anywhere has changed its flags since the last look
+        self._change_seen = change
         version = 0
         for source in self._flag_sources:
             version += source.flags_version

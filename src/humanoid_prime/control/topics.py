@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from humanoid_prime.control._tick import Copy
 from humanoid_prime.control.flags import Level
 
 JOINT_STATES = "/prime/joint_states"
@@ -105,6 +106,7 @@ class Snapshot:
         self.names = names
         self.joint_states_topic = joint_states_topic
         self.position = np.full(len(names), np.nan)
+        self._copy = Copy()
         self.stamp = float("nan")
         self.mode: str | None = None
         self.status: SafetyStatus | None = None
@@ -113,7 +115,7 @@ class Snapshot:
         topics.subscribe(SAFETY_STATUS, self._on_safety, latched=True)
 
     def _on_joint_states(self, message: JointState) -> None:
-        np.copyto(self.position, message.position)
+        self._copy.run(self.position, message.position)
         self.stamp = message.stamp
 
     def _on_mode(self, message: ControlMode) -> None:

@@ -155,7 +155,8 @@ class ImpedanceManager(SafetyFlags):
         self._worker.start()
 
     def _on_joint_states(self, _msg: object) -> None:
-        self._joint_states_seen.set()
+        if not self._joint_states_seen.is_set():  # set() takes a lock: once is enough, not every tick
+            self._joint_states_seen.set()
 
     def _on_control_mode(self, msg: ControlMode) -> None:
         with self._idle:

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control._tick import Copy
 from humanoid_prime.control.controller import Controller, capture_position
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
@@ -23,16 +24,15 @@ class DampingController(Controller):
         kd = np.broadcast_to(np.asarray(self.kd, dtype=np.float64), (robot.n,)).copy()
         if not np.all(np.isfinite(kd)) or np.any(kd < 0):
             raise ValueError(f"{self.name}: kd must be finite and >= 0 per joint, got {kd.tolist()}")
-        self._kd = kd
         self.names = robot.names
-        self.captured = np.zeros(robot.n)
+        # The whole command, written at activation: the captured pose, no velocity, effort or stiffness, kd.
+        self._command = np.zeros((5, robot.n))
+        self._command[4] = kd
+        self.captured = self._command[0]
+        self._copy = Copy()
 
     def on_activate(self, state: StateArrays, now: float) -> None:
         capture_position(self.names, state, self.captured, "cannot capture the pose: ")
 
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
-        np.copyto(command.position, self.captured)
-        command.velocity[:] = 0.0
-        command.effort[:] = 0.0
-        command.stiffness[:] = 0.0
-        np.copyto(command.damping, self._kd)
+        self._copy.run(command.data, self._command)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control._tick import Blend
 from humanoid_prime.control.controller import Controller, capture_position
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
@@ -46,6 +47,7 @@ class StandbyController(Controller):
         self.start = np.zeros(robot.n)
         self.delta = np.zeros(robot.n)
         self.t0 = 0.0
+        self._blend = Blend()
 
     def on_activate(self, state: StateArrays, now: float) -> None:
         capture_position(self.names, state, self.start, "cannot start the trajectory: ")
@@ -54,9 +56,4 @@ class StandbyController(Controller):
 
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
         blend, rate = min_jerk((now - self.t0) / self.duration)
-        np.multiply(self.delta, blend, out=command.position)
-        np.add(command.position, self.start, out=command.position)
-        np.multiply(self.delta, rate / self.duration, out=command.velocity)
-        command.effort[:] = 0.0
-        command.stiffness[:] = self.kp
-        command.damping[:] = self.kd
+        self._blend.run(self.start, self.delta, blend, rate / self.duration, self.kp, self.kd, command.data)

@@ -7,9 +7,8 @@ valid target.
 
 from __future__ import annotations
 
-import numpy as np
-
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control._tick import FollowMeasured
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.topics import TopicBus
@@ -21,9 +20,7 @@ class ZeroTorqueController(Controller):
         super().__init__(Mode.ZERO_TORQUE.controller, Mode.ZERO_TORQUE)
 
     def on_configure(self, robot: Robot, topics: TopicBus) -> None:
-        self._finite = np.zeros(robot.n, dtype=bool)
+        self._follow = FollowMeasured()
 
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
-        np.isfinite(state.position, out=self._finite)
-        np.copyto(command.position, state.position, where=self._finite)
-        command.data[1:] = 0.0
+        self._follow.run(state.position, command.data)

@@ -22,7 +22,9 @@ def test_bench_sim_reports_the_realtime_factor_against_the_100x_target_at_the_ro
     assert (result["update_rate"], result["physics_rate"]) == (50.0, 1000.0)
 
 
-def test_bench_sim_shows_mujocos_own_step_as_the_floor():
-    floors = bench_sim(seconds=0.2)["floors"]
+def test_bench_sim_shows_mujocos_own_step_as_the_floor_and_the_runs_fraction_of_it():
+    result = bench_sim(seconds=0.2)
+    floors = result["floors"]
     assert floors["mj_step_us"] > 0
     assert floors["realtime_factor"] == pytest.approx(1e6 / (floors["mj_step_us"] * 1000.0), rel=0.01)
+    assert result["floor_fraction"] == pytest.approx(result["realtime_factor"] / floors["realtime_factor"], rel=0.01)

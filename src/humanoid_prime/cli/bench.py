@@ -45,6 +45,7 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
 # (suite, figure path, comparison, goal, what) -- DESIGN §6
 TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("sim", "realtime_factor", ">=", b.TARGET_REALTIME_FACTOR, "simulation speed (x real time)"),
+    ("sim", "floor_fraction", "<=", math.inf, "simulation speed as a fraction of MuJoCo's own on this host"),
     ("sito", "host_load_percent", "<=", b.TARGET_LOAD_PERCENT, "Sito bus load from the host at 50 Hz (%)"),
     ("bringup", "bringup_seconds", "<=", b.TARGET_BRINGUP_S,
      "cold bring-up, 10 eRob to OP + 4 Sito, joint states flowing (s)"),

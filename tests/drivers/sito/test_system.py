@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from doubles.sito import PERIOD, SITO_IDS
+from doubles.sito import PERIOD, SITO_IDS, wait_until
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, position_to_counts
@@ -240,7 +240,7 @@ def test_healthy_bus_raises_no_flag(rig):
 
 def test_rx_timeout_is_raised_for_the_silent_motor_only(rig):
     rig.motor(39).silent = True
-    rig.tick(11)  # 220 ms > 200 ms
+    rig.tick(12)  # silence counts from the first read (at 20 ms): 240 - 20 = 220 ms > 200 ms
     assert list(rig.system.flags) == ["can2/rx_timeout/39"]
     assert "right_wrist_pitch (CAN id 39)" in rig.system.flags["can2/rx_timeout/39"]
 
@@ -253,10 +253,35 @@ def test_rx_timeout_is_not_raised_before_200_ms(rig):
 
 def test_rx_timeout_clears_when_feedback_returns(rig):
     rig.motor(39).silent = True
-    rig.tick(11)
+    rig.tick(12)
     rig.motor(39).silent = False
     rig.tick()
     assert rig.system.flags == {}
+
+
+def test_frames_not_yet_stored_at_the_first_read_after_a_slow_start_are_no_timeout(make_rig):
+    """Start-up held the interpreter for 300 ms after activation: the wrists sent their feedback, but the
+    receive thread has not stored it when the first tick reads. That is no silence; a wrist that stays silent
+    is flagged once the timeout has run from that first read."""
+    rig = make_rig()
+    rig.activate()
+    held: list = []
+    receiver = rig.system._rx
+    receiver.on_message_received = held.append  # the receive thread gets no chance to store anything
+    sent = rig.emulator.frames_sent
+    for _ in range(15):
+        rig.emulator.step(PERIOD)
+    wait_until(lambda: len(held) == rig.emulator.frames_sent - sent, "the held frames to arrive")
+    rig.system.read(rig.emulator.time, rig.state)  # the first tick, 300 ms after the last stored feedback
+    assert rig.system.flags == {}
+    del receiver.on_message_received  # the thread runs again and stores what waited
+    for msg in held:
+        receiver.on_message_received(msg)
+    rig.motor(39).silent = True
+    rig.tick(9)  # 180 ms after the first read
+    assert rig.system.flags == {}
+    rig.tick(2)
+    assert list(rig.system.flags) == ["can2/rx_timeout/39"]
 
 
 def test_a_few_dropped_frames_do_not_time_out(rig):
@@ -348,7 +373,8 @@ def test_interface_down_is_flagged_and_the_loop_keeps_running(rig):
 
 def test_flags_version_changes_only_when_flags_change(rig):
     rig.motor(39).silent = True
-    rig.tick(11)
+    rig.tick(12)
+    assert "can2/rx_timeout/39" in rig.system.flags
     version = rig.system.flags_version
     rig.tick(5)
     assert rig.system.flags_version == version

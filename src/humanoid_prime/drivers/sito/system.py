@@ -8,12 +8,18 @@ feedback from every motor. Deactivation, interpreter exit and SIGINT/SIGTERM dis
 Transport health is rebuilt every tick as safety flags (keys ``<channel>/<problem>[/<CAN id>]``):
 bus off and interface down stay until re-activation; RX timeout, TX queue overrun, invalid frames
 and clamped commands clear as soon as the problem is gone.
+
+Silence is counted from the first ``read`` after activation on, not from the feedback heard during it: the
+start-up stages between the two (the ring's bring-up, the policies' sessions) can hold the interpreter for
+longer than the RX timeout, and frames the wrists sent meanwhile are not stored until the receive thread runs
+again. Judged from activation, every wrist would time out at the first tick and clear at the next.
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
+import math
 import os
 import signal
 import threading
@@ -195,6 +201,7 @@ class SitoSystem(HardwareComponent):
 
         # Hot-path buffers.
         self._late = np.zeros(n, dtype=bool)
+        self._listening_since: float | None = None  # clock() of the first read since activation
         self._command_payload = np.zeros(n, dtype=COMMAND_DTYPE)
         self._gains_payload = np.zeros(n, dtype=GAINS_DTYPE)
         self._gains_word = self._gains_payload.view(np.uint64)  # one word per motor: compare gains bitwise
@@ -287,6 +294,7 @@ class SitoSystem(HardwareComponent):
         for key in (self._bus_off_key, self._down_key):
             self.clear_flag(key)
         self._tx_down_error = ""
+        self._listening_since = None
         self._rx.reset()
         self._notifier = can.Notifier(self._bus, [self._rx], timeout=_NOTIFIER_POLL_S)
         _EXIT_GUARD.add(self)
@@ -361,9 +369,13 @@ class SitoSystem(HardwareComponent):
 
     def read(self, now: float, state: StateArrays) -> None:
         rx = self._rx
-        limit = self._clock() - self.rx_timeout_s
-        with rx.lock:
-            rx_changed = self._tick.read(state.data, limit)
+        clock_now = self._clock()
+        limit = clock_now - self.rx_timeout_s
+        since = self._listening_since
+        if since is None:
+            since = self._listening_since = clock_now
+        with rx.lock:  # no wrist is late before the RX timeout has run from the first read (module docstring)
+            rx_changed = self._tick.read(state.data, limit if limit > since else -math.inf)
         if rx_changed:
             for i in np.flatnonzero(self._late != self._rx_raised):
                 self._flag(bool(self._late[i]), self._rx_keys[i], self._rx_texts[i], Level.ERROR)

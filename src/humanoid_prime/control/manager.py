@@ -71,13 +71,16 @@ class LoopStats:
         self.costs = np.zeros(self.capacity)
         self.ios = np.zeros(self.capacity)
         self.periods = np.full(self.capacity, np.nan)
+        # The tick writes through plain memoryviews: one C store each, not NumPy's item assignment.
+        self._rows = (memoryview(self.costs), memoryview(self.ios), memoryview(self.periods))
 
     def record(self, cost: float, period: float, io: float = 0.0) -> None:
         """``period`` is NaN for the first tick."""
         i = self.ticks % self.capacity
-        self.costs[i] = cost
-        self.ios[i] = io
-        self.periods[i] = period
+        costs, ios, periods = self._rows
+        costs[i] = cost
+        ios[i] = io
+        periods[i] = period
         self.ticks += 1
 
     def split_us(self) -> dict[str, dict[str, float | None]]:
@@ -166,6 +169,7 @@ class ControllerManager:
         self.tick_count = 0
         self.resets = 0  # operator fault resets applied
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
+        self._broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
         self._flag_sources: tuple[SafetyFlags, ...] = (*self.resources.components, *self.controllers.values(),
                                                         self.flags)
         self._flags_seen = -1
@@ -381,7 +385,7 @@ class ControllerManager:
         self.stats.record(self.clock() - began, math.nan if last is None or fresh else dt, io)
 
     def _broadcast(self, now: float, dt: float) -> None:
-        broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
+        broadcaster = self._broadcaster
         try:
             broadcaster.update(now, dt, self.resources.state, self._proposal)
         except Exception as exc:  # a faulty subscriber must not stop the control loop

@@ -287,3 +287,13 @@ def test_responder_reports_its_turnaround(ring):
     stats = ring.control.stats()
     assert stats["frames"] > 0
     assert stats["turnaround_median_us"] > 0
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to keep one free")
+def test_an_emulator_told_to_avoid_the_loops_cpu_runs_on_the_others():
+    loop_cpu = min(os.sched_getaffinity(0))
+    others = set(os.sched_getaffinity(0)) - {loop_cpu}
+    with EmulatedRing(slaves=2, avoid_cpu=loop_cpu) as emulated:
+        emulated.control.ping()  # up and serving, every thread started
+        threads = os.listdir(f"/proc/{emulated.pid}/task")
+        assert {tid: os.sched_getaffinity(int(tid)) for tid in threads} == {tid: others for tid in threads}

@@ -82,7 +82,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     soak.add_argument("--minutes", type=real(above=0.0), default=10.0, metavar="M", help="length (default 10)")
     soak.add_argument("--rate", type=real(above=0.0, at_most=2000.0), metavar="HZ",
                       help="control rate (default: update_rate of the controllers file)")
-    soak.add_argument("--cpu", type=cpu_number, metavar="N", help="pin the control loop to CPU N")
+    soak.add_argument("--cpu", type=cpu_number, metavar="N",
+                      help="pin the control loop to CPU N, and the emulated robot off it")
     soak.add_argument("--no-load", dest="load", action="store_false", help="leave the cores idle")
     soak.add_argument("--fault-every", type=real(at_least=1.0), default=6.0, metavar="S",
                       help="seconds between injected faults (default 6)")

@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
 
             t = time.monotonic()
             virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth,
-                                           ring_options=ring, record=emulator)
+                                           ring_options=ring, record=emulator, avoid_cpu=args.cpu)
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
             plan.stage("virtual prime", t)

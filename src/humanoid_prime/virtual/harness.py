@@ -100,14 +100,16 @@ class VirtualPrime(EmulatedRing):
 
 def attach_virtual_prime(stack: contextlib.ExitStack, *, hardware_file: str | Path | None = None,
                          truth_file: str | Path | None = None, ring_options: Mapping[str, Any] | None = None,
-                         record: dict[str, Any] | None = None) -> VirtualPrime:
+                         record: dict[str, Any] | None = None, avoid_cpu: int | None = None) -> VirtualPrime:
     """Start the virtual Prime (robot at the demonstration's start pose) on ``stack``. With ``record``, what
     the drives themselves recorded (final state, gain-register writes) is put there at teardown, after
-    everything entered on ``stack`` later has been closed (gate reset, drives disabled)."""
+    everything entered on ``stack`` later has been closed (gate reset, drives disabled). With ``avoid_cpu``
+    (the control loop's CPU) the emulated robot runs on the other CPUs: on the robot, the drives do not share
+    the loop's core either."""
     from humanoid_prime.sim.demo import START_POSE
 
     virtual = stack.enter_context(VirtualPrime(hardware_file=hardware_file, truth_file=truth_file, pose=START_POSE,
-                                               **dict(ring_options or {})))
+                                               avoid_cpu=avoid_cpu, **dict(ring_options or {})))
     if record is not None:
         stack.callback(_record_emulator, virtual, record)
     return virtual

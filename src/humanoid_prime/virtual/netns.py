@@ -87,12 +87,16 @@ def ip(*args: str) -> None:
 
 class EmulatedRing:
     """An emulated eRob ring on a veth pair; a context manager. Options are RingOptions fields
-    (``slaves``, ``dc_lock_cycles``, ``mailbox_latency_s``, ...)."""
+    (``slaves``, ``dc_lock_cycles``, ``mailbox_latency_s``, ...). With ``avoid_cpu``, the emulator process runs
+    on every CPU this process may use but that one (the control loop's, with ``--cpu``), where there is another."""
 
-    def __init__(self, slaves: int = 10, *, startup_timeout_s: float = 10.0, **options: Any) -> None:
+    def __init__(self, slaves: int = 10, *, startup_timeout_s: float = 10.0, avoid_cpu: int | None = None,
+                 **options: Any) -> None:
         self.options = RingOptions(slaves=slaves, **options)
         self.options.check()
         self.startup_timeout_s = startup_timeout_s
+        others = sorted(set(os.sched_getaffinity(0)) - {avoid_cpu}) if avoid_cpu is not None else []
+        self.emulator_cpus: list[int] | None = others or None
         tag = f"{os.getpid()}x{next(_counter)}"
         self.master_interface = f"ecm{tag}"
         self.emulator_interface = f"ecs{tag}"
@@ -159,6 +163,8 @@ class EmulatedRing:
         command = self.emulator_command(control_path, lifeline_read)
         if self.isolate_emulator:
             command = ["unshare", "--net", "--", *command]
+        if self.emulator_cpus is not None:  # set before the exec, so every thread it starts inherits it
+            command = ["taskset", "--cpu-list", ",".join(map(str, self.emulator_cpus)), *command]
         log = open(self._workdir / "emulator.log", "wb")  # noqa: SIM115 - handed to the child
         with log:
             # Its own session: a Ctrl-C at the terminal stops the master's loop, not the emulated hardware,

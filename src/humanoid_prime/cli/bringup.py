@@ -150,14 +150,14 @@ def run(args: argparse.Namespace) -> int:
         claim_control_socket(plan, stack)
         virtual = None
         if options.emulated:
-            from humanoid_prime.virtual.harness import attach_virtual_prime
+            from humanoid_prime.virtual.harness import EMULATOR_STAGE, attach_virtual_prime
 
             t = time.monotonic()
             virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth,
                                            ring_options=ring, record=emulator, avoid_cpu=args.cpu)
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
-            plan.stage("virtual prime", t)
+            plan.stage(EMULATOR_STAGE, t)
         with _bringing_up(plan, args):
             session = open_session(plan, stack)
         session.reports.update(load_test=[], emulator=emulator)

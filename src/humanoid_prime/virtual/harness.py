@@ -98,6 +98,9 @@ class VirtualPrime(EmulatedRing):
         return command
 
 
+EMULATOR_STAGE = "virtual prime"  # the start-up stage of a run that starts the emulated robot
+
+
 def attach_virtual_prime(stack: contextlib.ExitStack, *, hardware_file: str | Path | None = None,
                          truth_file: str | Path | None = None, ring_options: Mapping[str, Any] | None = None,
                          record: dict[str, Any] | None = None, avoid_cpu: int | None = None) -> VirtualPrime:

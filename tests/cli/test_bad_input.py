@@ -126,6 +126,7 @@ ARGUMENT_CASES = [  # (id, arguments, what the line must contain)
     ("control rate above the eRob's minimum cycle", ["bringup", "--rate", "5000"], "--rate"),
     ("control rate 0", ["bringup", "--rate", "0"], "--rate"),
     ("a cpu this machine has not", ["bringup", "--cpu", "4096"], "--cpu"),
+    ("a cpu to pin a loop that is not real time", ["bringup", "--cpu", "0", "--no-realtime"], "--cpu"),
     ("soak minutes -1", ["bench", "soak", "--minutes", "-1"], "--minutes"),
     ("load test of a joint Prime has not", ["bringup", "--emulate", "--load-test", "left_toe",
                                             "--summary", "{summary}"], "left_toe"),

@@ -107,6 +107,8 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
     initial = _modes(args.mode, "--mode")
     if len(initial) > 1:
         raise PrimeError("--mode takes one mode; use --sequence for several")
+    if args.cpu is not None and not args.realtime:
+        raise PrimeError("--cpu pins the real-time control thread; it cannot be combined with --no-realtime")
     if (sequence or initial) and args.backends != "all":
         raise PrimeError(f"--backends {args.backends} runs only the joint-state broadcaster; modes need --backends all")
     return BringupOptions(

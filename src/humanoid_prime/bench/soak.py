@@ -29,7 +29,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -116,7 +116,6 @@ class Injection:
     done_s: float = 0.0  # when the fault ended (its ``end`` ran)
     outcome: str = ""
     detail: str = ""
-    reset: bool = False  # the soak sent the operator's reset for it
     flags: list[str] = field(default_factory=list)
 
     @property
@@ -163,6 +162,7 @@ class Injector(threading.Thread):
         self.control, self.session, self.every_s, self.stop, self.once = control, session, every_s, stop, once
         self.ends_s = self._now() + run_s  # no fault is injected that could not settle before the run ends
         self.injections: list[Injection] = []
+        self.resets: list[float] = []  # when the operator's resets were sent (seconds since the run began)
         self.error: str | None = None
 
     def _now(self) -> float:
@@ -201,15 +201,20 @@ class Injector(threading.Thread):
             whole = injection.fault.bus != "ethercat" or self.session.ethercat.master.slave_ok.all()
             if whole and any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
                              for r in list(self.session.faults)):  # the operator resets once the ring is whole
+                self.resets.append(self._now())
                 self.session.manager.request_reset()
-                injection.reset = True
                 return
             time.sleep(0.02)
 
 
-def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: float = float("inf")) -> None:
-    """``injection.outcome`` from the run's fault history (module docstring); a fault that must raise no flag
-    is judged until the next injection at the latest."""
+def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: float = float("inf"),
+          resets: Sequence[float] = ()) -> None:
+    """``injection.outcome`` from the run's fault history (module docstring) and the times the operator's
+    resets were sent; a fault that must raise no flag is judged until the next injection at the latest.
+
+    A latched flag must clear only after a reset sent since the injection: its own, or a later fault's when
+    the ring took longer than the settle time to be whole again (the soak resets only a whole ring, so a drive
+    whose slave relocks slowly under load waits, disabled, for the next reset)."""
     fault = injection.fault
     window_end = injection.ended_s + fault.settle_s
     if fault.flag is None:
@@ -230,7 +235,8 @@ def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: fl
     elif any(r.until_s is None for r in raised) and window_end < ended_s:
         injection.outcome = "held"  # still flagged long after it ended
     elif fault.expect == "latched":
-        injection.outcome = "latched" if injection.reset else "recovered without a reset"
+        by_reset = all(r.until_s is None or any(injection.at_s <= t <= r.until_s for t in resets) for r in raised)
+        injection.outcome = "latched" if by_reset else "recovered without a reset"
     else:
         injection.outcome = "recovered"
 
@@ -302,7 +308,8 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         ended_s = time.monotonic() - plan.began
         injections = injector.injections
         for k, injection in enumerate(injections):
-            judge(injection, session.faults, ended_s, injections[k + 1].at_s if k + 1 < len(injections) else ended_s)
+            judge(injection, session.faults, ended_s, injections[k + 1].at_s if k + 1 < len(injections) else ended_s,
+                  injector.resets)
         stats = manager.stats
         ethercat, sito = session.ethercat, session.sito
         counters = {"ethercat_wkc_errors": ethercat.wkc_errors, "sito_send_failures": sito.send_failures,

@@ -346,7 +346,7 @@ class EmulatorServer:
 REALTIME_PRIORITY = 20
 
 
-def run_until_signalled(server: EmulatorServer) -> None:
+def run_until_signalled(server: EmulatorServer, *, priority: int = REALTIME_PRIORITY) -> None:
     """Serve until SIGTERM, SIGINT, a ``stop`` request or the parent's death, then close the server.
 
     Hardware answers at once, so the emulator asks for real-time scheduling (ignored where not permitted):
@@ -356,7 +356,7 @@ def run_until_signalled(server: EmulatorServer) -> None:
         server.running = False
 
     with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     try:

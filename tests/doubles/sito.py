@@ -35,7 +35,7 @@ def wait_until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -
 
 class Rig:
     def __init__(self, robot: Robot, calibration: Calibration | None = None,
-                 plant: Plant | None = None, **system_options: object) -> None:
+                 plant: Plant | None = None, update_rate: float = UPDATE_RATE, **system_options: object) -> None:
         self.robot = robot
         self.channel = f"sito-test-{uuid.uuid4().hex}"
         self.emulator_bus = can.Bus(interface="virtual", channel=self.channel)
@@ -44,11 +44,12 @@ class Rig:
         self.plant = plant or InertiaPlant.wrists(len(robot.hardware.sito_joints))
         self.emulator = SitoEmulator.for_robot(robot, self.emulator_bus, self.plant)
         self.system = SitoSystem(robot, calibration or identity_calibration(robot.hardware),
-                                 update_rate=UPDATE_RATE, bus=self.host_bus, clock=lambda: self.emulator.time,
+                                 update_rate=update_rate, bus=self.host_bus, clock=lambda: self.emulator.time,
                                  **system_options)
         self.command = CommandArrays(robot.n)
         self.state = StateArrays(robot.n)
         self.idx = robot.indices("sito")
+        self.period = 1.0 / update_rate
 
     def motor(self, can_id: int):
         return self.emulator.motors[can_id]
@@ -91,7 +92,7 @@ class Rig:
     def tick(self, count: int = 1) -> None:
         """``count`` control periods: firmware time advances, then read() and write() as the loop does."""
         for _ in range(count):
-            self.emulator.step(PERIOD)
+            self.emulator.step(self.period)
             self.settle()
             self.system.read(self.emulator.time, self.state)
             self.system.write(self.emulator.time, self.command)

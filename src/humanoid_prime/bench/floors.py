@@ -3,8 +3,8 @@ the distance from each figure to its limit is visible.
 
 - One EtherCAT cycle: the frame SOEM sends (one LRW datagram over every slave's outputs and inputs, one FRMW
   of the DC reference time) on the wire at 100 Mbit/s, plus the pass-through delay of each slave.
-- The Sito frames of one tick on CAN at 1 Mbit/s: 29-bit identifier, 8 data bytes, without and with the
-  worst-case stuff bits.
+- The Sito frames of one bus cycle on CAN at 1 Mbit/s (a command, 0xB1 and 0xB2 per wrist): 29-bit
+  identifier, 8 data bytes, without and with the worst-case stuff bits.
 - One MuJoCo step of Prime's model, timed in C (``mj_step`` looping ``nstep`` times without returning to Python).
 """
 
@@ -14,14 +14,14 @@ import time
 
 import mujoco
 
+from humanoid_prime.drivers.sito.bus import can_frame_bits
+
 ETHERNET_OVERHEAD_BYTES = 8 + 14 + 4 + 12  # preamble and SFD, header, FCS, inter-frame gap
 ETHERCAT_HEADER_BYTES = 2
 DATAGRAM_OVERHEAD_BYTES = 10 + 2  # datagram header, working counter
 DC_DATAGRAM_BYTES = DATAGRAM_OVERHEAD_BYTES + 8  # FRMW of the 64-bit system time
 MIN_ETHERNET_PAYLOAD = 46
 SLAVE_DELAY_S = 0.7e-6  # an ESC's forwarding delay in processing plus return (ET1100 datasheet class figure)
-CAN_EXTENDED_FRAME_BITS = 67  # SOF, 29-bit id, SRR, IDE, RTR, r1, r0, DLC, CRC 15 + delimiter, ACK 2, EOF 7, IFS 3
-CAN_STUFFED_BITS = 54  # the bits stuffing applies to (SOF through CRC), besides the data
 
 
 def ethercat_cycle_s(slaves: int, output_bytes: int, input_bytes: int, *, bit_rate: float = 100e6) -> float:
@@ -34,10 +34,7 @@ def ethercat_cycle_s(slaves: int, output_bytes: int, input_bytes: int, *, bit_ra
 
 def can_frame_s(data_bytes: int = 8, *, bit_rate: float = 1e6, worst_stuffing: bool = False) -> float:
     """Bus time of one extended CAN frame; with ``worst_stuffing`` one stuff bit per four stuffable bits."""
-    bits = CAN_EXTENDED_FRAME_BITS + 8 * data_bytes
-    if worst_stuffing:
-        bits += (CAN_STUFFED_BITS + 8 * data_bytes - 1) // 4
-    return bits / bit_rate
+    return can_frame_bits(data_bytes, worst_stuffing=worst_stuffing) / bit_rate
 
 
 def mujoco_step_s(model: mujoco.MjModel, steps: int = 2000) -> float:

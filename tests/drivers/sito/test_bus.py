@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import math
 
 import can
 import pytest
@@ -10,6 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from humanoid_prime.drivers.sito.bus import (
+    BUS_BUDGET,
+    FRAMES_PER_WRIST,
+    bus_cycle,
+    can_frame_bits,
     crc15,
     frame_bits,
     is_interface_down,
@@ -47,6 +52,34 @@ def test_empty_standard_frame_with_id_0_is_53_bits():
 @given(st.integers(0, 0x1FFFFFFF), st.binary(min_size=8, max_size=8))
 def test_extended_8_byte_frame_is_131_to_160_bits(ident, data):
     assert 131 <= frame_bits(can.Message(arbitration_id=ident, is_extended_id=True, data=data)) <= 160
+
+
+def test_the_worst_case_frame_length_bounds_every_exact_one():
+    assert (can_frame_bits(), can_frame_bits(worst_stuffing=True)) == (131, 160)
+
+
+def test_the_bus_cycle_is_the_control_period_while_the_wrists_frames_fit_it():
+    assert bus_cycle(50.0, 4, 1e6) == (1, 20)
+    assert bus_cycle(250.0, 4, 1e6) == (1, 4)
+    assert bus_cycle(1000.0, 4, 1e6) == (4, 4)  # 12 frames need 1.6-1.9 ms: every 4th tick
+    assert bus_cycle(2.0, 4, 1e6) == (1, 254)  # the slowest feedback the firmware takes
+    assert bus_cycle(1000.0, 4, 500e3) == (7, 7)
+
+
+@pytest.mark.parametrize("rate", [10.0, 50.0, 100.0, 300.0, 320.0, 400.0, 500.0, 999.0, 1000.0, 1500.0, 2000.0])
+@pytest.mark.parametrize("wrists", [1, 4, 8])
+def test_the_bus_cycle_is_the_fewest_ticks_whose_time_holds_the_frames_within_the_budget(rate, wrists):
+    every, feedback_ms = bus_cycle(rate, wrists, 1e6)
+    bits = wrists * FRAMES_PER_WRIST * can_frame_bits(worst_stuffing=True)
+    assert bits / (every / rate) <= BUS_BUDGET * 1e6 * (1 + 1e-9)
+    assert every == 1 or bits / ((every - 1) / rate) > BUS_BUDGET * 1e6
+    assert 1 <= feedback_ms <= 254 and (feedback_ms == 254 or feedback_ms / 1000 >= every / rate - 1e-12)
+
+
+def test_a_control_rate_that_is_no_rate_is_refused():
+    for rate in (0.0, -50.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="positive number of Hz"):
+            bus_cycle(rate, 4, 1e6)
 
 
 def test_enobufs_is_a_full_queue_not_a_dead_interface():

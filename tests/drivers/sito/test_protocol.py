@@ -26,7 +26,6 @@ from humanoid_prime.drivers.sito.protocol import (
     counts_to_position,
     counts_to_velocity,
     current_mA_to_torque,
-    feedback_interval_ms,
     firmware_to_kd,
     firmware_to_kp,
     kd_to_firmware,
@@ -117,15 +116,6 @@ def test_velocity_within_range_is_not_reported():
 def test_non_finite_values_are_refused():
     with pytest.raises(ValueError, match="finite"):
         position_to_counts(math.nan)
-
-
-def test_feedback_interval_is_the_control_period():
-    assert feedback_interval_ms(50.0) == 20
-
-
-def test_feedback_interval_stays_in_the_firmware_range():
-    assert feedback_interval_ms(2.0) == 254
-    assert feedback_interval_ms(5000.0) == 1
 
 
 # --- exact bytes ------------------------------------------------------------------------------------------

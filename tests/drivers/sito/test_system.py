@@ -10,7 +10,7 @@ import pytest
 from doubles.sito import PERIOD, SITO_IDS, wait_until
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.control.hardware import Lifecycle
-from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, position_to_counts
+from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, FrameType, position_to_counts
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.plant import InertiaPlant
 
@@ -389,3 +389,22 @@ def test_no_command_is_limp_without_a_flag(rig):
     assert not any("invalid_command" in key for key in system.flags)
     for motor in emulator.motors.values():
         assert motor.kp == 0.0 and motor.kd == 0.0
+
+
+def test_above_what_the_bus_carries_commands_go_out_every_nth_tick_and_feedback_streams_at_that_cycle(make_rig):
+    rig = make_rig(update_rate=1000.0)
+    rig.activate()
+    assert (rig.system.io_every, rig.system.feedback_ms) == (4, 4)
+    assert all(rig.motor(i).feedback_ms == (4, 4, 0) for i in SITO_IDS)
+    rig.sniffed()
+    commands = []
+    for _ in range(12):
+        rig.tick()
+        commands.append(sum(1 for ident, _ in rig.host_frames() if ident & 0xFF == FrameType.COMMAND))
+    assert commands == [4, 0, 0, 0] * 3
+    assert rig.system.io_s == 0.0  # a tick between bus cycles spends nothing on the bus
+    rig.system.deactivate()
+    rig.activate()  # a re-activation starts a new cycle: its first tick sends
+    rig.sniffed()
+    rig.tick()
+    assert sum(1 for ident, _ in rig.host_frames() if ident & 0xFF == FrameType.COMMAND) == 4

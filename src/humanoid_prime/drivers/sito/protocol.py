@@ -152,13 +152,6 @@ def firmware_to_kd(kd_fw: float, model: SitoModel) -> float:
     return kd_fw * model.kd_divisor
 
 
-def feedback_interval_ms(update_rate: float) -> int:
-    """Feedback period matched to the control period, within the 1..254 ms the firmware accepts."""
-    if not math.isfinite(update_rate) or update_rate <= 0:
-        raise ValueError(f"control rate must be a positive number of Hz, got {update_rate!r}")
-    return min(max(round(1000.0 / update_rate), 1), 254)
-
-
 # --- frames ------------------------------------------------------------------------------------------------
 
 def arbitration_id(can_id: int, frame_type: int) -> int:

@@ -172,7 +172,12 @@ def _child(conn: Connection, parents_end: Connection, robot: Robot, shared: Shar
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         conn.send({"error": f"cannot open the Sito bus {where}: {exc}"})
         return
-    emulator = SitoEmulator.for_robot(robot, bus, SharedStatePlant(shared), rate_hz=options["rate_hz"])
+    try:
+        emulator = SitoEmulator.for_robot(robot, bus, SharedStatePlant(shared), rate_hz=options["rate_hz"])
+    except ValueError as exc:
+        bus.shutdown()
+        conn.send({"error": f"cannot emulate the Sito motors: {exc}"})
+        return
     motors = list(emulator.motors.values())
     emulator.world_step = lambda _dt: shared.publish_law(motors)  # after each firmware tick
     gc.collect()

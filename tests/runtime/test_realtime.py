@@ -1,7 +1,9 @@
 """Real-time measures of the control thread: each taken where allowed, each refusal said, the GC between ticks."""
 
 import gc
+import json
 import os
+import subprocess
 import sys
 
 import pytest
@@ -65,3 +67,31 @@ def test_young_collections_run_between_ticks_once_the_allocator_asks_for_them(re
     assert between.collections == [1, 0, 0]
     assert gc.get_count()[0] < between.threshold0
     del kept
+
+
+PIN_CHILD = """
+import json, os, sys, threading
+from humanoid_prime.runtime.realtime import enter_realtime, leave_realtime
+cpu = int(sys.argv[1])
+ready, done = threading.Event(), threading.Event()
+helper = threading.Thread(target=lambda: (ready.set(), done.wait()))
+helper.start()
+ready.wait()
+report = enter_realtime(0.02, cpu=cpu, memory_refused=None)
+later = threading.Thread(target=done.wait)
+later.start()
+threads = {t.name: sorted(os.sched_getaffinity(t.native_id)) for t in (threading.current_thread(), helper, later)}
+done.set()
+leave_realtime(report)
+print(json.dumps({"cpu": report.cpu, "threads": threads}))
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to tell pinned from free")
+def test_with_a_cpu_the_loop_and_every_thread_that_shares_its_interpreter_lock_run_on_it():
+    cpu = max(os.sched_getaffinity(0))
+    result = subprocess.run([sys.executable, "-c", PIN_CHILD, str(cpu)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["cpu"] == cpu
+    assert report["threads"] and all(cpus == [cpu] for cpus in report["threads"].values()), report

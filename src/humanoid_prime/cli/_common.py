@@ -131,8 +131,8 @@ def add_realtime_options(parser: argparse.ArgumentParser, *, rate_help: str) -> 
 
     parser.add_argument("--rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ", help=rate_help)
     parser.add_argument("--cpu", type=cpu_number, metavar="N",
-                        help="pin the control loop to CPU N (and the process's other threads off it; with "
-                             "--emulate, the emulated robot too)")
+                        help="pin the control loop to CPU N, with the process's other threads, which share its "
+                             "interpreter lock (with --emulate, the emulated robot runs off it)")
     parser.add_argument("--no-realtime", dest="realtime", action="store_false",
                         help="leave the control thread at normal priority, its memory unlocked and the garbage "
                              "collector automatic (default: real-time scheduling and locked memory where allowed, "

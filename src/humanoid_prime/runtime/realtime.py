@@ -11,7 +11,12 @@ either way:
   ``ulimit -l``), so a page the tick has used is never paged out; ``MCL_ONFAULT``, because populating every
   mapping at once (400 MB, and 8 MB of stack for each new thread) holds the address space long enough, on a
   busy machine, to stall the frames past the drives' 100 ms watchdog;
-- with ``cpu``, the control thread pinned to that CPU and every other thread of the process moved off it;
+- with ``cpu``, the control thread pinned to that CPU, and every other thread of the process with it. They share
+  the loop's interpreter lock: on the loop's CPU, below its priority, they run only while the loop sleeps, and
+  one that holds the lock when the loop wakes is preempted there by the loop alone, and hands the lock over
+  within the switch interval. On another CPU, anything of higher priority there (the emulated robot, which
+  runs real time to answer in hardware time) could hold it preempted for milliseconds while the loop waits;
+  at 1 kHz on the emulated robot that was most of the overruns;
 - the interpreter's thread switch interval cut to a tenth of the period (at most its 5 ms default): a thread
   that returns from C (a frame received with the GIL released) waits at most that long for the interpreter;
 - ``gc.freeze()`` of everything built during start-up (without a full collection first: that holds the
@@ -27,7 +32,6 @@ import ctypes.util
 import gc
 import os
 import sys
-import threading
 from dataclasses import dataclass, field
 
 FIFO_PRIORITY = 80  # above the kernel's threaded IRQs (50), below its watchdogs (99)
@@ -133,14 +137,7 @@ class GcBetweenTicks:
 
 
 def _pin(cpu: int) -> None:
-    """The calling thread on ``cpu``; every other thread of the process on the rest."""
-    me = threading.get_native_id()
-    others = set(os.sched_getaffinity(0)) - {cpu}
-    os.sched_setaffinity(me, {cpu})
-    if not others:
-        return
+    """Every thread of the process on ``cpu`` (threads started later inherit it)."""
     for task in os.listdir("/proc/self/task"):
-        tid = int(task)
-        if tid != me:
-            with contextlib.suppress(OSError):  # a thread that has just ended
-                os.sched_setaffinity(tid, others)
+        with contextlib.suppress(OSError):  # a thread that has just ended
+            os.sched_setaffinity(int(task), {cpu})

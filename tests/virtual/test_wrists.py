@@ -131,3 +131,11 @@ def test_a_bus_the_child_cannot_open_is_one_line_and_no_child_is_left(robot):
     with pytest.raises(PrimeError, match=r"cannot open the Sito bus no_such_interface:x: .*no_such_interface"):
         wrists.start()
     assert wrists._process is None
+
+
+def test_a_fault_for_wrists_whose_process_is_gone_is_one_error_not_a_crash(robot, prime):
+    _world, wrists, _host = prime
+    wrists._process.kill()
+    wrists._process.join(5.0)
+    with pytest.raises(PrimeError, match="the emulated Sito wrists' process is gone"):
+        wrists.configure(robot.hardware.mit_joints[JOINT], silent=True)

@@ -2,11 +2,10 @@
 
 Ten emulated eRob drives answer EtherCAT frames on one interface, four emulated Sito motors answer on a
 CAN bus from a process of their own (``wrists``), and all fourteen move one MuJoCo plant, advanced at 1 kHz
-by the ring's loop. The control
-channel (newline JSON on a UNIX socket) adds whole-robot operations to the ring's own: ``joints`` (true
-joint angles), ``push`` (a constant external torque on a joint, a test load), ``hand`` (an operator's
-hand moving a joint at a set speed with a capped force), ``gravity`` (on/off), ``sito`` (fault injection
-on one wrist) and ``truth`` (the wiring and factory offsets it was given).
+by the ring's loop. The control channel (newline JSON on a UNIX socket) adds whole-robot operations to the
+ring's own: ``joints`` (true joint angles), ``push`` (a constant external torque on a joint, a test load),
+``hand`` (an operator's hand moving a joint at a set speed with a capped force), ``gravity`` (on/off),
+``sito`` (fault injection on one wrist) and ``truth`` (the wiring and factory offsets it was given).
 """
 
 from __future__ import annotations

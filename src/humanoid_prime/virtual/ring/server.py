@@ -24,6 +24,7 @@ from array import array
 from collections.abc import Callable
 from typing import Any
 
+from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.ring.drive import Cia402State
 from humanoid_prime.virtual.ring.firmware import AlState
 from humanoid_prime.virtual.ring.frames import (
@@ -210,7 +211,7 @@ class EmulatorServer:
             if handler is None:
                 return {"ok": False, "error": f"unknown operation {op!r}"}
             return {"ok": True, "result": handler(**request)}
-        except (TypeError, ValueError, KeyError, IndexError) as exc:
+        except (TypeError, ValueError, KeyError, IndexError, PrimeError) as exc:
             return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
 
     def _slave(self, position: int) -> Any:

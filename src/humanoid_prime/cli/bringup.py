@@ -67,8 +67,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--bringup-rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ",
                    help="EtherCAT bring-up loop rate (default: 1000; at most 2000, the eRob's minimum cycle)")
     add_realtime_options(p, rate_help="control loop rate (default: update_rate of the controllers file; at most "
-                                      "2000, the eRob's minimum 500 us cycle); SYNC0, the bring-up loop and the "
-                                      "Sito feedback interval follow it")
+                                      "2000, the eRob's minimum 500 us cycle); SYNC0 and the bring-up loop follow "
+                                      "it, and the Sito wrists while their frames fit the CAN bus (every tick up "
+                                      "to about 300 Hz, every 4th at 1 kHz)")
     p.add_argument("--sequential-sdo", action="store_true",
                    help="write the eRob gains one slave after another (the slow baseline) instead of in parallel")
     p.add_argument("--mode", metavar="MODE", help="switch to MODE once up")

@@ -1,18 +1,22 @@
 """``python -m humanoid_prime.virtual``: the virtual Prime process.
 
 Ten emulated eRob drives answer EtherCAT frames on one interface, four emulated Sito motors answer on a
-CAN bus from a process of their own (``wrists``), and all fourteen move one MuJoCo plant, advanced at 1 kHz
-by the ring's loop. The control channel (newline JSON on a UNIX socket) adds whole-robot operations to the
-ring's own: ``joints`` (true joint angles), ``push`` (a constant external torque on a joint, a test load),
-``hand`` (an operator's hand moving a joint at a set speed with a capped force), ``gravity`` (on/off),
-``sito`` (fault injection on one wrist) and ``truth`` (the wiring and factory offsets it was given).
+CAN bus, and all fourteen move one MuJoCo plant, advanced at 1 kHz by the ring's loop. The control
+channel (newline JSON on a UNIX socket) adds whole-robot operations to the ring's own: ``joints`` (true
+joint angles), ``push`` (a constant external torque on a joint, a test load), ``hand`` (an operator's
+hand moving a joint at a set speed with a capped force), ``gravity`` (on/off), ``sito`` (fault injection
+on one wrist) and ``truth`` (the wiring and factory offsets it was given).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from typing import Any
+
+import can
 
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.robot import load_robot
@@ -22,20 +26,17 @@ from humanoid_prime.virtual.ring.__main__ import wait_for_interface
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
 from humanoid_prime.virtual.ring.server import EmulatorServer, bring_up, run_until_signalled
-from humanoid_prime.virtual.wrists import WristProcess
+from humanoid_prime.virtual.sito import SitoEmulator
 
-# SCHED_FIFO where allowed, below the control loop's 80: drives answer in hardware time however busy the host
-# is, and a master's state checks, which pysoem makes while holding its interpreter, end as quickly as on the robot.
-EMULATOR_PRIORITY = 70
-WRISTS_PRIORITY = 69  # the wrists' process yields to the ring's replies, as both answer on the robot at once
+EMULATOR_PRIORITY = 70  # SCHED_FIFO, below the control loop's 80
 
 
 class VirtualPrimeServer(EmulatorServer):
     def __init__(self, ring: Ring, interface: str, control_path: str, world: PrimeWorld,
-                 wrists: WristProcess | None, parent_fd: int | None = None) -> None:
+                 sito: SitoEmulator | None, parent_fd: int | None = None) -> None:
         super().__init__(ring, interface, control_path, parent_fd=parent_fd)
         self.world = world
-        self.wrists = wrists
+        self.sito = sito
 
     def _op_joints(self) -> dict[str, float]:
         return self.world.joint_positions()
@@ -58,10 +59,18 @@ class VirtualPrimeServer(EmulatorServer):
 
     def _op_sito(self, joint: str, silent: bool | None = None, drop_fraction: float | None = None,
                  garbage: bool | None = None) -> dict[str, Any]:
-        if self.wrists is None:
+        if self.sito is None:
             raise KeyError("this virtual Prime has no Sito motors")
         can_id = self.world.robot.hardware.mit_joints[joint]
-        return self.wrists.configure(can_id, silent=silent, drop_fraction=drop_fraction, garbage=garbage)
+        motor = self.sito.motors[can_id]
+        if silent is not None:
+            motor.silent = bool(silent)
+        if drop_fraction is not None:
+            motor.drop_fraction = float(drop_fraction)
+        if garbage is not None:
+            motor.garbage = bool(garbage)
+        return {"can_id": can_id, "silent": motor.silent, "drop_fraction": motor.drop_fraction,
+                "garbage": motor.garbage}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -91,6 +100,14 @@ def _pose(text: str) -> dict[str, float]:
     return pose
 
 
+def answer_in_hardware_time() -> None:
+    """Real-time scheduling for the emulator (and the threads it starts), just below the control loop's, where
+    allowed: drives answer in hardware time however busy the host is, and a master's state checks, which
+    pysoem makes while holding its interpreter, then end as quickly as they would on the robot."""
+    with contextlib.suppress(OSError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -108,29 +125,23 @@ def main(argv: list[str] | None = None) -> int:
     if not wait_for_interface(args.iface, args.wait_iface):
         print(f"virtual prime: interface {args.iface} does not exist", file=sys.stderr)
         return 1
-    wrists = WristProcess(robot, world, bus={"interface": args.can_interface, "channel": args.can_channel},
-                          rate_hz=1.0 / options.physics_dt_s, priority=WRISTS_PRIORITY)
-    world.attach(wrists.step)  # each physics step applies the wrists' firmware law, then steps the world
-    try:
-        wrists.start()
-    except PrimeError as exc:
-        print(f"virtual prime: {exc}", file=sys.stderr)
-        return 1
+    answer_in_hardware_time()
+    bus = can.Bus(interface=args.can_interface, channel=args.can_channel)
+    sito = SitoEmulator.for_robot(robot, bus, world.plant(robot.hardware.sito_joints),
+                                  rate_hz=1.0 / options.physics_dt_s, world_step=world.step)
+    world.attach(sito.step)  # each physics step is one firmware tick, which steps the world
     try:
         bring_up(args.iface)
-        server = VirtualPrimeServer(Ring(options, plant=ring_plant), args.iface, args.control, world, wrists,
+        server = VirtualPrimeServer(Ring(options, plant=ring_plant), args.iface, args.control, world, sito,
                                     parent_fd=args.parent_fd)
     except OSError as exc:
-        wrists.close()
+        bus.shutdown()
         print(f"virtual prime: cannot serve on {args.iface}: {exc} (raw sockets need root or CAP_NET_RAW)",
               file=sys.stderr)
         return 1
 
     try:
-        run_until_signalled(server, priority=EMULATOR_PRIORITY)
+        run_until_signalled(server)
     finally:
-        code = wrists.close()
-    if code:
-        print(f"virtual prime: the emulated Sito wrists' process exited with status {code}", file=sys.stderr)
-        return 1
+        bus.shutdown()
     return 0

@@ -19,7 +19,7 @@ import random
 import struct
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import can
@@ -63,23 +63,12 @@ from humanoid_prime.virtual.plant import InertiaPlant, Plant
 
 FIRMWARE_RATE_HZ = 1000.0
 TX_QUEUE_LENGTH = 10  # Linux default txqueuelen of a CAN interface
-FAULTS = ("silent", "drop_fraction", "garbage")  # per motor, set by SitoEmulator.inject
 SUPPLY_VOLTAGE_RAW = 240  # reported as-is in 0xB1; the firmware's unit is not documented
 
 
 def _saturate(value: float, low: int, high: int) -> int:
     """The pwm field's clamp (its units are not documented, so it is no protocol conversion)."""
     return min(max(round(value), low), high)
-
-
-def mit_torque(law: Sequence[float], q: float, qd: float, limit: float) -> float:
-    """The firmware's MIT law for ``SitoMotor.law()`` at joint state ``q``, ``qd``, saturated at ``limit``:
-    ``tau = kp(q_cmd - q) + kd(qd_cmd - qd) + tau_ff``, or zero while the motor is not enabled."""
-    enabled, q_cmd, qd_cmd, kp, kd, feed_forward = law
-    if not enabled:
-        return 0.0
-    torque = kp * (q_cmd - q) + kd * (qd_cmd - qd) + feed_forward
-    return min(max(torque, -limit), limit)
 
 
 class SitoMotor:
@@ -160,18 +149,15 @@ class SitoMotor:
             case Command(current, velocity, position):
                 self.current_mA, self.velocity_counts, self.position_counts = current, velocity, position
 
-    def law(self) -> tuple[float, float, float, float, float, float]:
-        """What the firmware's MIT law acts on now, in joint units: (enabled 1/0, position target, velocity
-        target, stiffness, damping, feed-forward torque). ``mit_torque`` turns it into a torque."""
-        if not self.enabled:
-            return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        return (1.0, counts_to_position(self.position_counts), counts_to_velocity(self.velocity_counts),
-                self.kp, self.kd, current_mA_to_torque(self.current_mA, self.model))
-
     def control(self) -> float:
         """The firmware MIT law at the current plant state (Nm); zero while not enabled."""
-        return mit_torque(self.law(), float(self.plant.q[self.index]), float(self.plant.qd[self.index]),
-                          self.torque_limit)
+        if not self.enabled:
+            return 0.0
+        q, qd = float(self.plant.q[self.index]), float(self.plant.qd[self.index])
+        torque = (self.kp * (counts_to_position(self.position_counts) - q)
+                  + self.kd * (counts_to_velocity(self.velocity_counts) - qd)
+                  + current_mA_to_torque(self.current_mA, self.model))
+        return min(max(torque, -self.torque_limit), self.torque_limit)
 
     def stream(self, send: Callable[[can.Message], None]) -> None:
         """Send the feedback frames due at this tick (after the world has moved)."""
@@ -286,21 +272,6 @@ class SitoEmulator:
                 with rx_queue.mutex:
                     rx_queue.maxsize = 0 if value else TX_QUEUE_LENGTH
                     rx_queue.not_full.notify_all()
-
-    def inject(self, can_id: int, *, silent: bool | None = None, drop_fraction: float | None = None,
-               garbage: bool | None = None) -> dict[str, Any]:
-        """Set the faults of the motor at ``can_id`` (None leaves one as it is); returns them as they are now."""
-        motor = self.motors.get(can_id)
-        if motor is None:
-            raise KeyError(f"no emulated Sito at CAN id {can_id}")
-        with self._lock:
-            if silent is not None:
-                motor.silent = bool(silent)
-            if drop_fraction is not None:
-                motor.drop_fraction = float(drop_fraction)
-            if garbage is not None:
-                motor.garbage = bool(garbage)
-        return {"can_id": can_id, **{name: getattr(motor, name) for name in FAULTS}}
 
     def inject_bus_off(self) -> None:
         """Report bus-off as SocketCAN does: an error frame of class CAN_ERR_BUSOFF."""

@@ -24,7 +24,6 @@ from array import array
 from collections.abc import Callable
 from typing import Any
 
-from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.ring.drive import Cia402State
 from humanoid_prime.virtual.ring.firmware import AlState
 from humanoid_prime.virtual.ring.frames import (
@@ -211,7 +210,7 @@ class EmulatorServer:
             if handler is None:
                 return {"ok": False, "error": f"unknown operation {op!r}"}
             return {"ok": True, "result": handler(**request)}
-        except (TypeError, ValueError, KeyError, IndexError, PrimeError) as exc:
+        except (TypeError, ValueError, KeyError, IndexError) as exc:
             return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
 
     def _slave(self, position: int) -> Any:
@@ -347,7 +346,7 @@ class EmulatorServer:
 REALTIME_PRIORITY = 20
 
 
-def run_until_signalled(server: EmulatorServer, *, priority: int = REALTIME_PRIORITY) -> None:
+def run_until_signalled(server: EmulatorServer) -> None:
     """Serve until SIGTERM, SIGINT, a ``stop`` request or the parent's death, then close the server.
 
     Hardware answers at once, so the emulator asks for real-time scheduling (ignored where not permitted):
@@ -357,7 +356,7 @@ def run_until_signalled(server: EmulatorServer, *, priority: int = REALTIME_PRIO
         server.running = False
 
     with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     try:

@@ -3,13 +3,14 @@
 A python-can Notifier thread keeps the latest feedback per motor; ``read`` and ``write`` only copy
 preallocated arrays and hand ready frames to the bus without waiting. Activation sends zero gains
 (limp), then enable with feedback at the bus cycle, and waits for the first feedback from every motor.
+Deactivation, interpreter exit and SIGINT/SIGTERM disable every motor.
 
 The bus cycle (``bus.bus_cycle``) is the control period while the wrists' frames fit it, up to about 300 Hz:
 a command to each wrist and its two feedback frames take 1.6 to 1.9 ms of a 1 Mbit/s bus. At faster control
 rates the commands go out every ``io_every``-th tick and the feedback streams at that cycle (every 4th tick,
 4 ms, at 1 kHz), as a hardware component may run slower than its controller manager; ``read`` still gives every
 tick the latest feedback. Sending every tick would need 160 to 190 % of the bus at 1 kHz: the transmit queue
-would fill and frames would be lost. Deactivation, interpreter exit and SIGINT/SIGTERM disable every motor.
+would fill and frames would be lost.
 
 Transport health is rebuilt every tick as safety flags (keys ``<channel>/<problem>[/<CAN id>]``):
 bus off and interface down stay until re-activation; RX timeout, TX queue overrun, invalid frames

@@ -253,6 +253,32 @@ def test_remote_rejects_a_message_of_the_wrong_length(manager, robot, names, row
     assert remote.rejected == 1 and remote.last_rejection == problem
 
 
+def test_remote_quick_acceptance_agrees_with_the_worded_check(manager, robot):
+    """Every message is judged twice over: the quick all-rows test must accept exactly what the check accepts."""
+    remote = manager.controllers["remote_policy_controller"]
+    rng = np.random.default_rng(7)
+    sito = robot.indices("sito")
+    judged = {True: 0, False: 0}
+    for _ in range(400):
+        rows = {"position": rng.uniform(robot.lower - 0.02, robot.upper + 0.02),
+                "velocity": rng.normal(0.0, 1.0, robot.n),
+                "effort": rng.uniform(-1.05, 1.05) * robot.effort_limit,
+                "stiffness": np.where(rng.random(robot.n) < 0.5, 0.0, rng.uniform(-0.2, 30.0, robot.n)),
+                "damping": rng.uniform(-0.05, 3.0, robot.n)}
+        keep = rng.random(5) < 0.8  # most rows made sound, so that single faults are common
+        for sound, key in zip(keep, list(rows), strict=True):
+            if sound:
+                rows[key] = {"position": (robot.lower + robot.upper) / 2, "effort": np.zeros(robot.n)}.get(
+                    key, np.abs(rows[key]))
+        if rng.random() < 0.05:
+            rows["damping"][sito[0]] = np.nan
+        m = message(robot, **rows)
+        accepted = remote._accept(m) is not None
+        assert accepted == (remote._check(m) == ""), remote._check(m)
+        judged[accepted] += 1
+    assert min(judged.values()) > 50  # both verdicts were exercised
+
+
 def test_remote_falls_back_to_a_damped_hold_after_100_ms_of_silence(manager, plant, robot, erob, sito):
     enter(manager, Mode.REMOTE, 0.0)
     manager.topics.publish(REMOTE_COMMAND, message(robot, position=np.full(14, -0.2), stiffness=np.full(14, 5.0)))

@@ -69,16 +69,41 @@ class RemotePolicyController(Controller):
         topics.subscribe(self.topic, self._on_message)
 
     def _on_message(self, message: MitCommand) -> None:
-        problem = self._check(message)
+        rows = self._accept(message)
+        problem = "" if rows is not None else self._check(message)
         with self._lock:
             if problem:
                 self.rejected += 1
                 self.last_rejection = problem
                 return
-            for row, interface in enumerate(COMMAND_NAMES):
-                self._inbox[row] = getattr(message, interface)
+            if rows is None:
+                for row, interface in enumerate(COMMAND_NAMES):
+                    self._inbox[row] = getattr(message, interface)
+            else:
+                np.copyto(self._inbox, rows)
             self._fresh = True
             self.accepted += 1
+
+    def _accept(self, message: MitCommand) -> np.ndarray | None:
+        """The message's five rows when every check passes, or None: ``_check`` then says what is wrong.
+
+        The same checks as ``_check`` on all five rows at once, with no words built: a message arrives every tick.
+        """
+        if tuple(message.joint_names) != self.names:
+            return None
+        try:
+            rows = np.array([getattr(message, interface) for interface in COMMAND_NAMES], dtype=np.float64)
+        except (TypeError, ValueError):
+            return None
+        if rows.shape != self._inbox.shape or not np.isfinite(rows).all() or (rows[3:] < 0.0).any():
+            return None
+        if (np.abs(rows[2]) > self._effort_limit).any():
+            return None
+        position = rows[0]
+        beyond = (position < self._lower) | (position > self._upper)
+        if beyond.any() and (beyond & (np.where(self._erob, self._damp_kp, rows[3]) > 0.0)).any():
+            return None
+        return rows
 
     def _check(self, message: MitCommand) -> str:
         names = tuple(message.joint_names)

@@ -253,28 +253,28 @@ class MujocoSystem(HardwareComponent):
 
     def read(self, now: float, state: StateArrays) -> None:
         idx = self.indices
-        np.take(self._qpos, self.qpos_adr, out=self._a)
+        self._qpos.take(self.qpos_adr, out=self._a)
         state.position[idx] = self._a
-        np.take(self._qvel, self.dof_adr, out=self._a)
+        self._qvel.take(self.dof_adr, out=self._a)
         state.velocity[idx] = self._a
-        np.take(self._force, self.indices, out=self._a)
+        self._force.take(self.indices, out=self._a)
         state.effort[idx] = self._a
 
     def write(self, now: float, command: CommandArrays) -> None:
         idx, actuators = self.indices, self._actuators
         u = self._u
-        np.take(command.stiffness, idx, out=self._kp)
-        np.take(command.damping, idx, out=self._kd)
+        command.stiffness.take(idx, out=self._kp)
+        command.damping.take(idx, out=self._kd)
         np.negative(self._kp, out=self._a)
         self._bias_kp[actuators] = self._a
         np.negative(self._kd, out=self._a)
         self._bias_kd[actuators] = self._a
-        np.take(command.position, idx, out=self._a)
+        command.position.take(idx, out=self._a)
         np.multiply(self._kp, self._a, out=u)
-        np.take(command.velocity, idx, out=self._a)
+        command.velocity.take(idx, out=self._a)
         np.multiply(self._kd, self._a, out=self._b)
         u += self._b
-        np.take(command.effort, idx, out=self._a)
+        command.effort.take(idx, out=self._a)
         u += self._a
         self._ctrl[actuators] = u
         advance = self.advance

@@ -58,6 +58,24 @@ def test_nothing_touches_the_bus_before_op_and_joint_states(robot, gains):
     mgr.close()
 
 
+@pytest.mark.parametrize("joint_states", [True, False])
+def test_a_bus_that_never_gets_ready_is_refused_with_what_it_lacks(robot, gains, joint_states):
+    drives = DriveMailboxes()
+    topics = TopicBus()
+    ticks = iter(range(0, 100, 3))  # an injected clock: 3 s per look, past the 5 s deadline at the third
+    mgr = make(robot, gains, drives, clock=lambda: float(next(ticks)))
+    if joint_states:
+        publish_joint_states(topics, robot)
+    lacks = "ring 3 SAFE-OP + ERROR (AL status 0x001A synchronization error)"
+    with pytest.raises(PrimeError) as refused:
+        mgr.start(topics, lambda: False, timeout=5.0, why_not_ready=lambda: lacks)
+    words = lacks if joint_states else "no joint states were published"
+    assert str(refused.value) == ("eRob impedance manager: the ring did not reach OP with joint states flowing "
+                                  f"within 5 s ({words}); no gains were written")
+    assert drives.log == [] and not mgr.armed
+    mgr.close()
+
+
 def test_the_window_then_the_gate_go_before_any_gain_on_every_slave(robot, gains):
     drives = DriveMailboxes()
     mgr = make(robot, gains, drives)

@@ -139,15 +139,22 @@ class ImpedanceManager(SafetyFlags):
         self._done = 0
 
     # ----------------------------------------------------------------------------------- running
-    def start(self, topics: TopicBus, bus_ready: Callable[[], bool], *, timeout: float = 30.0) -> None:
-        """Wait for OP and flowing joint states, arm the gate, then follow ``/control_mode``."""
+    def start(self, topics: TopicBus, bus_ready: Callable[[], bool], *, timeout: float = 30.0,
+              why_not_ready: Callable[[], str] | None = None) -> None:
+        """Wait for OP and flowing joint states, arm the gate, then follow ``/control_mode``.
+
+        ``why_not_ready`` words what the bus lacks for the error when the wait runs out."""
         self._topics = topics
         topics.subscribe(JOINT_STATES, self._on_joint_states, latched=True)
         deadline = self.clock() + timeout
         while not (bus_ready() and self._joint_states_seen.is_set()):
             if self.clock() > deadline:
+                if not self._joint_states_seen.is_set():
+                    missing = "no joint states were published"
+                else:
+                    missing = (why_not_ready() if why_not_ready is not None else "") or "the bus was not ready"
                 raise PrimeError("eRob impedance manager: the ring did not reach OP with joint states flowing "
-                                 f"within {timeout:.0f} s; no gains were written")
+                                 f"within {timeout:.0f} s ({missing}); no gains were written")
             time.sleep(0.005)
         self.arm()
         topics.subscribe(CONTROL_MODE, self._on_control_mode, latched=True)

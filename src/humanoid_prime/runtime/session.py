@@ -330,7 +330,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         # Normally closed by run_loop while the loop still ticks; this covers an exception on the way.
         stack.callback(lambda: session.gate_reset_failures.extend(impedance.close()))
         # The bus is ready and joint states have flowed (the first tick); arm the gate and follow the mode.
-        impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0)
+        impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0,
+                        why_not_ready=lambda: ethercat.master.readiness())
         plan.stage("impedance manager armed", t)
     if plan.control is not None:
         serve(session, plan.control)

@@ -11,8 +11,6 @@ on one wrist) and ``truth`` (the wiring and factory offsets it was given).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
 import sys
 from typing import Any
 
@@ -25,7 +23,7 @@ from humanoid_prime.virtual.plant import PrimeWorld, ring_order, truth_calibrati
 from humanoid_prime.virtual.ring.__main__ import wait_for_interface
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
-from humanoid_prime.virtual.ring.server import EmulatorServer, bring_up, run_until_signalled
+from humanoid_prime.virtual.ring.server import EmulatorServer, bring_up, raise_to_realtime, run_until_signalled
 from humanoid_prime.virtual.sito import SitoEmulator
 
 EMULATOR_PRIORITY = 70  # SCHED_FIFO, below the control loop's 80
@@ -104,8 +102,7 @@ def answer_in_hardware_time() -> None:
     """Real-time scheduling for the emulator (and the threads it starts), just below the control loop's, where
     allowed: drives answer in hardware time however busy the host is, and a master's state checks, which
     pysoem makes while holding its interpreter, then end as quickly as they would on the robot."""
-    with contextlib.suppress(OSError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
+    raise_to_realtime(EMULATOR_PRIORITY)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -337,6 +337,22 @@ def test_while_one_slave_recovers_the_others_still_take_sdos(rig):
         rig.master.sdo_write(9, 0x2383, 0, b"\x00")
 
 
+def test_the_master_says_why_sdos_are_not_yet_allowed(robot, tmp_path, rig):
+    r = Rig(robot, tmp_path)
+    r.system.configure()
+    assert "is not operational" in r.master.readiness()
+    rig.tick()
+    assert rig.master.readiness() == ""
+    rig.master.slave_ok[7] = False
+    rig.master.al_state[7] = 0x04 | 0x10  # SAFE-OP with the error flag
+    rig.master.al_status_code[7] = 0x001A
+    assert "has slaves recovering: ring 7 SAFE-OP + ERROR (AL status 0x001A" in rig.master.readiness()
+    rig.master.slave_ok[7] = True
+    rig.master.flowing = False
+    rig.master.wkc = -1
+    assert rig.master.readiness().endswith("process data is not flowing (working counter -1, expected 30)")
+
+
 def test_the_unsafe_path_lets_an_sdo_through_before_op(robot, tmp_path):
     r = Rig(robot, tmp_path)
     r.system.configure()

@@ -411,6 +411,17 @@ class EthercatMaster(ABC):
         slave recovers, only that slave's."""
         return self.operational and self.flowing and bool(self.slave_ok.all())
 
+    def readiness(self) -> str:
+        """Why ``sdo_ready`` is false, in words ('' when it is true): the slaves out of OP, or the working counter."""
+        if self.sdo_ready:
+            return ""
+        if not self.operational:
+            return self._not_op_message("is not operational")
+        if not self.slave_ok.all():
+            return self._not_op_message("has slaves recovering")
+        return (f"EtherCAT ring on {self.interface}: process data is not flowing (working counter {self.wkc}, "
+                f"expected {self.expected_wkc})")
+
     def _gate(self, position: int, index: int, sub_index: int, unsafe_before_op: bool) -> None:
         if not 0 <= position < len(self.slaves):
             raise SdoError(position, index, sub_index,

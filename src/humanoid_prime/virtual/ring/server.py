@@ -346,6 +346,15 @@ class EmulatorServer:
 REALTIME_PRIORITY = 20
 
 
+def raise_to_realtime(priority: int) -> None:
+    """``SCHED_FIFO`` at ``priority`` for the calling thread where permitted, unless it already runs at
+    ``SCHED_FIFO`` that high (the virtual Prime asks for more, just below the control loop's)."""
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) == os.SCHED_FIFO and os.sched_getparam(0).sched_priority >= priority:
+            return
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+
+
 def run_until_signalled(server: EmulatorServer) -> None:
     """Serve until SIGTERM, SIGINT, a ``stop`` request or the parent's death, then close the server.
 
@@ -355,8 +364,7 @@ def run_until_signalled(server: EmulatorServer) -> None:
     def stop(_signum: int, _frame: object) -> None:
         server.running = False
 
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+    raise_to_realtime(REALTIME_PRIORITY)
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     try:

@@ -116,9 +116,9 @@ def test_all_fourteen_joints_come_up_on_both_buses(switching_run):
 
 def test_stages_run_in_the_documented_order(switching_run):
     names = [stage["name"] for stage in switching_run["stages"]]
-    order = ["hardware configure", "hardware activate", "joint_state_broadcaster", "zero_torque_controller",
-             "damping_controller", "standby_controller", "locomotion_controller", "remote_policy_controller",
-             "first tick", "impedance manager armed"]
+    order = ["hardware configure", "joint_state_broadcaster", "zero_torque_controller", "damping_controller",
+             "standby_controller", "locomotion_controller", "remote_policy_controller", "hardware activate",
+             "controllers activated", "first tick", "impedance manager armed"]
     assert [n for n in names if n in order] == order
 
 

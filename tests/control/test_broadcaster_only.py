@@ -38,7 +38,8 @@ def manager(robot):
 
 def test_only_the_broadcaster_starts(manager):
     mgr, _ = manager
-    assert [name for name, _ in mgr.stages if not name.startswith("hardware")] == [JOINT_STATE_BROADCASTER]
+    assert [name for name, _ in mgr.stages if not name.startswith("hardware")] == [JOINT_STATE_BROADCASTER,
+                                                                                   "controllers activated"]
     assert mgr.active_mode is None
 
 

@@ -31,10 +31,24 @@ def enter_remote(manager, robot, t=0.0):
 
 # ---- staged start --------------------------------------------------------------------------------
 
-def test_start_is_staged_hardware_then_broadcaster_then_zero_torque_then_the_others_in_order(manager):
+def test_start_is_staged_hardware_configured_then_every_controller_then_activation(manager):
     assert [name for name, _ in manager.stages] == [
-        "hardware configure", "hardware activate", "joint_state_broadcaster", "zero_torque_controller",
-        "damping_controller", "standby_controller", "locomotion_controller", "remote_policy_controller"]
+        "hardware configure", "joint_state_broadcaster", "zero_torque_controller", "damping_controller",
+        "standby_controller", "locomotion_controller", "remote_policy_controller", "hardware activate",
+        "controllers activated"]
+
+
+def test_every_controller_is_configured_before_the_hardware_goes_cyclic(robot, config, clock, monkeypatch):
+    # from activation on the drives must be fed every period: loading a policy then would starve them
+    events: list[str] = []
+    plant = Plant("plant", robot.names, events)
+    manager = ControllerManager(robot, [plant], config, clock=clock)
+    for name, controller in manager.controllers.items():
+        configure = controller.on_configure
+        monkeypatch.setattr(controller, "on_configure",
+                            lambda *args, name=name, configure=configure: (events.append(name), configure(*args)))
+    manager.start()
+    assert events == ["plant.configure", *manager.controllers, "plant.activate"]
 
 
 def test_after_start_broadcaster_and_zero_torque_are_active_and_the_others_loaded_inactive(manager):

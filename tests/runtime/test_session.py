@@ -4,6 +4,7 @@ policy, the control socket glue and the report."""
 from __future__ import annotations
 
 import struct
+import sys
 import threading
 
 import numpy as np
@@ -24,11 +25,26 @@ def gate(master, position: int) -> int:
 def test_a_full_session_comes_up_in_the_documented_stages(doubled):
     session = doubled.open()
     assert [name for name, _ in session.stages] == [
-        "configuration", "hardware configure", "hardware activate", "joint_state_broadcaster",
-        "zero_torque_controller", "damping_controller", "standby_controller", "locomotion_controller",
-        "remote_policy_controller", "first tick", "impedance manager armed"]
+        "configuration", "hardware configure", "joint_state_broadcaster", "zero_torque_controller",
+        "damping_controller", "standby_controller", "locomotion_controller", "remote_policy_controller",
+        "hardware activate", "controllers activated", "first tick", "impedance manager armed"]
     assert session.manager.active_mode is Mode.ZERO_TORQUE
     assert np.all(np.isfinite(session.manager.resources.state.position))  # all 14 joints measured
+
+
+def test_from_bring_up_on_no_thread_holds_the_interpreter_longer_than_a_tenth_of_the_period(doubled, monkeypatch):
+    # the keeper thread sends the frames between bring-up and the loop while the main thread builds controllers
+    from doubles.master import FakeMaster
+
+    before = sys.getswitchinterval()
+    seen = []
+    request_op = FakeMaster._request_op
+    monkeypatch.setattr(FakeMaster, "_request_op", lambda self: (seen.append(sys.getswitchinterval()),
+                                                                   request_op(self)))
+    doubled.open(update_rate=1000.0)
+    assert seen == [pytest.approx(1e-4)] and sys.getswitchinterval() == pytest.approx(1e-4)
+    doubled.stack.close()
+    assert sys.getswitchinterval() == before
 
 
 def test_the_gate_is_armed_on_every_slave_once_the_session_is_up(doubled):

@@ -195,7 +195,8 @@ class ControllerManager:
     # ---- lifecycle -------------------------------------------------------------------------------
 
     def start(self, now: float | None = None) -> None:
-        """Hardware configure + activate, then the staged controller start; each stage's seconds in ``stages``.
+        """Hardware configure, the controllers configured, hardware activate, then the broadcaster and ZERO_TORQUE
+        activated; each stage's seconds in ``stages``.
         ``now`` is the loop time of the start (default: the clock; a simulation passes its simulated time, as
         it does to ``tick``), the stamp of the first joint state, mode and status."""
         if self._started:
@@ -203,6 +204,15 @@ class ControllerManager:
         t = self.clock()
         self.resources.configure()
         t = self._stage("hardware configure", t)
+        # The controllers are configured (a policy loaded) before the buses go cyclic: from activation on, a
+        # keeper thread feeds the drives every period, and a main thread busy in Python or C would starve it.
+        names = (JOINT_STATE_BROADCASTER,) if self.broadcaster_only else (JOINT_STATE_BROADCASTER,
+                                                                          *MODE_CONTROLLERS.values())
+        for name in names:
+            controller = self.controllers[name]
+            controller.on_configure(self.robot, self.topics)
+            controller.lifecycle = Lifecycle.INACTIVE
+            t = self._stage(name, t)
         self.resources.activate()
         t = self._stage("hardware activate", t)
         now = t if now is None else now
@@ -213,18 +223,12 @@ class ControllerManager:
             command = self.resources.command
             command.data[:] = 0.0
             command.position[:] = np.nan
-        names = (JOINT_STATE_BROADCASTER,) if self.broadcaster_only else (JOINT_STATE_BROADCASTER,
-                                                                          *MODE_CONTROLLERS.values())
-        for name in names:
-            controller = self.controllers[name]
-            controller.on_configure(self.robot, self.topics)
-            controller.lifecycle = Lifecycle.INACTIVE
-            if name == JOINT_STATE_BROADCASTER:
-                controller.on_activate(self.resources.state, now)
-                controller.lifecycle = Lifecycle.ACTIVE
-            elif controller.mode is Mode.ZERO_TORQUE:
-                self._activate(Mode.ZERO_TORQUE, now)
-            t = self._stage(name, t)
+        broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
+        broadcaster.on_activate(self.resources.state, now)
+        broadcaster.lifecycle = Lifecycle.ACTIVE
+        if not self.broadcaster_only:
+            self._activate(Mode.ZERO_TORQUE, now)
+        t = self._stage("controllers activated", t)
         self._started = True
         self._publish_safety(now)
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -43,7 +44,7 @@ from humanoid_prime.drivers.ethercat.sdo import SizedSdo
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
-from humanoid_prime.runtime.realtime import lock_memory
+from humanoid_prime.runtime.realtime import lock_memory, tighten_switch_interval
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
 from humanoid_prime.runtime.socket import ControlServer
 
@@ -300,6 +301,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     options, robot = plan.options, plan.robot
     if options.realtime:
         plan.memory_refused = lock_memory()
+    stack.callback(sys.setswitchinterval, tighten_switch_interval(1.0 / plan.update_rate))
     settings = ComponentSettings(
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
         ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s,

@@ -15,7 +15,17 @@ from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
 from humanoid_prime.drivers.ethercat._tick import layouts
-from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_SAFE_OP, RX_DTYPE, TX_DTYPE, SdoRefused
+from humanoid_prime.drivers.ethercat.master import (
+    AL_ERROR,
+    AL_OP,
+    AL_PRE_OP,
+    AL_SAFE_OP,
+    OP_REQUEST_REPEAT_S,
+    RX_DTYPE,
+    TX_DTYPE,
+    EthercatMaster,
+    SdoRefused,
+)
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 
 C = COUNTS_PER_RAD
@@ -351,6 +361,23 @@ def test_the_master_says_why_sdos_are_not_yet_allowed(robot, tmp_path, rig):
     rig.master.flowing = False
     rig.master.wkc = -1
     assert rig.master.readiness().endswith("process data is not flowing (working counter -1, expected 30)")
+
+
+def test_the_bring_up_loop_asks_a_waiting_slave_for_op_again_only_every_half_second():
+    # every AL control write is a frame round trip the next cycle waits behind: asking ten waiting slaves every
+    # 10 ms at 1 kHz delayed a frame past the drives' sync tolerance each time and kept restarting their DC lock
+    to_push = EthercatMaster._to_push
+    waiting = [(AL_SAFE_OP, 0)] * 3
+    asked = np.zeros(3)  # the broadcast OP request at t = 0
+    assert to_push(waiting, asked, 0.01) == []
+    assert to_push(waiting, asked, OP_REQUEST_REPEAT_S - 0.001) == []
+    assert to_push(waiting, asked, OP_REQUEST_REPEAT_S) == [(0, AL_SAFE_OP), (1, AL_SAFE_OP), (2, AL_SAFE_OP)]
+    assert asked.tolist() == [OP_REQUEST_REPEAT_S] * 3
+    # an error is acknowledged at once, and OP asked for at the next look, however recently it was asked before
+    states = [(AL_OP, 0), (AL_SAFE_OP | AL_ERROR, 0x001A), (AL_PRE_OP, 0)]
+    assert to_push(states, asked, 0.6) == [(1, AL_SAFE_OP | AL_ERROR)]
+    assert to_push([(AL_OP, 0), (AL_SAFE_OP, 0), (AL_PRE_OP, 0)], asked, 0.61) == [(1, AL_SAFE_OP)]
+    assert to_push([(AL_OP, 0), (AL_SAFE_OP, 0), (AL_PRE_OP, 0)], asked, 0.62) == []
 
 
 def test_the_unsafe_path_lets_an_sdo_through_before_op(robot, tmp_path):

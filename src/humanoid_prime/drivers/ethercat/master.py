@@ -46,6 +46,7 @@ AL_PRE_OP = 0x02
 AL_SAFE_OP = 0x04
 AL_OP = 0x08
 AL_ERROR = AL_ERROR_FLAG
+OP_REQUEST_REPEAT_S = 0.5  # a slave left in SAFE-OP after OP was asked for is asked again this often
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
 
@@ -304,7 +305,7 @@ class EthercatMaster(ABC):
         check_every = max(1, round(self.bringup_rate * 0.01))  # read AL states about every 10 ms
         cycles = 0
         rate = Rate(self.bringup_rate)
-        op_requested = False
+        op_asked = np.full(n, -math.inf)  # when each slave was last asked for OP (-inf: since its last ack)
         while True:
             rate.wait()
             np.copyto(self.outputs["target_position"], self.inputs["position_actual"])
@@ -313,15 +314,15 @@ class EthercatMaster(ABC):
                 on_cycle(self)
             wkc = self.exchange()
             cycles += 1
-            if not op_requested:  # one valid frame first, so the outputs are defined when OP is asked for
+            if cycles == 1:  # one valid frame first, so the outputs are defined when OP is asked for
                 self._request_op()
-                op_requested = True
+                op_asked[:] = time.monotonic()
             if wkc == self.expected_wkc or cycles % check_every == 0:
                 states = self._read_states()
                 self._store_states(states)
                 if all(state == AL_OP for state, _ in states):
                     break
-                self._advance(states)
+                self._advance(self._to_push(states, op_asked, time.monotonic()))
             if time.monotonic() > deadline:
                 raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
         self.operational = True
@@ -503,9 +504,31 @@ class EthercatMaster(ABC):
     def _read_states(self) -> list[tuple[int, int]]:
         """(AL state, AL status code) of every slave, ring order."""
 
+    @staticmethod
+    def _to_push(states: Sequence[tuple[int, int]], op_asked: np.ndarray, now: float) -> list[tuple[int, int]]:
+        """(ring position, AL state) of the slaves the bring-up loop pushes toward OP at ``now``; ``op_asked``
+        is updated.
+
+        An error in SAFE-OP is acknowledged at once, and OP is asked for at the next look. A slave in SAFE-OP
+        that was asked is asked again only every ``OP_REQUEST_REPEAT_S``: it waits there for its DC lock, and
+        every AL control write is a frame round trip the loop's next cycle waits behind. At 1 kHz, asking all
+        ten every 10 ms delayed a frame past the drives' sync tolerance each time and restarted their lock.
+        """
+        push = []
+        for k, (state, _) in enumerate(states):
+            if state == AL_SAFE_OP | AL_ERROR:
+                op_asked[k] = -math.inf
+            elif state == AL_SAFE_OP and now - op_asked[k] >= OP_REQUEST_REPEAT_S:
+                op_asked[k] = now
+            else:
+                continue
+            push.append((k, state))
+        return push
+
     @abstractmethod
-    def _advance(self, states: Sequence[tuple[int, int]]) -> None:
-        """Push slaves that are not in OP toward it (acknowledge errors, request OP again)."""
+    def _advance(self, slaves: Sequence[tuple[int, int]]) -> None:
+        """One step toward OP for each (ring position, AL state) given: acknowledge an error in SAFE-OP, else
+        request OP."""
 
     def _started(self) -> None:
         """Called once every slave is in OP (e.g. to start ring supervision)."""

@@ -209,9 +209,9 @@ class SoemMaster(EthercatMaster):
         self._require().read_state()
         return [(s.state, s.al_status) for s in self._pslaves]
 
-    def _advance(self, states: Sequence[tuple[int, int]]) -> None:
-        for slave, (state, _) in zip(self._pslaves, states, strict=True):
-            _push_toward_op(slave, state)
+    def _advance(self, slaves: Sequence[tuple[int, int]]) -> None:
+        for k, state in slaves:
+            _push_toward_op(self._pslaves[k], state)
 
     def _started(self) -> None:
         self._stop.clear()

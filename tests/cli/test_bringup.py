@@ -118,7 +118,7 @@ def test_stages_run_in_the_documented_order(switching_run):
     names = [stage["name"] for stage in switching_run["stages"]]
     order = ["hardware configure", "joint_state_broadcaster", "zero_torque_controller", "damping_controller",
              "standby_controller", "locomotion_controller", "remote_policy_controller", "hardware activate",
-             "controllers activated", "first tick", "impedance manager armed"]
+             "controllers activated", "first tick", "impedance manager started"]
     assert [n for n in names if n in order] == order
 
 

@@ -27,7 +27,7 @@ def test_a_full_session_comes_up_in_the_documented_stages(doubled):
     assert [name for name, _ in session.stages] == [
         "configuration", "hardware configure", "joint_state_broadcaster", "zero_torque_controller",
         "damping_controller", "standby_controller", "locomotion_controller", "remote_policy_controller",
-        "hardware activate", "controllers activated", "first tick", "impedance manager armed"]
+        "hardware activate", "controllers activated", "first tick", "impedance manager started"]
     assert session.manager.active_mode is Mode.ZERO_TORQUE
     assert np.all(np.isfinite(session.manager.resources.state.position))  # all 14 joints measured
 
@@ -47,8 +47,9 @@ def test_from_bring_up_on_no_thread_holds_the_interpreter_longer_than_a_tenth_of
     assert sys.getswitchinterval() == before
 
 
-def test_the_gate_is_armed_on_every_slave_once_the_session_is_up(doubled):
-    doubled.open()
+def test_once_the_session_is_up_its_impedance_worker_arms_the_gate_on_every_slave(doubled):
+    session = doubled.open()
+    assert session.impedance.wait_armed(5.0)
     assert [gate(doubled.master, p) for p in range(10)] == [1] * 10
 
 

@@ -8,7 +8,8 @@ per mode, not per tick (DESIGN §2, §3). The manager:
 - widens each drive's following-error window (0x6065) to what the stiffest mode lets a loaded joint sag
   (``FOLLOWING_WINDOW_MARGIN`` times effort limit over the smallest non-zero kp), so a compliant
   impedance never trips 0x8500 by design; the drive's own window is restored on close;
-- arms the bus-gain gate (0x2383 = 1) once, first, then reads back what the registers hold;
+- arms the bus-gain gate (0x2383 = 1) once, first, from its worker thread while the loop ticks, then reads
+  back what the registers hold;
 - writes every object with the size the drive reports for it (``SizedSdo``);
 - on each mode change converts (kp, kd) with each joint's Kt, gear and the torque efficiency, and
   writes only the registers whose value changes, in the order that never leaves an intermediate
@@ -132,6 +133,8 @@ class ImpedanceManager(SafetyFlags):
         self._queue: queue.Queue[Mode | None] = queue.Queue()
         self._worker: threading.Thread | None = None
         self._joint_states_seen = threading.Event()
+        self._arming_done = threading.Event()
+        self._closing = False
         self._topics: TopicBus | None = None
         self._busy = threading.Lock()
         self._idle = threading.Condition()
@@ -141,9 +144,12 @@ class ImpedanceManager(SafetyFlags):
     # ----------------------------------------------------------------------------------- running
     def start(self, topics: TopicBus, bus_ready: Callable[[], bool], *, timeout: float = 30.0,
               why_not_ready: Callable[[], str] | None = None) -> None:
-        """Wait for OP and flowing joint states, arm the gate, then follow ``/control_mode``.
+        """Wait for OP and flowing joint states; then the worker arms the gate and follows ``/control_mode``.
 
-        ``why_not_ready`` words what the bus lacks for the error when the wait runs out."""
+        The arming's SDOs go out from the worker, so the control loop may already be feeding the drives: ten
+        workers' mailbox traffic beside a keeper thread of normal priority starved its frames at 1 kHz.
+        ``wait_armed`` waits for the arming. ``why_not_ready`` words what the bus lacks for the error when the
+        wait runs out."""
         self._topics = topics
         topics.subscribe(JOINT_STATES, self._on_joint_states, latched=True)
         deadline = self.clock() + timeout
@@ -156,7 +162,6 @@ class ImpedanceManager(SafetyFlags):
                 raise PrimeError("eRob impedance manager: the ring did not reach OP with joint states flowing "
                                  f"within {timeout:.0f} s ({missing}); no gains were written")
             time.sleep(0.005)
-        self.arm()
         topics.subscribe(CONTROL_MODE, self._on_control_mode, latched=True)
         self._worker = threading.Thread(target=self._run, name="erob-impedance", daemon=True)
         self._worker.start()
@@ -171,6 +176,10 @@ class ImpedanceManager(SafetyFlags):
         self._queue.put(Mode(msg.mode))
 
     def _run(self) -> None:
+        try:
+            self.arm()
+        finally:
+            self._arming_done.set()
         while True:
             mode = self._queue.get()
             taken = 1
@@ -187,6 +196,10 @@ class ImpedanceManager(SafetyFlags):
                 with self._idle:
                     self._done += taken
                     self._idle.notify_all()
+
+    def wait_armed(self, timeout: float = 5.0) -> bool:
+        """Block until the worker has armed the gate (or found it could not); False on timeout."""
+        return self._arming_done.wait(timeout)
 
     def wait_idle(self, timeout: float = 5.0) -> bool:
         """Block until every mode change received so far has been applied (for reports and tests)."""
@@ -219,13 +232,17 @@ class ImpedanceManager(SafetyFlags):
 
     def arm(self) -> None:
         """On every slave: the following-error window first, then the gate to 1, then learn what the gain
-        registers hold."""
+        registers hold. Nothing once ``close`` has begun."""
+        if self._closing:
+            return
         self.armed = True  # from here on, close() resets the gate and the window on every slave
         for slave, problem in zip(self.slaves, self._each(self._arm_one), strict=True):
             self._set_flag(f"erob/impedance/ring{slave.position}", problem)
 
     def _arm_one(self, slave: _Slave) -> tuple[str, Level] | None:
         with slave.lock:
+            if self._closing:  # close() resets this slave after us, or has already: arm nothing
+                return None
             where = f"{slave.joint} (ring {slave.position})"
             try:
                 if slave.window_counts is not None and slave.factory_window is None:
@@ -261,6 +278,9 @@ class ImpedanceManager(SafetyFlags):
                     if problem is not None and problem[1] is Level.ERROR:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
                                            f"{mode.value} gains not applied: {problem[0]}")
+                    if not slave.gate_armed:
+                        return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
+                                           f"{mode.value} gains not applied: the manager is closing")
                 with slave.lock:
                     try:
                         for address, value in write_order(slave.registers, new):
@@ -292,6 +312,7 @@ class ImpedanceManager(SafetyFlags):
 
     def close(self) -> list[str]:
         """Stop following modes and reset the gate to 0 on every reachable slave; returns failures."""
+        self._closing = True
         if self._worker is not None:
             self._queue.put(None)
             self._worker.join(timeout=5.0)

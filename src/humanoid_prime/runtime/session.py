@@ -331,10 +331,11 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         manager.add_flag_source(impedance)
         # Normally closed by run_loop while the loop still ticks; this covers an exception on the way.
         stack.callback(lambda: session.gate_reset_failures.extend(impedance.close()))
-        # The bus is ready and joint states have flowed (the first tick); arm the gate and follow the mode.
+        # The bus is ready and joint states have flowed (the first tick); the worker arms the gate (while the
+        # loop already ticks) and follows the mode.
         impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0,
                         why_not_ready=lambda: ethercat.master.readiness())
-        plan.stage("impedance manager armed", t)
+        plan.stage("impedance manager started", t)
     if plan.control is not None:
         serve(session, plan.control)
         stack.callback(plan.control.detach)  # answering stops, and limp joints are reset, before teardown

@@ -74,7 +74,8 @@ def test_a_recording_replays_into_the_view(browser, tmp_path):
     recording = tmp_path / "run.mcap"
     subprocess.run([*PRIME, "sim", "--fast", "--record", str(recording)], check=True, capture_output=True,
                    timeout=300)
-    replay, url = start("replay", str(recording), "--port", "0", "--speed", "4")
+    # --loop: the replay starts at once, and a browser slowed by a busy machine may join after STANDBY has passed
+    replay, url = start("replay", str(recording), "--port", "0", "--speed", "4", "--loop")
     try:
         page = browser.page
         page.goto(url)

@@ -368,3 +368,22 @@ def test_a_gate_that_failed_to_arm_is_armed_before_gains_and_stays_flagged_until
     assert drives.values[4]["gate"] == 1 and drives.registers(4) == (515, 19, 0)
     assert mgr.flags == {}
     mgr.close()
+
+
+def test_a_bug_in_the_arming_is_flagged_and_no_gain_is_written(robot, gains, monkeypatch):
+    drives = DriveMailboxes()
+    topics = TopicBus()
+    mgr = make(robot, gains, drives)
+    publish_joint_states(topics, robot)
+    topics.publish(CONTROL_MODE, ControlMode("STANDBY", "standby_controller"))
+
+    def broken() -> None:
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(mgr, "arm", broken)
+    mgr.start(topics, lambda: True)
+    assert mgr.wait_armed(5.0) and mgr.wait_idle(5.0)
+    assert mgr.flags["erob/impedance/arming"] == "gate not armed: RuntimeError: boom"
+    assert mgr.flags["erob/impedance/worker"].startswith("mode STANDBY not applied: PrimeError")
+    assert drives.log == []
+    mgr.close()

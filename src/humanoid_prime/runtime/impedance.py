@@ -178,6 +178,8 @@ class ImpedanceManager(SafetyFlags):
     def _run(self) -> None:
         try:
             self.arm()
+        except Exception as exc:  # a bug, not a bus error (those are flagged per slave): say it, keep following
+            self.set_flag("erob/impedance/arming", f"gate not armed: {type(exc).__name__}: {exc}")
         finally:
             self._arming_done.set()
         while True:

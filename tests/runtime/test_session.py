@@ -32,7 +32,7 @@ def test_a_full_session_comes_up_in_the_documented_stages(doubled):
     assert np.all(np.isfinite(session.manager.resources.state.position))  # all 14 joints measured
 
 
-def test_from_bring_up_on_no_thread_holds_the_interpreter_longer_than_a_tenth_of_the_period(doubled, monkeypatch):
+def test_from_bring_up_on_the_interpreter_switches_threads_within_a_tenth_of_the_period(doubled, monkeypatch):
     # the keeper thread sends the frames between bring-up and the loop while the main thread builds controllers
     from doubles.master import FakeMaster
 

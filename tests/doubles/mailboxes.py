@@ -31,6 +31,7 @@ class DriveMailboxes:
         self.log: list[tuple[float, int, str, int]] = []  # accepted writes
         self.fail_next: dict[int, int] = {}  # position -> number of writes to refuse
         self.dead: set[int] = set()
+        self.held: dict[int, threading.Event] = {}  # position -> writes there wait until the event is set
         self.in_flight = 0  # transfers being served now, and the most ever served at once
         self.most_in_flight = 0
         self._lock = threading.Lock()
@@ -61,8 +62,15 @@ class DriveMailboxes:
         self._serve()
         return self.values[position][name].to_bytes(self.sizes[name], "little")
 
+    def hold(self, position: int) -> threading.Event:
+        """Writes to ``position`` wait until the returned event is set."""
+        release = self.held[position] = threading.Event()
+        return release
+
     def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
         name = self._check(position, index, sub_index)
+        if position in self.held:
+            self.held[position].wait()
         self._serve()
         with self._lock:
             if self.fail_next.get(position, 0) > 0:

@@ -287,21 +287,11 @@ def test_the_worker_arms_the_gate_before_any_mode_and_a_mode_asked_meanwhile_is_
     mgr = make(robot, gains, drives)
     publish_joint_states(topics, robot)
     topics.publish(CONTROL_MODE, ControlMode("ZERO_TORQUE", "zero_torque_controller"))
-    hold = threading.Lock()
-    hold.acquire()  # the first slave's arming waits on this: the loop would be ticking meanwhile
-    write = drives.sdo_write
-
-    def held_write(position, index, sub_index, data, **kw):
-        if position == 0:
-            with hold:
-                pass
-        return write(position, index, sub_index, data, **kw)
-
-    drives.sdo_write = held_write
+    release = drives.hold(0)  # the first slave's arming waits on this: the loop would be ticking meanwhile
     mgr.start(topics, lambda: True)  # returns with the arming under way
     topics.publish(CONTROL_MODE, ControlMode("STANDBY", "standby_controller"))
     assert not mgr.wait_armed(0.05) and mgr.reports == []
-    hold.release()
+    release.set()
     assert mgr.wait_armed(5.0) and mgr.wait_idle(5.0)
     for position in range(10):
         writes = [entry[2] for entry in drives.log if entry[1] == position]
@@ -316,22 +306,12 @@ def test_a_close_during_the_arming_leaves_every_gate_reset(robot, gains):
     topics = TopicBus()
     mgr = make(robot, gains, drives)
     publish_joint_states(topics, robot)
-    hold = threading.Lock()
-    hold.acquire()
-    write = drives.sdo_write
-
-    def held_write(position, index, sub_index, data, **kw):
-        if position == 9:
-            with hold:
-                pass
-        return write(position, index, sub_index, data, **kw)
-
-    drives.sdo_write = held_write
+    release = drives.hold(9)
     mgr.start(topics, lambda: True)
     closing = threading.Thread(target=lambda: failures.extend(mgr.close()))
     failures: list[str] = []
     closing.start()
-    hold.release()
+    release.set()
     closing.join(10.0)
     assert failures == [] and not closing.is_alive()
     assert all(drives.values[p]["gate"] == 0 for p in range(10))

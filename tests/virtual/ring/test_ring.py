@@ -424,3 +424,18 @@ def test_remapped_inputs_fill_sm3_in_the_new_order():
     ring.advance(master.now_ns)
     position, statusword = struct.unpack("<iH", master.fprd(0x1001, 0x1180, 6).data)
     assert (position, statusword) == (round(0.5 * COUNTS_PER_RAD), 0x0250)
+
+
+# ---- time -------------------------------------------------------------------------------------------------------
+def test_behind_real_time_the_physics_catches_up_at_most_max_steps_per_call():
+    ring, master = make(1, physics_dt_s=0.001)
+    steps = []
+    step = ring.plant.step
+    ring.plant.step = lambda *args: (steps.append(1), step(*args))
+    master.now_ns += 10 * MS  # a stalled host: ten physics steps are due
+    assert ring.advance(master.now_ns, max_steps=3) is False
+    assert len(steps) == 3
+    while not ring.advance(master.now_ns, max_steps=3):
+        pass
+    assert len(steps) == 10
+    assert ring.advance(master.now_ns) is True and len(steps) == 10

@@ -188,19 +188,21 @@ class Ring:
         return wkc
 
     # ---- time --------------------------------------------------------------------------------------------
-    def advance(self, now_ns: int) -> None:
-        """Integrate drives and plant up to ``now_ns``, run the slaves' timed checks, refresh inputs."""
+    def advance(self, now_ns: int, max_steps: int | None = None) -> bool:
+        """Integrate drives and plant up to ``now_ns`` (at most ``max_steps`` physics steps of it), run the
+        slaves' timed checks and refresh their inputs; True when the physics has caught up with ``now_ns``."""
         self.finish_frame()
         dt_ns = self._dt_ns
         if now_ns - self._sim_ns > _MAX_CATCH_UP_NS:
             self._sim_ns = now_ns - dt_ns
+        until_ns = now_ns if max_steps is None else min(now_ns, self._sim_ns + max_steps * dt_ns)
         plant = self.plant
         slaves = self.slaves
         powered = self.powered
         torque = self._torque
         braked = self._braked
         dt = dt_ns / 1e9
-        while self._sim_ns + dt_ns <= now_ns:
+        while self._sim_ns + dt_ns <= until_ns:
             q = plant.q.tolist()
             qd = plant.qd.tolist()
             for i, slave in enumerate(slaves):
@@ -221,6 +223,7 @@ class Ring:
             slave.tick(now_ns)
             slave.drive.update_feedback(q[i], qd[i])
             slave.refresh_inputs()
+        return self._sim_ns + dt_ns > now_ns
 
 
 def _physical(command: int, slave: ErobFirmware, ado: int, frame: bytearray, data: int, length: int) -> int:

@@ -4,7 +4,8 @@ channel served in the same loop.
 
 SOEM waits 2 ms for a frame before it gives up on it (EC_TIMEOUTRET), so the loop keeps pauses short:
 the garbage collector is frozen after start-up and disabled while serving (generation-0 collections run
-only when the ring has been idle for a while), and the reply is sent before the plant is advanced.
+only when the ring has been idle for a while), the reply is sent before the plant is advanced, and a plant
+that fell behind catches up one physics step between two looks at the sockets.
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ from humanoid_prime.virtual.ring.ring import Ring
 
 _TURNAROUND_SAMPLES = 65536
 _IDLE_GC_NS = 200_000_000  # collect generation 0 only after this long without a frame
+# Physics steps between two looks at the sockets: behind real time (a stalled host), the plant catches up one
+# step at a time and a frame waiting meanwhile is answered after at most one step, not after all of them.
+_STEPS_PER_LOOK = 1
 
 
 class EmulatorServer:
@@ -96,10 +100,11 @@ class EmulatorServer:
         gc.freeze()
         gc.disable()
         self.running = True
+        caught_up = True
         try:
             while self.running:
                 timeout_ms = 1
-                if self._delayed and min(t for t, _frame in self._delayed) <= self.clock():
+                if not caught_up or (self._delayed and min(t for t, _frame in self._delayed) <= self.clock()):
                     timeout_ms = 0
                 for fd, _event in poller.poll(timeout_ms):
                     if fd == raw_fd:
@@ -113,7 +118,7 @@ class EmulatorServer:
                 now = self.clock()
                 if self._delayed:
                     self._send_due(now)
-                ring.advance(now)
+                caught_up = ring.advance(now, max_steps=_STEPS_PER_LOOK)
                 if now - self._last_frame_ns > _IDLE_GC_NS and now - self._last_gc_ns > _IDLE_GC_NS:
                     gc.collect(0)
                     self._last_gc_ns = now

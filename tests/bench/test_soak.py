@@ -42,6 +42,46 @@ def test_a_returned_slave_is_latched_when_its_drive_waited_disabled_for_the_oper
     assert injection.outcome == "latched" == LOST.expect
 
 
+def test_a_returned_drive_released_on_gains_nobody_chose_is_not_as_designed():
+    injection = Injection(LOST, at_s=10.0, done_s=11.0, released_wrong="ring 9 was released with gate 0")
+    judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/disabled", 18.0, 18.1)], ended_s=60.0, resets=[18.05])
+    assert injection.outcome == "released on settings nobody chose" != LOST.expect
+
+
+class _Impedance:
+    """What the soak's check reads of the impedance manager: the mode applied last and its registers."""
+
+    def __init__(self, targets):
+        from humanoid_prime.modes import Mode
+
+        self.mode, self.reports, self.targets = Mode.STANDBY, [], {Mode.STANDBY: targets}
+
+    def wait_idle(self, timeout):
+        return True
+
+
+class _Control:
+    def __init__(self, drive):
+        self.drive = drive
+
+    def slave(self, position):
+        return {"drive": self.drive}
+
+
+def test_the_soak_checks_the_returned_drive_holds_the_gate_and_the_applied_modes_registers():
+    from types import SimpleNamespace
+
+    from humanoid_prime.bench.soak import LOST_RING
+    from humanoid_prime.drivers.erob.gains import ErobRegisters
+
+    session = SimpleNamespace(impedance=_Impedance({LOST_RING: ErobRegisters(pos_reg=515, vel_reg=19, integral=5)}))
+    restored = {"gate": 1, "pos_reg": 515, "vel_reg": 19, "integral": 5}
+    assert LOST.verify(_Control(restored), session) is None
+    problem = LOST.verify(_Control({**restored, "gate": 0, "pos_reg": 300, "vel_reg": 94}), session)
+    assert problem == ("ring 9 was released with gate 0 and registers (300, 94, 5), not the gate 1 and STANDBY's "
+                       "(515, 19, 5)")
+
+
 def test_a_drive_fault_is_latched_only_when_the_operators_reset_cleared_it():
     flag = [record("PrimeEtherCATSide/ethercat/ring6/fault", 10.05, 10.5)]
     reset = Injection(DRIVE_FAULT, at_s=10.0, done_s=10.0)

@@ -10,7 +10,7 @@ import struct
 import can
 
 from doubles.mailboxes import FACTORY_WINDOW
-from doubles.master import FakeMaster
+from doubles.master import SWITCH_ON_DISABLED, FakeMaster
 from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.erob.objects import (
@@ -46,14 +46,17 @@ class DoubledRobot:
     def _ethercat(self, settings: registry.ComponentSettings) -> EthercatSystem:
         master = FakeMaster(update_rate=settings.update_rate, bringup_rate=settings.bringup_rate)
         for position in range(len(master.found)):
-            for address, value in zip((POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL), FACTORY_REGISTERS,
-                                      strict=True):
-                master.objects[(position, *address)] = struct.pack("<H", value)  # UNSIGNED16, as the EDS has them
-            master.objects[(position, *BUS_GAIN_GATE)] = struct.pack("<I", 0)
-            master.objects[(position, FOLLOWING_ERROR_WINDOW, 0)] = struct.pack("<i", FACTORY_WINDOW)
+            _factory_objects(master, position)
         self.master = master
         return EthercatSystem(settings.robot, settings.calibration, update_rate=settings.update_rate,
                               bringup_rate=settings.bringup_rate, master=master)
+
+    def power_cycle(self, position: int) -> None:
+        """The drive at ``position`` lost power and came back: factory gate, window and gains, switch-on
+        disabled (its slave back in OP at once)."""
+        assert self.master is not None
+        _factory_objects(self.master, position)
+        self.master.statusword[position] = SWITCH_ON_DISABLED
 
     def options(self, **fields: object) -> BringupOptions:
         return BringupOptions(can_interface="virtual", can_channel=self.channel, **fields)
@@ -65,3 +68,10 @@ class DoubledRobot:
         if plan.options.control_socket is not None:
             claim_control_socket(plan, self.stack)
         return open_session(plan, self.stack)
+
+
+def _factory_objects(master: FakeMaster, position: int) -> None:
+    for address, value in zip((POS_LOOP_GAIN, VEL_LOOP_GAIN, VEL_LOOP_INTEGRAL), FACTORY_REGISTERS, strict=True):
+        master.objects[(position, *address)] = struct.pack("<H", value)  # UNSIGNED16, as the EDS has them
+    master.objects[(position, *BUS_GAIN_GATE)] = struct.pack("<I", 0)
+    master.objects[(position, FOLLOWING_ERROR_WINDOW, 0)] = struct.pack("<i", FACTORY_WINDOW)

@@ -367,3 +367,40 @@ def test_a_bug_in_the_arming_is_flagged_and_no_gain_is_written(robot, gains, mon
     assert mgr.flags["erob/impedance/worker"].startswith("mode STANDBY not applied: PrimeError")
     assert drives.log == []
     mgr.close()
+
+
+class Dropped:
+    """The EtherCAT side's held drives, as the impedance manager sees them."""
+
+    def __init__(self, positions):
+        self.restores_settings = False
+        self.waiting = list(positions)
+        self.released: list[int] = []
+
+    def awaiting_restore(self):
+        return [p for p in self.waiting if p not in self.released]
+
+    def settings_restored(self, position):
+        self.released.append(position)
+
+
+def test_a_slave_back_from_a_power_loss_gets_window_gate_and_the_current_modes_gains_again(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives)
+    mgr._dropped = dropped = Dropped([])
+    mgr.arm()
+    mgr.apply(Mode.STANDBY)
+    chosen = dict(drives.values[5])
+    drives.values[5] = {"gate": 0, "pos_reg": 300, "vel_reg": 94, "integral": 5, "window": FACTORY_WINDOW}
+    dropped.waiting = [5]
+    drives.fail_next[5] = 100  # the restore fails: the drive stays held, and it is flagged
+    mgr._restore_dropped()
+    assert dropped.released == []
+    assert "ring 5" in mgr.flags["erob/impedance/ring5"] and "stays held disabled" in mgr.flags["erob/impedance/ring5"]
+    drives.fail_next[5] = 0
+    mgr._restore_dropped()
+    assert dropped.released == [5] and drives.values[5] == chosen
+    assert "erob/impedance/ring5" not in mgr.flags
+    names = [name for _, position, name, _ in mgr.sdo_log[-5:] if position == 5]
+    assert names[:2] == ["following_window", "gate"]  # the window, then the gate, before any gain
+    mgr.close()

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, FOLLOWING_ERROR_WINDOW, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.run import close_impedance_while_ticking, run_loop
@@ -183,3 +183,41 @@ def test_the_bringup_loop_runs_at_least_twice_as_fast_as_sync0_up_to_the_erobs_2
     assert default_bringup_rate(1000.0, 1000.0) == 2000.0
     assert default_bringup_rate(1000.0, 2000.0) == 2000.0
     assert default_bringup_rate(1500.0, 50.0) == 1500.0
+
+
+def registers(master, position: int) -> tuple[int, int]:
+    return tuple(struct.unpack("<H", master.objects[(position, *a)])[0] for a in (POS_LOOP_GAIN, VEL_LOOP_GAIN))
+
+
+def window(master, position: int) -> int:
+    return struct.unpack("<i", master.objects[(position, FOLLOWING_ERROR_WINDOW, 0)])[0]
+
+
+def test_a_drive_back_from_a_power_loss_gets_its_window_gate_and_gains_again_before_a_reset_enables_it(doubled):
+    from doubles.master import OPERATION_ENABLED
+
+    session = doubled.open()
+    master, manager = doubled.master, session.manager
+    manager.request_mode(Mode.STANDBY)
+    run_ticks(session, 5)
+    assert session.impedance.wait_idle(10.0)
+    assert master.statusword[3] == OPERATION_ENABLED
+    chosen = registers(master, 3), window(master, 3)
+    doubled.power_cycle(3)
+    assert (gate(master, 3), registers(master, 3)) == (0, (300, 94))  # factory, as a drive that lost power
+    run_ticks(session, 1)
+    assert "reset" in session.ethercat.flags["ethercat/ring3/disabled"]
+    deadline = threading.Event()
+    for _ in range(2000):  # the worker restores it within its next looks; ticks go on meanwhile
+        if session.impedance.restored:
+            break
+        deadline.wait(0.005)
+        run_ticks(session, 1)
+    assert [joint for _, joint in session.impedance.restored] == [session.impedance.slaves[3].joint]
+    assert (gate(master, 3), (registers(master, 3), window(master, 3))) == (1, chosen)
+    run_ticks(session, 5)
+    assert master.statusword[3] != OPERATION_ENABLED  # restored, still held until the operator's reset
+    manager.request_reset()
+    run_ticks(session, 5)
+    assert master.statusword[3] == OPERATION_ENABLED
+    assert "ethercat/ring3/disabled" not in session.ethercat.flags

@@ -47,6 +47,7 @@ MODE_CYCLE = (Mode.ZERO_TORQUE, Mode.DAMPING, Mode.STANDBY, Mode.LOCOMOTION, Mod
 SETTLE_S = 3.0  # how long after an injection (or its end) the stack has to flag and recover
 LOST_RING = 9  # the last slave: losing it leaves the rest of the line reachable
 READ_ONLY_ABORT = "0X06010002"  # CiA 301 abort: attempt to write a read-only object
+VERIFY_READS = 3
 
 
 @dataclass
@@ -58,6 +59,8 @@ class Fault:
     inject: Callable[[Any, Any], Any]  # (virtual prime control, session) -> what happened
     hold_s: float = 0.0  # how long the fault lasts before ``end`` undoes it
     end: Callable[[Any], None] | None = None
+    # after the operator's reset of a latched fault: what is wrong with the drive it released (None: nothing)
+    verify: Callable[[Any, Any], str | None] | None = None
     also: tuple[str, ...] = ()  # flags it may raise besides ``flag`` (consequences, not surprises)
     settle_s: float = SETTLE_S  # how long after it ended the stack has to flag (and, latched, be reset)
 
@@ -81,6 +84,26 @@ def _sdo_abort(control: Any, session: Any) -> str:
     raise PrimeError("the drive accepted a write to its read-only 0x6076")
 
 
+def _settings_restored(control: Any, session: Any) -> str | None:
+    """The returned drive holds the gate and the gains of the mode the impedance manager applied last: a drive
+    that lost power comes back on factory gains, and must not be enabled on them."""
+    impedance = session.impedance
+    if impedance is None:
+        return None
+    for _ in range(VERIFY_READS):  # a mode switch between the two reads: read again
+        impedance.wait_idle(5.0)
+        mode, switches = impedance.mode, len(impedance.reports)
+        drive = control.slave(LOST_RING)["drive"]
+        want = impedance.targets[mode][LOST_RING]
+        held = (drive["gate"], drive["pos_reg"], drive["vel_reg"], drive["integral"])
+        if held == (1, want.pos_reg, want.vel_reg, want.integral):
+            return None
+        if len(impedance.reports) == switches:
+            break
+    return (f"ring {LOST_RING} was released with gate {held[0]} and registers {held[1:]}, not the gate 1 and "
+            f"{mode.value}'s {(want.pos_reg, want.vel_reg, want.integral)}")
+
+
 FAULTS: tuple[Fault, ...] = (
     Fault("one EtherCAT frame lost", "ethercat", "counted", None,
           lambda c, s: c.call("drop", count=1, where="request")),
@@ -93,7 +116,7 @@ FAULTS: tuple[Fault, ...] = (
     # back in OP once it has relocked (350 frames at the control rate: 7 s at 50 Hz), its drive held disabled
     Fault("slave lost and returned", "ethercat", "latched", f"*/ethercat/ring{LOST_RING}/disabled",
           lambda c, s: c.call("lose", position=LOST_RING), hold_s=1.0,
-          end=lambda c: c.call("restore", position=LOST_RING), settle_s=15.0,
+          end=lambda c: c.call("restore", position=LOST_RING), settle_s=15.0, verify=_settings_restored,
           also=(f"*/ethercat/ring{LOST_RING}/lost", "*/ethercat/wkc",
                 "*/erob/impedance/ring*")),  # a mode switch meanwhile is refused, and flagged
     Fault("drive fault 0x7500", "ethercat", "latched", "*/ethercat/ring6/fault",
@@ -117,6 +140,7 @@ class Injection:
     outcome: str = ""
     detail: str = ""
     flags: list[str] = field(default_factory=list)
+    released_wrong: str | None = None  # what ``Fault.verify`` found wrong after the reset
 
     @property
     def ended_s(self) -> float:
@@ -198,11 +222,18 @@ class Injector(threading.Thread):
     def _reset_when_flagged(self, injection: Injection) -> None:
         deadline = time.monotonic() + injection.fault.settle_s
         while time.monotonic() < deadline and not self.stop.is_set():
-            whole = injection.fault.bus != "ethercat" or self.session.ethercat.master.slave_ok.all()
+            ethercat = self.session.ethercat
+            whole = injection.fault.bus != "ethercat" or (ethercat.master.slave_ok.all()
+                                                          and not ethercat.restore_pending())
             if whole and any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
                              for r in list(self.session.faults)):  # the operator resets once the ring is whole
+                # and its drives' settings are back
                 self.resets.append(self._now())
                 self.session.manager.request_reset()
+                if injection.fault.verify is not None:
+                    injection.released_wrong = injection.fault.verify(self.control, self.session)
+                    if injection.released_wrong:
+                        injection.detail = injection.released_wrong
                 return
             time.sleep(0.02)
 
@@ -236,7 +267,8 @@ def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: fl
         injection.outcome = "held"  # still flagged long after it ended
     elif fault.expect == "latched":
         by_reset = all(r.until_s is None or any(injection.at_s <= t <= r.until_s for t in resets) for r in raised)
-        injection.outcome = "latched" if by_reset else "recovered without a reset"
+        injection.outcome = ("recovered without a reset" if not by_reset
+                             else "released on settings nobody chose" if injection.released_wrong else "latched")
     else:
         injection.outcome = "recovered"
 

@@ -16,6 +16,9 @@ per mode, not per tick (DESIGN §2, §3). The manager:
   pair stiffer than both modes;
 - writes all slaves concurrently (one worker per slave) unless ``parallel`` is off;
 - retries a failed write a bounded number of times, then raises a safety flag for that slave;
+- restores a slave that dropped out (power or link) once it is back in OP: its window, its gate and the
+  current mode's gains again, since a drive that lost power comes back with factory values; its drive stays
+  held disabled until then (``DroppedDrives``), so a reset never enables it on gains nobody chose;
 - on close resets the gate to 0 on every reachable slave, so the next bringup starts on factory gains, then
   puts back the following-error window.
 
@@ -31,6 +34,7 @@ import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level, SafetyFlags
@@ -84,12 +88,24 @@ class SwitchReport:
 
 
 RETRY_BACKOFF_S = 0.005
+RESTORE_POLL_S = 0.05  # how often the worker looks for a slave back from a drop, between mode changes
 # The following-error window admits this much more than the sag of a joint holding its effort limit at the
 # stiffest mode's nominal kp: the drive realises about 0.7x the nominal stiffness (DESIGN §2), 1/0.7 = 1.43.
 WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
 
 _NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral"}
 _LOGGED = {**_NAMES, BUS_GAIN_GATE: "gate", (FOLLOWING_ERROR_WINDOW, 0x00): "following_window"}
+
+
+class DroppedDrives(Protocol):
+    """The drives held disabled after their slave dropped out (``EthercatSystem``): which wait, back in OP,
+    for their settings, and the word that they are restored."""
+
+    restores_settings: bool
+
+    def awaiting_restore(self) -> list[int]: ...
+
+    def settings_restored(self, position: int) -> None: ...
 
 
 @dataclass
@@ -126,7 +142,11 @@ class ImpedanceManager(SafetyFlags):
             for mode, (kp, kd) in self.mode_gains.items()
         }
         self.reports: list[SwitchReport] = []
+        self.restored: list[tuple[float, str]] = []  # (time, joint): a slave back from a drop, its settings restored
         self.armed = False
+        self.mode: Mode | None = None  # the mode whose gains were last applied
+        self._by_position = {s.position: s for s in self.slaves}
+        self._dropped: DroppedDrives | None = None
         self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
         self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
             if parallel and self.slaves else None
@@ -143,14 +163,17 @@ class ImpedanceManager(SafetyFlags):
 
     # ----------------------------------------------------------------------------------- running
     def start(self, topics: TopicBus, bus_ready: Callable[[], bool], *, timeout: float = 30.0,
-              why_not_ready: Callable[[], str] | None = None) -> None:
+              why_not_ready: Callable[[], str] | None = None, dropped: DroppedDrives | None = None) -> None:
         """Wait for OP and flowing joint states; then the worker arms the gate and follows ``/control_mode``.
 
         The arming's SDOs go out from the worker, so the control loop may already be feeding the drives: ten
         workers' mailbox traffic beside a keeper thread of normal priority starved its frames at 1 kHz.
         ``wait_armed`` waits for the arming. ``why_not_ready`` words what the bus lacks for the error when the
-        wait runs out."""
+        wait runs out. With ``dropped``, the worker also restores each slave that comes back from a drop."""
         self._topics = topics
+        if dropped is not None:
+            self._dropped = dropped
+            dropped.restores_settings = True
         topics.subscribe(JOINT_STATES, self._on_joint_states, latched=True)
         deadline = self.clock() + timeout
         while not (bus_ready() and self._joint_states_seen.is_set()):
@@ -183,7 +206,11 @@ class ImpedanceManager(SafetyFlags):
         finally:
             self._arming_done.set()
         while True:
-            mode = self._queue.get()
+            try:
+                mode = self._queue.get(timeout=RESTORE_POLL_S if self._dropped is not None else None)
+            except queue.Empty:
+                self._restore_dropped()
+                continue
             taken = 1
             while not self._queue.empty():  # coalesce: only the newest request matters
                 mode = self._queue.get_nowait()
@@ -198,6 +225,7 @@ class ImpedanceManager(SafetyFlags):
                 with self._idle:
                     self._done += taken
                     self._idle.notify_all()
+            self._restore_dropped()
 
     def wait_armed(self, timeout: float = 5.0) -> bool:
         """Block until the worker has armed the gate (or found it could not); False on timeout."""
@@ -241,14 +269,16 @@ class ImpedanceManager(SafetyFlags):
         for slave, problem in zip(self.slaves, self._each(self._arm_one), strict=True):
             self._set_flag(f"erob/impedance/ring{slave.position}", problem)
 
-    def _arm_one(self, slave: _Slave) -> tuple[str, Level] | None:
+    def _arm_one(self, slave: _Slave, again: bool = False) -> tuple[str, Level] | None:
+        """The window, then the gate; ``again`` for a slave whose drive may have lost both (back from a drop)."""
         with slave.lock:
             if self._closing:  # close() resets this slave after us, or has already: arm nothing
                 return None
             where = f"{slave.joint} (ring {slave.position})"
             try:
-                if slave.window_counts is not None and slave.factory_window is None:
-                    slave.factory_window = self.objects.read(slave.position, WINDOW)
+                if slave.window_counts is not None and (slave.factory_window is None or again):
+                    if slave.factory_window is None:
+                        slave.factory_window = self.objects.read(slave.position, WINDOW)
                     self._write(slave, WINDOW, max(slave.window_counts, slave.factory_window))
                 self._write(slave, BUS_GAIN_GATE, 1)
             except Exception as exc:
@@ -273,8 +303,6 @@ class ImpedanceManager(SafetyFlags):
 
             def switch_one(slave: _Slave) -> SlaveSwitch:
                 new = targets[slave.position]
-                written: list[tuple[str, int]] = []
-                retries = 0
                 if not slave.gate_armed:  # gain writes are ignored until the gate is 1: arm it first
                     problem = self._arm_one(slave)
                     if problem is not None and problem[1] is Level.ERROR:
@@ -283,20 +311,10 @@ class ImpedanceManager(SafetyFlags):
                     if not slave.gate_armed:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
                                            f"{mode.value} gains not applied: the manager is closing")
-                with slave.lock:
-                    try:
-                        for address, value in write_order(slave.registers, new):
-                            retries += self._write(slave, address, value)
-                            written.append((_NAMES[address], value))
-                            slave.registers = _updated(slave.registers, address, value)
-                        slave.registers = new
-                        error = None
-                    except Exception as exc:
-                        done = ", ".join(name for name, _ in written) or "nothing"
-                        error = f"{mode.value} gains not fully applied ({done} written): {exc}"
-                return SlaveSwitch(slave.position, slave.joint, tuple(written), retries,
-                                   self.clock() - start, error)
+                written, retries, error = self._write_gains(slave, mode, new)
+                return SlaveSwitch(slave.position, slave.joint, written, retries, self.clock() - start, error)
 
+            self.mode = mode
             results = [r for r in self._each(switch_one) if isinstance(r, SlaveSwitch)]
             finished = [r.finished_s for r in results]
             report = SwitchReport(
@@ -311,6 +329,57 @@ class ImpedanceManager(SafetyFlags):
                 self._set_flag(f"erob/impedance/ring{r.position}",
                                (f"{r.joint} (ring {r.position}): {r.error}", Level.ERROR) if r.error else None)
             return report
+
+    def _write_gains(self, slave: _Slave, mode: Mode, new: ErobRegisters
+                     ) -> tuple[tuple[tuple[str, int], ...], int, str | None]:
+        """``mode``'s registers to one armed slave, only those that change, in the safe order: (what was
+        written, retries, error or None)."""
+        written: list[tuple[str, int]] = []
+        retries = 0
+        with slave.lock:
+            try:
+                for address, value in write_order(slave.registers, new):
+                    retries += self._write(slave, address, value)
+                    written.append((_NAMES[address], value))
+                    slave.registers = _updated(slave.registers, address, value)
+                slave.registers = new
+                error = None
+            except Exception as exc:
+                done = ", ".join(name for name, _ in written) or "nothing"
+                error = f"{mode.value} gains not fully applied ({done} written): {exc}"
+        return tuple(written), retries, error
+
+    def _restore_dropped(self) -> None:
+        """Each slave back in OP after a drop: window, gate and the current mode's gains again, then the word
+        that its drive may be released. A slave that fails keeps its drive held and is tried again."""
+        if self._dropped is None or self._closing or not self.armed:
+            return
+        for position in self._dropped.awaiting_restore():
+            slave = self._by_position.get(position)
+            problem = self._restore_one(slave) if slave is not None else None
+            self._set_flag(f"erob/impedance/ring{position}", problem)
+            if (problem is None or problem[1] is Level.WARN) and not self._closing:
+                if slave is not None:
+                    self.restored.append((self.clock(), slave.joint))
+                self._dropped.settings_restored(position)
+
+    def _restore_one(self, slave: _Slave) -> tuple[str, Level] | None:
+        """Window and gate again, then the current mode's gains (all three: what the drive holds is read anew)."""
+        where = f"{slave.joint} (ring {slave.position})"
+        with slave.lock:
+            slave.gate_armed = False
+            slave.registers = None  # a drive that lost power holds its factory gains: read them again
+        problem = self._arm_one(slave, again=True)
+        if problem is not None and problem[1] is Level.ERROR:
+            return f"{problem[0]}; its drive stays held disabled", Level.ERROR
+        if not slave.gate_armed:  # closing
+            return None
+        if self.mode is None:
+            return problem
+        _written, _retries, error = self._write_gains(slave, self.mode, self.targets[self.mode][slave.position])
+        if error is not None:
+            return f"{where}: back from a drop, {error}; its drive stays held disabled", Level.ERROR
+        return None  # the registers are known again, whether or not they could be read back
 
     def close(self) -> list[str]:
         """Stop following modes and reset the gate to 0 on every reachable slave; returns failures."""

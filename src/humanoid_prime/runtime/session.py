@@ -334,7 +334,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         # The bus is ready and joint states have flowed (the first tick); the worker arms the gate (while the
         # loop already ticks) and follows the mode.
         impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0,
-                        why_not_ready=ethercat.master.readiness)
+                        why_not_ready=ethercat.master.readiness, dropped=ethercat)
         plan.stage("impedance manager started", t)
     if plan.control is not None:
         serve(session, plan.control)

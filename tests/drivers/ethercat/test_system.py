@@ -512,6 +512,30 @@ def test_a_drive_that_drops_out_mid_run_stays_disabled_until_the_operators_reset
     assert f"ethercat/ring{ring}/disabled" not in rig.system.flags
 
 
+def test_with_a_settings_keeper_a_reset_releases_a_dropped_drive_only_after_its_settings_are_restored(rig):
+    from doubles.master import SWITCH_ON_DISABLED
+
+    rig.system.restores_settings = True  # as the impedance manager sets it
+    rig.tick()
+    rig.master.statusword[4] = SWITCH_ON_DISABLED  # its slave lost power: factory gains, back in OP
+    rig.tick()
+    assert rig.system.awaiting_restore() == [4]
+    assert "impedance settings are restored" in rig.system.flags["ethercat/ring4/disabled"]
+    rig.system.reset_faults()
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[4] == SWITCH_ON_DISABLED  # the reset came before the settings: still held
+    rig.system.settings_restored(4)
+    rig.tick()
+    assert rig.system.awaiting_restore() == []
+    assert "latched" in rig.system.flags["ethercat/ring4/disabled"]
+    rig.system.reset_faults()
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[4] == OPERATION_ENABLED
+    assert "ethercat/ring4/disabled" not in rig.system.flags
+
+
 def test_a_reset_while_the_slave_is_still_away_leaves_its_drive_held(rig):
     from doubles.master import SWITCH_ON_DISABLED
 

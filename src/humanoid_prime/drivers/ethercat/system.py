@@ -145,6 +145,12 @@ class EthercatSystem(HardwareComponent):
         # would drive the joint, which hung limp meanwhile, straight to the active mode's target.
         self._held_off = np.zeros(n, dtype=bool)
         self._held_off_seen = np.zeros(n, dtype=bool)
+        # A slave that lost power came back with every setting made over SDO gone (the impedance gate, window
+        # and gains): with ``restores_settings`` (the impedance manager is there to restore them), a drive held
+        # disabled is released by a reset only after ``settings_restored`` for its slave.
+        self.restores_settings = False
+        self._restore_pending = np.zeros(n, dtype=bool)
+        self._held_text_stale = False
         self._fault = np.zeros(n, dtype=bool)
         self._held = np.zeros(n)  # the last CSP target sent (raw), what a NaN position command keeps
         self._tick: EcTick | None = None  # the compiled read and write, bound to the process image at start
@@ -314,12 +320,27 @@ class EthercatSystem(HardwareComponent):
 
     def _take_reset(self) -> bool:
         """Whether the operator asked for a reset since the last controlwords. A drive held disabled after
-        dropping out is released by it only once its slave is back in OP: until then it cannot be reset."""
+        dropping out is released by it only once its slave is back in OP and its settings are restored: until
+        then it cannot be reset."""
         if not self._reset_requested:
             return False
         self._reset_requested = False
-        self._held_off &= ~self.master.slave_ok[self.ring]
+        self._held_off &= ~(self.master.slave_ok[self.ring] & ~self._restore_pending)
         return True
+
+    def awaiting_restore(self) -> list[int]:
+        """Ring positions of held drives whose slave is back in OP and whose settings wait to be restored."""
+        ok = self.master.slave_ok[self.ring]
+        return [int(self.ring[k]) for k in np.flatnonzero(self._restore_pending & ok)]
+
+    def restore_pending(self) -> list[int]:
+        """Ring positions of held drives whose settings are not restored yet (their slave in OP or not)."""
+        return [int(self.ring[k]) for k in np.flatnonzero(self._restore_pending)]
+
+    def settings_restored(self, position: int) -> None:
+        """The settings of the drive at ring ``position`` are back: the operator's reset may release it now."""
+        self._restore_pending[int(np.flatnonzero(self.ring == position)[0])] = False
+        self._held_text_stale = True  # the loop's thread rewords the flag: it alone sets and clears it
 
     def _step_controlwords(self, reset: np.ndarray | None = None) -> None:
         """Per drive, the controlword one step toward enabled; drives in ``reset`` that are in fault get a
@@ -346,7 +367,7 @@ class EthercatSystem(HardwareComponent):
             self._update_health_flags()
         if self._fault_seen or faulted:
             self._update_fault_flags()
-        if held_changed:
+        if held_changed or self._held_text_stale:
             self._update_held_flags()
 
     def write(self, now: float, command: CommandArrays) -> None:
@@ -397,15 +418,27 @@ class EthercatSystem(HardwareComponent):
         self._fault_seen = faulted
 
     def _update_held_flags(self) -> None:
+        if self._held_text_stale:
+            self._held_text_stale = False
+            for k in np.flatnonzero(self._held_off & self._held_off_seen):
+                self.set_flag(f"ethercat/ring{int(self.ring[k])}/disabled", self._held_text(k))
         for k in np.flatnonzero(self._held_off != self._held_off_seen):
             key = f"ethercat/ring{int(self.ring[k])}/disabled"
             if self._held_off[k]:
-                self.set_flag(key, f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out of operation "
-                                   "(power or link) and is held disabled, so it cannot snap to the target when it "
-                                   "comes back (latched: r in the live table, or `prime reset`, once it is in OP)")
+                self._restore_pending[k] = self.restores_settings
+                self.set_flag(key, self._held_text(k))
             else:
+                self._restore_pending[k] = False
                 self.clear_flag(key)
         np.copyto(self._held_off_seen, self._held_off)
+
+    def _held_text(self, k: int) -> str:
+        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out of operation (power or link) and "
+                "is held disabled, so it cannot snap to the target when it comes back")
+        if self._restore_pending[k]:
+            return f"{text}; its impedance settings are restored once it is back in OP, then r in the live table, " \
+                   "or `prime reset`, enables it"
+        return f"{text} (latched: r in the live table, or `prime reset`, once it is in OP)"
 
     def _describe_drive(self, k: int) -> str:
         sw, err = int(self._rec_sw[k]), int(self._rec_err[k])

@@ -503,7 +503,7 @@ def test_a_drive_that_drops_out_mid_run_stays_disabled_until_the_operators_reset
     assert rig.master.statusword[ring] == SWITCH_ON_DISABLED
     assert rig.master.sent["controlword"][ring] == 0
     flag = rig.system.flags[f"ethercat/ring{ring}/disabled"]
-    assert f"left_elbow_pitch (ring {ring}): the drive dropped out of operation" in flag
+    assert f"left_elbow_pitch (ring {ring}): the drive dropped out (power or link" in flag
     assert (rig.master.statusword[np.arange(10) != ring] == OPERATION_ENABLED).all()
     rig.system.reset_faults()
     for _ in range(5):
@@ -534,6 +534,37 @@ def test_with_a_settings_keeper_a_reset_releases_a_dropped_drive_only_after_its_
         rig.tick()
     assert rig.master.statusword[4] == OPERATION_ENABLED
     assert "ethercat/ring4/disabled" not in rig.system.flags
+
+
+def test_a_faulted_drive_that_leaves_its_fault_by_itself_is_held_until_the_operators_reset(rig):
+    """A drive in fault that loses power comes back out of it: without a fault reset of ours, that is a drop."""
+    from doubles.master import SWITCH_ON_DISABLED
+
+    rig.tick()
+    rig.master.fault(2, 0x7500)
+    rig.tick()
+    assert "ethercat/ring2/fault" in rig.system.flags
+    rig.master.statusword[2] = SWITCH_ON_DISABLED  # power lost and back: the fault is gone, nobody reset it
+    rig.master.error_code[2] = 0
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[2] == SWITCH_ON_DISABLED and rig.master.sent["controlword"][2] == 0
+    assert "ethercat/ring2/disabled" in rig.system.flags and "ethercat/ring2/fault" not in rig.system.flags
+    rig.system.reset_faults()
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[2] == OPERATION_ENABLED
+
+
+def test_a_drive_the_operators_reset_takes_out_of_its_fault_enables_at_once(rig):
+    rig.tick()
+    rig.master.fault(2, 0x7500)
+    rig.tick()
+    rig.system.reset_faults()
+    for _ in range(6):
+        rig.tick()
+    assert rig.master.statusword[2] == OPERATION_ENABLED
+    assert not {"ethercat/ring2/disabled", "ethercat/ring2/fault"} & set(rig.system.flags)
 
 
 def test_a_reset_while_the_slave_is_still_away_leaves_its_drive_held(rig):

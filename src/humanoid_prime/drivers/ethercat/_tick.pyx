@@ -66,9 +66,10 @@ cdef class EcTick:
     cdef const Py_ssize_t[::1] ring, index
     cdef double[:, ::1] raw, state_factor, state_offset, command_factor, command_offset
     cdef double[::1] held
-    cdef unsigned char[::1] enabled, fault, was_enabled, held_off, held_off_seen
+    cdef unsigned char[::1] enabled, fault, was_enabled, held_off, held_off_seen, was_fault
     cdef const unsigned short[::1] cw_table
-    cdef unsigned short[::1] cw_prev
+    cdef unsigned short[::1] cw_prev, reset_grace
+    cdef public unsigned short grace_ticks  # 0: a drive leaving fault is never held (bring-up)
     cdef unsigned short enabled_mask, enabled_value, fault_mask, fault_value, fault_reset, disable_voltage
     cdef signed char mode
     cdef double target_low, target_high, velocity_low, velocity_high, torque_low, torque_high
@@ -84,7 +85,8 @@ cdef class EcTick:
                  unsigned char[::1] held_off_seen not None, const unsigned short[::1] cw_table not None,
                  unsigned short[::1] cw_prev not None, tuple enabled_pattern, tuple fault_pattern,
                  unsigned short fault_reset, unsigned short disable_voltage, signed char mode,
-                 tuple target_limits, tuple velocity_limits, tuple torque_limits):
+                 tuple target_limits, tuple velocity_limits, tuple torque_limits,
+                 unsigned char[::1] was_fault not None, unsigned short[::1] reset_grace not None):
         cdef Py_ssize_t n = ring.shape[0], k
         if cw_table.shape[0] != 0x80:
             raise ValueError(f"controlword table has {cw_table.shape[0]} entries, expected 128")
@@ -94,7 +96,8 @@ cdef class EcTick:
         for name, length in (("index", index.shape[0]), ("rec", rec.shape[0]), ("held", held.shape[0]),
                              ("enabled", enabled.shape[0]), ("fault", fault.shape[0]),
                              ("was_enabled", was_enabled.shape[0]), ("held_off", held_off.shape[0]),
-                             ("held_off_seen", held_off_seen.shape[0]), ("cw_prev", cw_prev.shape[0])):
+                             ("held_off_seen", held_off_seen.shape[0]), ("cw_prev", cw_prev.shape[0]),
+                             ("was_fault", was_fault.shape[0]), ("reset_grace", reset_grace.shape[0])):
             if length != n:
                 raise ValueError(f"{name} has {length} entries for {n} joints")
         for name, rows, columns in (("raw", raw.shape[0], raw.shape[1]),
@@ -110,6 +113,7 @@ cdef class EcTick:
         self.command_factor, self.command_offset = command_factor, command_offset
         self.enabled, self.fault, self.was_enabled = enabled, fault, was_enabled
         self.held_off, self.held_off_seen = held_off, held_off_seen
+        self.was_fault, self.reset_grace, self.grace_ticks = was_fault, reset_grace, 0
         self.cw_table, self.cw_prev = cw_table, cw_prev
         self.enabled_mask, self.enabled_value = enabled_pattern
         self.fault_mask, self.fault_value = fault_pattern
@@ -137,8 +141,10 @@ cdef class EcTick:
         return faulted
 
     def read(self, double[:, ::1] state not None):
-        """Gather, hold disabled every drive that was enabled in the last frame and is now neither enabled nor
-        in fault (it dropped out: power or link), and write position, velocity and effort into ``state``.
+        """Gather, hold disabled every drive that dropped out (power or link), and write position, velocity and
+        effort into ``state``. A drive dropped out when it was enabled in the last frame and is now neither
+        enabled nor in fault, or (with ``grace_ticks``) when it left a fault no fault reset of ours asked it to
+        leave within ``grace_ticks`` frames: a drive that loses power comes back out of its fault.
         Returns (drives in fault, whether the held-disabled set differs from ``held_off_seen``)."""
         cdef Py_ssize_t k, row
         cdef int faulted = self.gather()
@@ -146,6 +152,13 @@ cdef class EcTick:
         for k in range(self.n):
             if self.was_enabled[k] and not self.enabled[k] and not self.fault[k]:
                 self.held_off[k] = True
+            if self.grace_ticks and self.was_fault[k] and not self.fault[k] and self.reset_grace[k] == 0:
+                self.held_off[k] = True
+            if not self.fault[k]:
+                self.reset_grace[k] = 0
+            elif self.reset_grace[k]:
+                self.reset_grace[k] -= 1
+            self.was_fault[k] = self.fault[k]
             self.was_enabled[k] = self.enabled[k]
             held_changed |= self.held_off[k] != self.held_off_seen[k]
             for row in range(3):
@@ -166,6 +179,8 @@ cdef class EcTick:
                 cw = self.disable_voltage
             if cw == self.fault_reset and self.cw_prev[k] == self.fault_reset:
                 cw = self.disable_voltage
+            if cw == self.fault_reset:
+                self.reset_grace[k] = self.grace_ticks
             self.cw_prev[k] = cw
             self.outputs[self.ring[k]].controlword = cw
 

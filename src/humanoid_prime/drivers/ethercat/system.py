@@ -78,6 +78,7 @@ def _pdo_limits(field: str) -> tuple[float, float]:
     return float(limits.min), float(limits.max)
 
 
+FAULT_RESET_GRACE_S = 0.5  # a drive out of its fault within this long of our fault reset left it by that reset
 _TARGET_LIMITS = _pdo_limits("target_position")
 _VELOCITY_OFFSET_LIMITS = _pdo_limits("velocity_offset")
 # 0x60B2 accepts +-3000 per mille of the rated torque (ZeroErr EDS V1.5), narrower than its INTEGER16
@@ -145,6 +146,9 @@ class EthercatSystem(HardwareComponent):
         # would drive the joint, which hung limp meanwhile, straight to the active mode's target.
         self._held_off = np.zeros(n, dtype=bool)
         self._held_off_seen = np.zeros(n, dtype=bool)
+        # So is a drive that leaves a fault by itself once running: it lost power, and its fault with it.
+        self._was_fault = np.zeros(n, dtype=bool)
+        self._reset_grace = np.zeros(n, np.uint16)  # frames left in which a fault reset of ours may take effect
         # A slave that lost power came back with every setting made over SDO gone (the impedance gate, window
         # and gains): with ``restores_settings`` (the impedance manager is there to restore them), a drive held
         # disabled is released by a reset only after ``settings_restored`` for its slave.
@@ -270,7 +274,9 @@ class EthercatSystem(HardwareComponent):
                             self.state_offset, self.command_factor, self.command_offset, self._held,
                             *(flag.view(np.uint8) for flag in flags), self._cw_table, self._cw_prev,
                             OPERATION_ENABLED_PATTERN, FAULT_PATTERN, FAULT_RESET, DISABLE_VOLTAGE, MODE_CSP,
-                            _TARGET_LIMITS, _VELOCITY_OFFSET_LIMITS, _TORQUE_OFFSET_LIMITS)
+                            _TARGET_LIMITS, _VELOCITY_OFFSET_LIMITS, _TORQUE_OFFSET_LIMITS,
+                            self._was_fault.view(np.uint8), self._reset_grace)
+        self._tick.grace_ticks = max(3, round(FAULT_RESET_GRACE_S * self.update_rate))
 
     def _enable(self) -> None:
         """CiA402 enable at the bring-up rate: target on the actual position first, then step to enabled.
@@ -433,8 +439,8 @@ class EthercatSystem(HardwareComponent):
         np.copyto(self._held_off_seen, self._held_off)
 
     def _held_text(self, k: int) -> str:
-        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out of operation (power or link) and "
-                "is held disabled, so it cannot snap to the target when it comes back")
+        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left operation, "
+                "or its fault, by itself) and is held disabled, so it cannot snap to the target when it comes back")
         if self._restore_pending[k]:
             return f"{text}; its impedance settings are restored once it is back in OP, then r in the live table, " \
                    "or `prime reset`, enables it"

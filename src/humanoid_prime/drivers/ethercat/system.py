@@ -439,8 +439,9 @@ class EthercatSystem(HardwareComponent):
         np.copyto(self._held_off_seen, self._held_off)
 
     def _held_text(self, k: int) -> str:
-        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left operation, "
-                "or its fault, by itself) and is held disabled, so it cannot snap to the target when it comes back")
+        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left "
+                "operation, or its fault, by itself) and is held disabled, so it cannot snap to the target when it "
+                "comes back")
         if self._restore_pending[k]:
             return f"{text}; its impedance settings are restored once it is back in OP, then r in the live table, " \
                    "or `prime reset`, enables it"

@@ -47,7 +47,7 @@ MODE_CYCLE = (Mode.ZERO_TORQUE, Mode.DAMPING, Mode.STANDBY, Mode.LOCOMOTION, Mod
 SETTLE_S = 3.0  # how long after an injection (or its end) the stack has to flag and recover
 LOST_RING = 9  # the last slave: losing it leaves the rest of the line reachable
 READ_ONLY_ABORT = "0X06010002"  # CiA 301 abort: attempt to write a read-only object
-VERIFY_READS = 3
+VERIFY_READS = 3  # reads of the returned drive's settings, when a mode switch falls between two
 
 
 @dataclass
@@ -88,7 +88,7 @@ def _settings_restored(control: Any, session: Any) -> str | None:
     """The returned drive holds the gate and the gains of the mode the impedance manager applied last: a drive
     that lost power comes back on factory gains, and must not be enabled on them."""
     impedance = session.impedance
-    if impedance is None:
+    if impedance is None or impedance.mode is None:  # no impedance manager, or no mode's gains applied yet
         return None
     for _ in range(VERIFY_READS):  # a mode switch between the two reads: read again
         impedance.wait_idle(5.0)

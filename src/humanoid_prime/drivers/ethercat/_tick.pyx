@@ -69,7 +69,7 @@ cdef class EcTick:
     cdef unsigned char[::1] enabled, fault, was_enabled, held_off, held_off_seen, was_fault
     cdef const unsigned short[::1] cw_table
     cdef unsigned short[::1] cw_prev, reset_grace
-    cdef public unsigned short grace_ticks  # 0: a drive leaving fault is never held (bring-up)
+    cdef public unsigned short grace_ticks  # 0: leaving a fault never holds a drive
     cdef unsigned short enabled_mask, enabled_value, fault_mask, fault_value, fault_reset, disable_voltage
     cdef signed char mode
     cdef double target_low, target_high, velocity_low, velocity_high, torque_low, torque_high

@@ -378,9 +378,9 @@ class Dropped:
         self.released: list[int] = []
 
     def awaiting_restore(self):
-        return [p for p in self.waiting if p not in self.released]
+        return [(p, 0) for p in self.waiting if p not in self.released]
 
-    def settings_restored(self, position):
+    def settings_restored(self, position, left_op):
         self.released.append(position)
 
 

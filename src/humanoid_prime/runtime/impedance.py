@@ -103,9 +103,9 @@ class DroppedDrives(Protocol):
 
     restores_settings: bool
 
-    def awaiting_restore(self) -> list[int]: ...
+    def awaiting_restore(self) -> list[tuple[int, int]]: ...  # (ring position, times its slave left OP)
 
-    def settings_restored(self, position: int) -> None: ...
+    def settings_restored(self, position: int, left_op: int) -> None: ...
 
 
 @dataclass
@@ -354,14 +354,14 @@ class ImpedanceManager(SafetyFlags):
         that its drive may be released. A slave that fails keeps its drive held and is tried again."""
         if self._dropped is None or self._closing or not self.armed:
             return
-        for position in self._dropped.awaiting_restore():
+        for position, left_op in self._dropped.awaiting_restore():
             slave = self._by_position.get(position)
             problem = self._restore_one(slave) if slave is not None else None
             self._set_flag(f"erob/impedance/ring{position}", problem)
             if (problem is None or problem[1] is Level.WARN) and not self._closing:
                 if slave is not None:
                     self.restored.append((self.clock(), slave.joint))
-                self._dropped.settings_restored(position)
+                self._dropped.settings_restored(position, left_op)
 
     def _restore_one(self, slave: _Slave) -> tuple[str, Level] | None:
         """Window and gate again, then the current mode's gains (all three: what the drive holds is read anew)."""

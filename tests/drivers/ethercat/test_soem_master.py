@@ -251,3 +251,4 @@ def test_a_restored_slave_is_recovered_to_op_and_its_drive_held_disabled_until_t
         wait_for(lambda: not system.flags, what="every flag cleared after the reset")
         wait_for(lambda: ring.control.slave(9)["drive"]["statusword"] == 5687, what="drive enabled again")
     assert system.master.recoveries >= 1
+    assert system.master.left_op[9] >= 1

@@ -519,13 +519,16 @@ def test_with_a_settings_keeper_a_reset_releases_a_dropped_drive_only_after_its_
     rig.tick()
     rig.master.statusword[4] = SWITCH_ON_DISABLED  # its slave lost power: factory gains, back in OP
     rig.tick()
-    assert rig.system.awaiting_restore() == [4]
+    assert rig.system.awaiting_restore() == [(4, 0)]
     assert "impedance settings are restored" in rig.system.flags["ethercat/ring4/disabled"]
     rig.system.reset_faults()
     for _ in range(5):
         rig.tick()
     assert rig.master.statusword[4] == SWITCH_ON_DISABLED  # the reset came before the settings: still held
-    rig.system.settings_restored(4)
+    rig.master.left_op[4] += 1  # it left OP again while its settings were written: they may be lost again
+    rig.system.settings_restored(4, 0)
+    assert rig.system.awaiting_restore() == [(4, 1)]
+    rig.system.settings_restored(4, 1)
     rig.tick()
     assert rig.system.awaiting_restore() == []
     assert "latched" in rig.system.flags["ethercat/ring4/disabled"]

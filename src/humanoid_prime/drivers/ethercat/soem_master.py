@@ -273,6 +273,8 @@ class SoemMaster(EthercatMaster):
             state, code = slave.state, slave.al_status
             if (bool(self.slave_ok[k]), int(self.al_state[k]), int(self.al_status_code[k])) != (
                     state == AL_OP, state, code):
+                if self.slave_ok[k] and state != AL_OP:
+                    self.left_op[k] += 1
                 self.slave_ok[k] = state == AL_OP
                 self.al_state[k] = state
                 self.al_status_code[k] = code

@@ -334,17 +334,24 @@ class EthercatSystem(HardwareComponent):
         self._held_off &= ~(self.master.slave_ok[self.ring] & ~self._restore_pending)
         return True
 
-    def awaiting_restore(self) -> list[int]:
-        """Ring positions of held drives whose slave is back in OP and whose settings wait to be restored."""
-        ok = self.master.slave_ok[self.ring]
-        return [int(self.ring[k]) for k in np.flatnonzero(self._restore_pending & ok)]
+    def awaiting_restore(self) -> list[tuple[int, int]]:
+        """Held drives whose slave is back in OP and whose settings wait to be restored: (ring position, how often
+        the slave has left OP so far, to hand back to ``settings_restored``)."""
+        master = self.master
+        waiting = np.flatnonzero(self._restore_pending & master.slave_ok[self.ring])
+        return [(int(self.ring[k]), int(master.left_op[self.ring[k]])) for k in waiting]
 
     def restore_pending(self) -> list[int]:
         """Ring positions of held drives whose settings are not restored yet (their slave in OP or not)."""
         return [int(self.ring[k]) for k in np.flatnonzero(self._restore_pending)]
 
-    def settings_restored(self, position: int) -> None:
-        """The settings of the drive at ring ``position`` are back: the operator's reset may release it now."""
+    def settings_restored(self, position: int, left_op: int) -> None:
+        """The settings of the drive at ring ``position`` are back: the operator's reset may release it now. Not
+        if its slave left OP again since ``awaiting_restore`` said ``left_op``: it may have lost them again, and
+        waits, back in OP, for another restore."""
+        master = self.master
+        if master.left_op[position] != left_op or not master.slave_ok[position]:
+            return
         self._restore_pending[int(np.flatnonzero(self.ring == position)[0])] = False
         self._held_text_stale = True  # the loop's thread rewords the flag: it alone sets and clears it
 

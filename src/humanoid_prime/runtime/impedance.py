@@ -88,7 +88,11 @@ class SwitchReport:
 
 
 RETRY_BACKOFF_S = 0.005
-RESTORE_POLL_S = 0.05  # how often the worker looks for a slave back from a drop, between mode changes
+# A restore that failed is tried again this often. Otherwise the worker sleeps until a mode change or the EtherCAT
+# side's word that a held drive waits: a thread that wakes on a timer can be preempted by a busy machine while it
+# holds the interpreter, and the control loop then waits for it.
+RESTORE_RETRY_S = 0.5
+_RESTORE = "restore"  # on the worker's queue: look for held drives whose settings wait
 # The following-error window admits this much more than the sag of a joint holding its effort limit at the
 # stiffest mode's nominal kp: the drive realises about 0.7x the nominal stiffness (DESIGN §2), 1/0.7 = 1.43.
 WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
@@ -101,7 +105,7 @@ class DroppedDrives(Protocol):
     """The drives held disabled after their slave dropped out (``EthercatSystem``): which wait, back in OP,
     for their settings, and the word that they are restored."""
 
-    restores_settings: bool
+    on_restore_needed: Callable[[], None] | None  # set by the manager; called when a held drive may wait
 
     def awaiting_restore(self) -> list[tuple[int, int]]: ...  # (ring position, times its slave left OP)
 
@@ -150,7 +154,8 @@ class ImpedanceManager(SafetyFlags):
         self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
         self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
             if parallel and self.slaves else None
-        self._queue: queue.Queue[Mode | None] = queue.Queue()
+        self._queue: queue.Queue[Mode | str | None] = queue.Queue()
+        self._restore_failed = False
         self._worker: threading.Thread | None = None
         self._joint_states_seen = threading.Event()
         self._arming_done = threading.Event()
@@ -173,7 +178,7 @@ class ImpedanceManager(SafetyFlags):
         self._topics = topics
         if dropped is not None:
             self._dropped = dropped
-            dropped.restores_settings = True
+            dropped.on_restore_needed = self.wake_for_restore
         topics.subscribe(JOINT_STATES, self._on_joint_states, latched=True)
         deadline = self.clock() + timeout
         while not (bus_ready() and self._joint_states_seen.is_set()):
@@ -207,25 +212,29 @@ class ImpedanceManager(SafetyFlags):
             self._arming_done.set()
         while True:
             try:
-                mode = self._queue.get(timeout=RESTORE_POLL_S if self._dropped is not None else None)
+                items = [self._queue.get(timeout=RESTORE_RETRY_S if self._restore_failed else None)]
             except queue.Empty:
-                self._restore_dropped()
-                continue
-            taken = 1
-            while not self._queue.empty():  # coalesce: only the newest request matters
-                mode = self._queue.get_nowait()
-                taken += 1
-            if mode is None:
+                items = [_RESTORE]
+            while not self._queue.empty():  # coalesce: only the newest mode matters
+                items.append(self._queue.get_nowait())
+            if None in items:
                 return
-            try:
-                self.apply(mode)
-            except Exception as exc:  # keep following the mode; say what went wrong
-                self.set_flag("erob/impedance/worker", f"mode {mode.value} not applied: {type(exc).__name__}: {exc}")
-            finally:
-                with self._idle:
-                    self._done += taken
-                    self._idle.notify_all()
+            modes = [item for item in items if isinstance(item, Mode)]
+            if modes:
+                try:
+                    self.apply(modes[-1])
+                except Exception as exc:  # keep following the mode; say what went wrong
+                    self.set_flag("erob/impedance/worker",
+                                  f"mode {modes[-1].value} not applied: {type(exc).__name__}: {exc}")
+                finally:
+                    with self._idle:
+                        self._done += len(modes)
+                        self._idle.notify_all()
             self._restore_dropped()
+
+    def wake_for_restore(self) -> None:
+        """Thread-safe, quick: the worker looks for held drives whose settings wait (the EtherCAT side calls it)."""
+        self._queue.put(_RESTORE)
 
     def wait_armed(self, timeout: float = 5.0) -> bool:
         """Block until the worker has armed the gate (or found it could not); False on timeout."""
@@ -352,6 +361,7 @@ class ImpedanceManager(SafetyFlags):
     def _restore_dropped(self) -> None:
         """Each slave back in OP after a drop: window, gate and the current mode's gains again, then the word
         that its drive may be released. A slave that fails keeps its drive held and is tried again."""
+        self._restore_failed = False
         if self._dropped is None or self._closing or not self.armed:
             return
         for position, left_op in self._dropped.awaiting_restore():
@@ -362,6 +372,8 @@ class ImpedanceManager(SafetyFlags):
                 if slave is not None:
                     self.restored.append((self.clock(), slave.joint))
                 self._dropped.settings_restored(position, left_op)
+            else:
+                self._restore_failed = True
 
     def _restore_one(self, slave: _Slave) -> tuple[str, Level] | None:
         """Window and gate again, then the current mode's gains (all three: what the drive holds is read anew)."""

@@ -515,11 +515,12 @@ def test_a_drive_that_drops_out_mid_run_stays_disabled_until_the_operators_reset
 def test_with_a_settings_keeper_a_reset_releases_a_dropped_drive_only_after_its_settings_are_restored(rig):
     from doubles.master import SWITCH_ON_DISABLED
 
-    rig.system.restores_settings = True  # as the impedance manager sets it
+    wakes = []
+    rig.system.on_restore_needed = lambda: wakes.append(True)  # as the impedance manager sets it
     rig.tick()
     rig.master.statusword[4] = SWITCH_ON_DISABLED  # its slave lost power: factory gains, back in OP
     rig.tick()
-    assert rig.system.awaiting_restore() == [(4, 0)]
+    assert wakes and rig.system.awaiting_restore() == [(4, 0)]
     assert "impedance settings are restored" in rig.system.flags["ethercat/ring4/disabled"]
     rig.system.reset_faults()
     for _ in range(5):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -150,9 +151,9 @@ class EthercatSystem(HardwareComponent):
         self._was_fault = np.zeros(n, dtype=bool)
         self._reset_grace = np.zeros(n, np.uint16)  # frames left in which a fault reset of ours may take effect
         # A slave that lost power came back with every setting made over SDO gone (the impedance gate, window
-        # and gains): with ``restores_settings`` (the impedance manager is there to restore them), a drive held
-        # disabled is released by a reset only after ``settings_restored`` for its slave.
-        self.restores_settings = False
+        # and gains): with ``on_restore_needed`` (the impedance manager is there to restore them, and is woken by
+        # it), a drive held disabled is released by a reset only after ``settings_restored`` for its slave.
+        self.on_restore_needed: Callable[[], None] | None = None
         self._restore_pending = np.zeros(n, dtype=bool)
         self._held_text_stale = False
         self._fault = np.zeros(n, dtype=bool)
@@ -416,6 +417,8 @@ class EthercatSystem(HardwareComponent):
             state = int(master.al_state[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
             self.set_flag(key, f"{joint} (ring {position}): slave lost ({why}); recovering")
+        if self.on_restore_needed is not None and self._restore_pending.any():  # a held drive's slave may be back
+            self.on_restore_needed()
 
     def _update_fault_flags(self) -> None:
         faulted = tuple((k, int(self._rec_sw[k]), int(self._rec_err[k])) for k in np.flatnonzero(self._fault))
@@ -435,15 +438,18 @@ class EthercatSystem(HardwareComponent):
             self._held_text_stale = False
             for k in np.flatnonzero(self._held_off & self._held_off_seen):
                 self.set_flag(f"ethercat/ring{int(self.ring[k])}/disabled", self._held_text(k))
+        wake = self.on_restore_needed
         for k in np.flatnonzero(self._held_off != self._held_off_seen):
             key = f"ethercat/ring{int(self.ring[k])}/disabled"
             if self._held_off[k]:
-                self._restore_pending[k] = self.restores_settings
+                self._restore_pending[k] = wake is not None
                 self.set_flag(key, self._held_text(k))
             else:
                 self._restore_pending[k] = False
                 self.clear_flag(key)
         np.copyto(self._held_off_seen, self._held_off)
+        if wake is not None and self._restore_pending.any():
+            wake()
 
     def _held_text(self, k: int) -> str:
         text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left "

@@ -380,6 +380,9 @@ class Dropped:
     def awaiting_restore(self):
         return [(p, 0) for p in self.waiting if p not in self.released]
 
+    def restore_pending(self):
+        return [p for p in self.waiting if p not in self.released]
+
     def settings_restored(self, position, left_op):
         self.released.append(position)
 

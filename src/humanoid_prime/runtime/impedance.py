@@ -88,9 +88,9 @@ class SwitchReport:
 
 
 RETRY_BACKOFF_S = 0.005
-# A restore that failed is tried again this often. Otherwise the worker sleeps until a mode change or the EtherCAT
-# side's word that a held drive waits: a thread that wakes on a timer can be preempted by a busy machine while it
-# holds the interpreter, and the control loop then waits for it.
+# While a held drive waits for its settings (or a restore failed), the worker also looks this often. Otherwise it
+# sleeps until a mode change or the EtherCAT side's word that a held drive waits: a thread that wakes on a timer can
+# be preempted by a busy machine while it holds the interpreter, and the control loop then waits for it.
 RESTORE_RETRY_S = 0.5
 _RESTORE = "restore"  # on the worker's queue: look for held drives whose settings wait
 # The following-error window admits this much more than the sag of a joint holding its effort limit at the
@@ -108,6 +108,8 @@ class DroppedDrives(Protocol):
     on_restore_needed: Callable[[], None] | None  # set by the manager; called when a held drive may wait
 
     def awaiting_restore(self) -> list[tuple[int, int]]: ...  # (ring position, times its slave left OP)
+
+    def restore_pending(self) -> list[int]: ...
 
     def settings_restored(self, position: int, left_op: int) -> None: ...
 
@@ -212,7 +214,8 @@ class ImpedanceManager(SafetyFlags):
             self._arming_done.set()
         while True:
             try:
-                items = [self._queue.get(timeout=RESTORE_RETRY_S if self._restore_failed else None)]
+                waiting = self._restore_failed or (self._dropped is not None and bool(self._dropped.restore_pending()))
+                items = [self._queue.get(timeout=RESTORE_RETRY_S if waiting else None)]
             except queue.Empty:
                 items = [_RESTORE]
             while not self._queue.empty():  # coalesce: only the newest mode matters

@@ -30,6 +30,13 @@ def publish_joint_states(topics, robot):
     topics.publish(JOINT_STATES, JointState(0.0, robot.names, z, z, z))
 
 
+def on_topics(robot, gains):
+    """Drives, a topic bus whose joint states have flowed, and a manager on both (not started)."""
+    drives, topics = DriveMailboxes(), TopicBus()
+    publish_joint_states(topics, robot)
+    return drives, topics, make(robot, gains, drives)
+
+
 def expected(mode_gains, mode):
     kp, kd = mode_gains[mode]
     return gains_to_registers(kp, kd, kt=0.132e-3, gear=50.0, efficiency=1.0)
@@ -267,10 +274,7 @@ def test_close_reports_unreachable_slaves(robot, gains):
 
 
 def test_mode_changes_on_the_topic_are_applied(robot, gains):
-    drives = DriveMailboxes()
-    topics = TopicBus()
-    mgr = make(robot, gains, drives)
-    publish_joint_states(topics, robot)
+    drives, topics, mgr = on_topics(robot, gains)
     topics.publish(CONTROL_MODE, ControlMode("ZERO_TORQUE", "zero_torque_controller"))
     mgr.start(topics, lambda: True)
     assert mgr.wait_idle(5.0)  # armed, then the latched mode applied
@@ -282,10 +286,7 @@ def test_mode_changes_on_the_topic_are_applied(robot, gains):
 
 
 def test_the_worker_arms_the_gate_before_any_mode_and_a_mode_asked_meanwhile_is_applied_after(robot, gains):
-    drives = DriveMailboxes()
-    topics = TopicBus()
-    mgr = make(robot, gains, drives)
-    publish_joint_states(topics, robot)
+    drives, topics, mgr = on_topics(robot, gains)
     topics.publish(CONTROL_MODE, ControlMode("ZERO_TORQUE", "zero_torque_controller"))
     release = drives.hold(0)  # the first slave's arming waits on this: the loop would be ticking meanwhile
     mgr.start(topics, lambda: True)  # returns with the arming under way
@@ -302,10 +303,7 @@ def test_the_worker_arms_the_gate_before_any_mode_and_a_mode_asked_meanwhile_is_
 
 
 def test_a_close_during_the_arming_leaves_every_gate_reset(robot, gains):
-    drives = DriveMailboxes()
-    topics = TopicBus()
-    mgr = make(robot, gains, drives)
-    publish_joint_states(topics, robot)
+    drives, topics, mgr = on_topics(robot, gains)
     release = drives.hold(9)
     mgr.start(topics, lambda: True)
     closing = threading.Thread(target=lambda: failures.extend(mgr.close()))
@@ -351,10 +349,7 @@ def test_a_gate_that_failed_to_arm_is_armed_before_gains_and_stays_flagged_until
 
 
 def test_a_bug_in_the_arming_is_flagged_and_no_gain_is_written(robot, gains, monkeypatch):
-    drives = DriveMailboxes()
-    topics = TopicBus()
-    mgr = make(robot, gains, drives)
-    publish_joint_states(topics, robot)
+    drives, topics, mgr = on_topics(robot, gains)
     topics.publish(CONTROL_MODE, ControlMode("STANDBY", "standby_controller"))
 
     def broken() -> None:

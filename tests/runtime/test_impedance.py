@@ -393,7 +393,7 @@ def test_a_slave_back_from_a_power_loss_gets_window_gate_and_the_current_modes_g
     dropped.waiting = [5]
     drives.fail_next[5] = 100  # the restore fails: the drive stays held, and it is flagged
     mgr._restore_dropped()
-    assert dropped.released == [] and mgr._restore_failed  # the worker tries again after RESTORE_RETRY_S
+    assert dropped.released == [] and dropped.restore_pending() == [5]  # still pending: the worker looks again
     assert "ring 5" in mgr.flags["erob/impedance/ring5"] and "stays held disabled" in mgr.flags["erob/impedance/ring5"]
     drives.fail_next[5] = 0
     mgr._restore_dropped()

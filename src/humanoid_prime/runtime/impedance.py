@@ -88,9 +88,9 @@ class SwitchReport:
 
 
 RETRY_BACKOFF_S = 0.005
-# While a held drive waits for its settings (or a restore failed), the worker also looks this often. Otherwise it
-# sleeps until a mode change or the EtherCAT side's word that a held drive waits: a thread that wakes on a timer can
-# be preempted by a busy machine while it holds the interpreter, and the control loop then waits for it.
+# While a held drive waits for its settings (after a failed restore too), the worker also looks this often.
+# Otherwise it sleeps until a mode change or the EtherCAT side's word that a held drive waits: a thread that wakes
+# on a timer can be preempted by a busy machine while it holds the interpreter, and the control loop then waits.
 RESTORE_RETRY_S = 0.5
 _RESTORE = "restore"  # on the worker's queue: look for held drives whose settings wait
 # The following-error window admits this much more than the sag of a joint holding its effort limit at the
@@ -157,7 +157,6 @@ class ImpedanceManager(SafetyFlags):
         self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
             if parallel and self.slaves else None
         self._queue: queue.Queue[Mode | str | None] = queue.Queue()
-        self._restore_failed = False
         self._worker: threading.Thread | None = None
         self._joint_states_seen = threading.Event()
         self._arming_done = threading.Event()
@@ -214,7 +213,8 @@ class ImpedanceManager(SafetyFlags):
             self._arming_done.set()
         while True:
             try:
-                waiting = self._restore_failed or (self._dropped is not None and bool(self._dropped.restore_pending()))
+                # a failed restore leaves its drive pending, so this also retries it
+                waiting = self._dropped is not None and bool(self._dropped.restore_pending())
                 items = [self._queue.get(timeout=RESTORE_RETRY_S if waiting else None)]
             except queue.Empty:
                 items = [_RESTORE]
@@ -364,7 +364,6 @@ class ImpedanceManager(SafetyFlags):
     def _restore_dropped(self) -> None:
         """Each slave back in OP after a drop: window, gate and the current mode's gains again, then the word
         that its drive may be released. A slave that fails keeps its drive held and is tried again."""
-        self._restore_failed = False
         if self._dropped is None or self._closing or not self.armed:
             return
         for position, left_op in self._dropped.awaiting_restore():
@@ -375,8 +374,6 @@ class ImpedanceManager(SafetyFlags):
                 if slave is not None:
                     self.restored.append((self.clock(), slave.joint))
                 self._dropped.settings_restored(position, left_op)
-            else:
-                self._restore_failed = True
 
     def _restore_one(self, slave: _Slave) -> tuple[str, Level] | None:
         """Window and gate again, then the current mode's gains (all three: what the drive holds is read anew)."""

@@ -19,10 +19,11 @@ one transfer at a time (``bench/ethercat.py``); on a small machine a frame now a
 
 SOEM's socket is made non-blocking once it is open. SOEM polls it for each frame it waits for ("non blocking
 call to retrieve frame from socket", oshw/linux/nicdrv.c) but opens it blocking with a 1 µs receive timeout,
-which the kernel rounds up to a scheduler tick: 8 ms on the development VM. A thread whose frame another
-thread has already filed takes the receive lock and then sleeps in ``recv`` until some other frame arrives or
-that tick passes, so the last transfer of a parallel gain switch, or the loop's own receive while transfers
-run, could wait 8 ms for a frame that was already there. Non-blocking, each waiting thread polls instead.
+which the kernel rounds up to whole scheduler ticks (8 ms measured). Blocking, a lost frame held the loop for
+those ticks instead of its 2 ms frame timeout; and a thread whose frame another thread had already filed took
+the receive lock and slept in ``recv`` until some other frame arrived, so the last transfer of a parallel gain
+switch, or the loop's own receive while transfers ran, waited for a frame that was already there.
+Non-blocking, each waiting thread polls until its frame is filed or its timeout passes.
 A supervision thread, woken by a working-counter mismatch, reads the AL states and acknowledges,
 reconfigures or recovers slaves that left OP, re-arming SYNC0 for each.
 """

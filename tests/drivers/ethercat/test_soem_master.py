@@ -103,7 +103,7 @@ def test_soems_socket_is_polled_not_slept_on(system, ring):
     assert not os.get_blocking(fds.pop())
 
 
-def test_only_the_one_new_packet_socket_on_the_interface_is_made_non_blocking(ring):
+def test_a_packet_socket_is_made_non_blocking_only_when_it_is_the_one_found(ring):
     with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as first, \
             socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as second:
         first.bind((ring.master_interface, 0x88A4))

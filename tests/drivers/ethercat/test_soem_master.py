@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -18,7 +16,7 @@ from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
-from humanoid_prime.drivers.ethercat.soem_master import SoemMaster, packet_sockets, set_nonblocking
+from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
@@ -93,29 +91,6 @@ def test_ten_emulated_erob_reach_op_and_operation_enabled(system, ring):
     assert [s["al_state"] for s in status] == ["OP"] * 10
     assert [s["drive"]["statusword"] for s in status] == [5687] * 10
     assert system.master.expected_wkc == 30
-
-
-def test_soems_socket_is_polled_not_slept_on(system, ring):
-    """A blocking socket would hold a thread in recv for a scheduler tick after its frame was filed for it."""
-    fds = packet_sockets(ring.master_interface)
-    assert system.master.receive_nonblocking
-    assert len(fds) == 1
-    assert not os.get_blocking(fds.pop())
-
-
-def test_a_packet_socket_is_made_non_blocking_only_when_it_is_the_one_found(ring):
-    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as first, \
-            socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as second:
-        first.bind((ring.master_interface, 0x88A4))
-        assert packet_sockets(ring.master_interface) == {first.fileno()}
-        second.bind((ring.master_interface, 0x88A4))
-        both = packet_sockets(ring.master_interface)
-        assert both == {first.fileno(), second.fileno()}
-        assert not set_nonblocking(both)  # two that cannot be told apart: neither is touched
-        assert os.get_blocking(first.fileno()) and os.get_blocking(second.fileno())
-        assert set_nonblocking(both - {first.fileno()})
-        assert os.get_blocking(first.fileno()) and not os.get_blocking(second.fileno())
-    assert packet_sockets("lo") == set()  # bound elsewhere: not counted
 
 
 def test_each_joint_commands_and_reads_its_own_ring_position(system, ring, robot):

@@ -50,6 +50,11 @@ class RealtimeReport:
     gc_frozen: int = 0
     refused: list[str] = field(default_factory=list)
 
+    @property
+    def fifo(self) -> bool:
+        """The thread runs at real-time priority."""
+        return self.scheduling != "SCHED_OTHER"
+
     def line(self) -> str:
         parts = [self.scheduling, "memory locked" if self.memory_locked else "memory not locked",
                  f"CPU {self.cpu}" if self.cpu is not None else "any CPU",

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -14,9 +16,10 @@ from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
+from humanoid_prime.drivers.ethercat import soem_master
 from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
-from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
+from humanoid_prime.drivers.ethercat.soem_master import SoemMaster, packet_sockets
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
@@ -91,6 +94,45 @@ def test_ten_emulated_erob_reach_op_and_operation_enabled(system, ring):
     assert [s["al_state"] for s in status] == ["OP"] * 10
     assert [s["drive"]["statusword"] for s in status] == [5687] * 10
     assert system.master.expected_wkc == 30
+
+
+def test_soems_socket_is_slept_on_through_bring_up_and_polled_only_when_asked(system, ring):
+    """Polling is for a real-time owner of the cycle; bring-up runs at normal priority and sleeps in recv."""
+    (fd,) = packet_sockets(ring.master_interface)
+    master = system.master
+    assert os.get_blocking(fd) and not master.frames_polled
+    assert master.poll_frames(True)
+    assert not os.get_blocking(fd) and master.frames_polled
+    assert master.exchange() == master.expected_wkc  # a polled receive still collects its frame
+    assert not master.poll_frames(False)
+    assert os.get_blocking(fd) and not master.frames_polled
+
+
+def test_a_master_that_cannot_tell_soems_socket_from_another_never_polls(robot, ring, monkeypatch):
+    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as other:
+        other.bind((ring.master_interface, 0x88A4))
+        looks = []
+
+        def found(interface: str) -> set[int]:  # the first look, before SOEM opens, misses ``other``
+            looks.append(interface)
+            return set() if len(looks) == 1 else packet_sockets(interface)
+
+        monkeypatch.setattr(soem_master, "packet_sockets", found)
+        master = make_system(robot, ring).master
+        master.open()
+        try:
+            assert len(looks) == 2
+            assert not master.poll_frames(True)
+            assert os.get_blocking(other.fileno()) and not master.frames_polled
+        finally:
+            master.close()
+
+
+def test_packet_sockets_are_found_by_the_interface_they_are_bound_to(ring):
+    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as bound:
+        bound.bind((ring.master_interface, 0x88A4))
+        assert packet_sockets(ring.master_interface) == {bound.fileno()}
+        assert packet_sockets("lo") == set()
 
 
 def test_each_joint_commands_and_reads_its_own_ring_position(system, ring, robot):

@@ -535,6 +535,13 @@ class EthercatMaster(ABC):
     def _started(self) -> None:
         """Called once every slave is in OP (e.g. to start ring supervision)."""
 
+    def poll_frames(self, poll: bool) -> bool:
+        """Have every thread that waits for a frame poll the NIC (True) or sleep until a frame arrives (False);
+        returns whether frames are now polled. Polling is for a ring whose cycle a real-time thread owns: a
+        thread of normal priority that polls uses up its share and is put behind the machine's other work.
+        A master without a socket of its own to poll never polls."""
+        return False
+
     @abstractmethod
     def _send(self) -> None:
         """Put ``outputs`` on the wire (non-blocking)."""

@@ -14,14 +14,26 @@ for the duration of each transfer and of each cycle receive. Only SOEM's error l
 raised by another slave's transfer may be popped in the wrong thread, so such errors are handed to their
 owner and the transfer that popped them is retried. Emergencies (EMCY) are routed by slave, never raised.
 On the emulated ring a gain switch (20 writes over 10 slaves) takes about 6 ms this way against about 20 ms
-one transfer at a time (``bench/ethercat.py``); SOEM busy-waits for each frame, so on a small
-machine a frame now and then comes back after its 2 ms timeout, and such a transfer is repeated.
+one transfer at a time (``bench/ethercat.py``); on a small machine a frame now and then comes back after its
+2 ms timeout, and such a transfer is repeated.
+
+SOEM's socket. SOEM polls its socket for each frame it waits for ("non blocking call to retrieve frame from
+socket", oshw/linux/nicdrv.c) but opens it blocking with a 1 µs receive timeout, which the kernel rounds up to
+whole scheduler ticks (8 ms measured). Blocking, a lost frame holds its thread for those ticks instead of the
+2 ms frame timeout, and a thread whose frame another thread has already filed takes the receive lock and sleeps
+in ``recv`` until some other frame arrives: the last transfer of a parallel gain switch, or the loop's own
+receive while transfers run, waits for a frame that is already there. ``poll_frames`` makes the socket
+non-blocking, so each waiting thread polls until its frame is filed or its timeout passes. It is for the time
+a real-time thread owns the cycle: the bring-up loop, the drives' enabling and the keeper run at normal
+priority, and polling there put a loaded machine's bring-up behind its other work until a slave missed its
+DC lock.
 A supervision thread, woken by a working-counter mismatch, reads the AL states and acknowledges,
 reconfigures or recovers slaves that left OP, re-arming SYNC0 for each.
 """
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -80,6 +92,8 @@ class SoemMaster(EthercatMaster):
         self.recoveries = 0
         self.lost_frames = 0  # SDO transfers repeated because a frame of the exchange did not come back
         self.state_rereads = 0  # AL-state reads repeated because some slave did not answer one
+        self.frames_polled = False  # SOEM's socket non-blocking (module docstring)
+        self._socket: int | None = None  # SOEM's socket, where it could be told from this process's others
         self.supervision_error: str | None = None  # the last exception a recovery attempt ran into
         self._m: pysoem.Master | None = None
         self._pslaves: list = []
@@ -104,12 +118,15 @@ class SoemMaster(EthercatMaster):
             raise RingError(f"no network interface {self.interface!r} (buses.ethercat.interface in "
                             "prime_hardware.yaml); list them with `ip link` or pass --interface") from None
         m = pysoem.Master()
+        theirs = packet_sockets(self.interface)
         try:
             m.open(self.interface)
         except ConnectionError:
             raise RingError(f"cannot open {self.interface!r} for EtherCAT: SOEM needs a raw socket, so run as root "
                             "or grant CAP_NET_RAW") from None
         self._m = m
+        opened = packet_sockets(self.interface) - theirs
+        self._socket = opened.pop() if len(opened) == 1 else None  # SOEM opens one per port
         m.sdo_read_timeout = self.sdo_timeout_us
         m.sdo_write_timeout = self.sdo_timeout_us
         if m.config_init() <= 0:
@@ -218,6 +235,13 @@ class SoemMaster(EthercatMaster):
         self._supervisor = threading.Thread(target=self._supervise, name=f"ethercat-supervise-{self.interface}",
                                             daemon=True)
         self._supervisor.start()
+
+    def poll_frames(self, poll: bool) -> bool:
+        if self._socket is None or self._m is None:
+            return False
+        os.set_blocking(self._socket, not poll)
+        self.frames_polled = poll
+        return poll
 
     # -------------------------------------------------------------------------------- cyclic
     def _send(self) -> None:
@@ -361,6 +385,8 @@ class SoemMaster(EthercatMaster):
             self._supervisor.join()
             self._supervisor = None
         m, self._m = self._m, None
+        self._socket = None
+        self.frames_polled = False
         if m is None:
             return
         try:
@@ -406,3 +432,23 @@ def _sdo_error(position: int, index: int, sub_index: int, exc: Exception) -> Sdo
         return SdoError(position, index, sub_index, f"aborted with 0x{exc.abort_code:08X} ({exc.desc})",
                         exc.abort_code)
     return SdoError(position, index, sub_index, _describe(exc))
+
+
+def packet_sockets(interface: str) -> set[int]:
+    """File descriptors of this process's raw packet sockets bound to ``interface`` (from ``/proc``); empty
+    where ``/proc`` cannot tell."""
+    try:
+        index = socket.if_nametoindex(interface)
+        with open("/proc/net/packet") as table:
+            next(table)  # sk RefCnt Type Proto Iface R Rmem User Inode
+            inodes = {f"socket:[{fields[8]}]" for fields in map(str.split, table) if int(fields[4]) == index}
+        found = set()
+        for name in os.listdir("/proc/self/fd"):
+            try:
+                if os.readlink(f"/proc/self/fd/{name}") in inodes:
+                    found.add(int(name))
+            except OSError:  # closed meanwhile
+                continue
+        return found
+    except (OSError, StopIteration, IndexError, ValueError):
+        return set()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 
-from doubles.process import stop
+from doubles.process import popen, stop
 from humanoid_prime.config.robot import load_robot
 
 from .conftest import PRIME, drawn, start
@@ -41,8 +41,8 @@ def test_the_page_of_a_running_simulation_shows_it_and_switches_its_mode(browser
 
 def test_prime_view_attaches_to_a_running_simulation_over_its_control_socket(browser, tmp_path):
     socket = str(tmp_path / "control.sock")
-    sim = subprocess.Popen([*PRIME, "sim", "--mode", "DAMPING", "--duration", "300", "--socket", socket],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sim = popen([*PRIME, "sim", "--mode", "DAMPING", "--duration", "300", "--socket", socket],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     view = None
     try:
         view, url = start("view", "--port", "0", "--socket", socket)

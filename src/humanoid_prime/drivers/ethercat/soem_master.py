@@ -19,8 +19,8 @@ one transfer at a time (``bench/ethercat.py``); on a small machine a frame now a
 
 SOEM's socket. SOEM polls its socket for each frame it waits for ("non blocking call to retrieve frame from
 socket", oshw/linux/nicdrv.c) but opens it blocking with a 1 µs receive timeout, which the kernel rounds up to
-whole scheduler ticks (8 ms measured). Blocking, a lost frame holds its thread for those ticks instead of the
-2 ms frame timeout, and a thread whose frame another thread has already filed takes the receive lock and sleeps
+whole scheduler ticks. Blocking, a lost frame holds its thread for those ticks (6.4 ms measured) instead of
+the 2 ms frame timeout, and a thread whose frame another thread has already filed takes the receive lock and sleeps
 in ``recv`` until some other frame arrives: the last transfer of a parallel gain switch, or the loop's own
 receive while transfers run, waits for a frame that is already there. ``poll_frames`` makes the socket
 non-blocking, so each waiting thread polls until its frame is filed or its timeout passes. It is for the time

@@ -19,7 +19,7 @@ from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_L
 from humanoid_prime.drivers.ethercat import soem_master
 from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
-from humanoid_prime.drivers.ethercat.soem_master import SoemMaster, packet_sockets
+from humanoid_prime.drivers.ethercat.soem_master import SoemMaster, packet_sockets, threaded_receive
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
@@ -126,6 +126,38 @@ def test_a_master_that_cannot_tell_soems_socket_from_another_never_polls(robot, 
             assert os.get_blocking(other.fileno()) and not master.frames_polled
         finally:
             master.close()
+
+
+def test_a_master_whose_nic_delivers_frames_from_a_kernel_thread_never_polls(system, ring):
+    (fd,) = packet_sockets(ring.master_interface)
+    system.master.threaded_receive = "a PREEMPT_RT kernel runs the NIC's interrupts in threads"
+    assert not system.master.poll_frames(True)
+    assert os.get_blocking(fd) and not system.master.frames_polled
+
+
+def kernel_files(root, *, realtime: str | None = None, cmdline: str = "quiet", threaded: str | None = None):
+    (root / "proc").mkdir()
+    (root / "proc/cmdline").write_text(cmdline + "\n")
+    if realtime is not None:
+        (root / "sys/kernel").mkdir(parents=True)
+        (root / "sys/kernel/realtime").write_text(realtime + "\n")
+    if threaded is not None:
+        (root / "sys/class/net/eth1").mkdir(parents=True)
+        (root / "sys/class/net/eth1/threaded").write_text(threaded + "\n")
+    return root
+
+
+@pytest.mark.parametrize(("version", "files", "why"), [
+    ("#1 SMP PREEMPT_DYNAMIC", {}, None),
+    ("#1 SMP PREEMPT_DYNAMIC", {"realtime": "0", "threaded": "0"}, None),
+    ("#1 SMP PREEMPT_RT Debian 6.1.0-rt", {}, "a PREEMPT_RT kernel runs the NIC's interrupts in threads"),
+    ("#1 SMP PREEMPT", {"realtime": "1"}, "a PREEMPT_RT kernel runs the NIC's interrupts in threads"),
+    ("#1 SMP PREEMPT", {"cmdline": "quiet threadirqs"}, "the kernel was booted with threadirqs"),
+    ("#1 SMP PREEMPT", {"threaded": "1"}, "eth1 runs NAPI in a kernel thread"),
+])
+def test_frames_come_through_a_kernel_thread_on_rt_kernels_threadirqs_and_threaded_napi(tmp_path, version, files,
+                                                                                         why):
+    assert threaded_receive("eth1", kernel_version=version, root=kernel_files(tmp_path, **files)) == why
 
 
 def test_packet_sockets_are_found_by_the_interface_they_are_bound_to(ring):

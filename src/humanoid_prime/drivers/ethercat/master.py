@@ -539,7 +539,8 @@ class EthercatMaster(ABC):
         """Have every thread that waits for a frame poll the NIC (True) or sleep until a frame arrives (False);
         returns whether frames are now polled. Polling is for a ring whose cycle a real-time thread owns: a
         thread of normal priority that polls uses up its share and is put behind the machine's other work.
-        A master without a socket of its own to poll never polls."""
+        A master without a socket of its own to poll never polls, nor one whose NIC delivers frames from a kernel
+        thread that a polling real-time thread could starve."""
         return False
 
     @abstractmethod

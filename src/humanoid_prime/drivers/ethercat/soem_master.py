@@ -26,7 +26,9 @@ receive while transfers run, waits for a frame that is already there. ``poll_fra
 non-blocking, so each waiting thread polls until its frame is filed or its timeout passes. It is for the time
 a real-time thread owns the cycle: the bring-up loop, the drives' enabling and the keeper run at normal
 priority, and polling there put a loaded machine's bring-up behind its other work until a slave missed its
-DC lock.
+DC lock. Nor does the master poll where the kernel delivers the NIC's frames from a thread (``threaded_receive``):
+a real-time thread polling on that thread's CPU would keep it, below the loop's priority, from delivering the
+very frame it waits for.
 A supervision thread, woken by a working-counter mismatch, reads the AL states and acknowledges,
 reconfigures or recovers slaves that left OP, re-arming SYNC0 for each.
 """
@@ -38,6 +40,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 import pysoem
@@ -93,6 +96,7 @@ class SoemMaster(EthercatMaster):
         self.lost_frames = 0  # SDO transfers repeated because a frame of the exchange did not come back
         self.state_rereads = 0  # AL-state reads repeated because some slave did not answer one
         self.frames_polled = False  # SOEM's socket non-blocking (module docstring)
+        self.threaded_receive: str | None = None  # why the NIC's frames arrive through a kernel thread, if they do
         self._socket: int | None = None  # SOEM's socket, where it could be told from this process's others
         self.supervision_error: str | None = None  # the last exception a recovery attempt ran into
         self._m: pysoem.Master | None = None
@@ -127,6 +131,7 @@ class SoemMaster(EthercatMaster):
         self._m = m
         opened = packet_sockets(self.interface) - theirs
         self._socket = opened.pop() if len(opened) == 1 else None  # SOEM opens one per port
+        self.threaded_receive = threaded_receive(self.interface)
         m.sdo_read_timeout = self.sdo_timeout_us
         m.sdo_write_timeout = self.sdo_timeout_us
         if m.config_init() <= 0:
@@ -237,7 +242,7 @@ class SoemMaster(EthercatMaster):
         self._supervisor.start()
 
     def poll_frames(self, poll: bool) -> bool:
-        if self._socket is None or self._m is None:
+        if self._socket is None or self._m is None or (poll and self.threaded_receive is not None):
             return False
         os.set_blocking(self._socket, not poll)
         self.frames_polled = poll
@@ -452,3 +457,25 @@ def packet_sockets(interface: str) -> set[int]:
         return found
     except (OSError, StopIteration, IndexError, ValueError):
         return set()
+
+
+def threaded_receive(interface: str, *, kernel_version: str | None = None, root: Path = Path("/")) -> str | None:
+    """Why frames on ``interface`` reach the socket through a kernel thread (None where they come in interrupt
+    context): a PREEMPT_RT kernel or one booted with ``threadirqs`` runs interrupt handlers in threads, and a
+    NIC in threaded NAPI mode polls from a kernel thread of normal priority."""
+    version = os.uname().version if kernel_version is None else kernel_version
+    if "PREEMPT_RT" in version or _read(root / "sys/kernel/realtime") == "1":
+        return "a PREEMPT_RT kernel runs the NIC's interrupts in threads"
+    if "threadirqs" in _read(root / "proc/cmdline").split():
+        return "the kernel was booted with threadirqs"
+    if _read(root / "sys/class/net" / interface / "threaded") == "1":
+        return f"{interface} runs NAPI in a kernel thread"
+    return None
+
+
+def _read(path: Path) -> str:
+    """A small kernel file's text, stripped; '' where there is none."""
+    try:
+        return path.read_text().strip()
+    except OSError:
+        return ""

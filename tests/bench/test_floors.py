@@ -1,9 +1,8 @@
 """The physical floors shown beside the benchmark figures, against the numbers worked out by hand."""
 
-import mujoco
 import pytest
 
-from humanoid_prime.bench.floors import can_frame_s, ethercat_cycle_s, mujoco_step_s
+from humanoid_prime.bench.floors import can_frame_s, ethercat_cycle_s
 
 
 def test_one_ethercat_cycle_of_ten_erob_is_its_372_byte_frame_plus_ten_slave_delays():
@@ -19,13 +18,3 @@ def test_an_extended_can_frame_with_8_bytes_is_131_bits_and_160_with_worst_stuff
     assert can_frame_s() == pytest.approx(131e-6)
     assert can_frame_s(worst_stuffing=True) == pytest.approx(160e-6)
     assert can_frame_s(0, bit_rate=500e3) == pytest.approx(67 / 500e3)
-
-
-def test_mujocos_step_is_timed_from_a_copy_of_the_given_state_which_is_left_as_it_was():
-    model = mujoco.MjModel.from_xml_string(
-        '<mujoco><worldbody><body><joint name="j"/><geom size="0.1" pos="0.2 0 0"/></body></worldbody></mujoco>')
-    data = mujoco.MjData(model)
-    data.qpos[0], data.qvel[0] = 0.4, 1.5
-    seconds = mujoco_step_s(model, 50, data=data)
-    assert seconds > 0
-    assert (data.time, data.qpos[0], data.qvel[0]) == (0.0, 0.4, 1.5)

@@ -5,15 +5,9 @@ the distance from each figure to its limit is visible.
   of the DC reference time) on the wire at 100 Mbit/s, plus the pass-through delay of each slave.
 - The Sito frames of one bus cycle on CAN at 1 Mbit/s (a command, 0xB1 and 0xB2 per wrist): 29-bit
   identifier, 8 data bytes, without and with the worst-case stuff bits.
-- One MuJoCo step of Prime's model, timed in C (``mj_step`` looping ``nstep`` times without returning to Python).
 """
 
 from __future__ import annotations
-
-import copy
-import time
-
-import mujoco
 
 from humanoid_prime.drivers.sito.bus import can_frame_bits
 
@@ -36,21 +30,3 @@ def ethercat_cycle_s(slaves: int, output_bytes: int, input_bytes: int, *, bit_ra
 def can_frame_s(data_bytes: int = 8, *, bit_rate: float = 1e6, worst_stuffing: bool = False) -> float:
     """Bus time of one extended CAN frame; with ``worst_stuffing`` one stuff bit per four stuffable bits."""
     return can_frame_bits(data_bytes, worst_stuffing=worst_stuffing) / bit_rate
-
-
-def mujoco_step_s(model: mujoco.MjModel, steps: int = 2000, *, data: mujoco.MjData | None = None) -> float:
-    """Seconds of one ``mj_step`` of ``model``, the best of three runs of ``steps`` steps looped in C.
-
-    Each run starts from a copy of ``data`` (default: the model's rest state), which is left untouched. The
-    actuators' gains live in the model, so a model and data taken from a run are stepped as that run stepped them.
-    """
-    start = mujoco.MjData(model) if data is None else data
-    work = copy.copy(start)
-    mujoco.mj_step(model, work, nstep=100)  # warm up
-    best = float("inf")
-    for _ in range(3):
-        work = copy.copy(start)
-        began = time.perf_counter()
-        mujoco.mj_step(model, work, nstep=steps)
-        best = min(best, (time.perf_counter() - began) / steps)
-    return best

@@ -37,7 +37,7 @@ _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": oper
 
 # (suite, figure path) -> (suite, floor path, what the floor is): the physical limit shown beside a figure
 FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
-    ("sim", "realtime_factor"): ("sim", "floors.realtime_factor", "MuJoCo's own steps alone"),
+    ("sim", "realtime_factor"): ("sim", "floors.realtime_factor", "MuJoCo's own steps in this run"),
     ("bringup", "tick_io_us.median"): ("bringup", "floors.ethercat_cycle_us",
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
 }
@@ -45,7 +45,7 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
 # (suite, figure path, comparison, goal, what) -- DESIGN §6
 TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("sim", "realtime_factor", ">=", b.TARGET_REALTIME_FACTOR, "simulation speed (x real time)"),
-    ("sim", "floor_fraction", "<=", math.inf, "simulation speed as a fraction of MuJoCo's own on this host"),
+    ("sim", "floor_fraction", "<=", math.inf, "simulation speed as a fraction of MuJoCo's own in this run"),
     ("sito", "host_load_percent", "<=", b.TARGET_LOAD_PERCENT, "Sito bus load from the host at 50 Hz (%)"),
     ("bringup", "bringup_seconds", "<=", b.TARGET_BRINGUP_S,
      "cold bring-up, 10 eRob to OP + 4 Sito, joint states flowing (s)"),

@@ -41,8 +41,8 @@ class HardwareComponent(SafetyFlags, ABC):
         self.indices = np.array([robot.index(joint) for joint in self.joints], dtype=np.intp)
         self.lifecycle = Lifecycle.UNCONFIGURED
         # Seconds of the last read + write spent in bus I/O: the system calls that send and collect frames, with
-        # any wait for the wire (and, on an emulated bus, for the emulator). The tick's cost minus this is the
-        # CPU of our own code.
+        # any wait for the wire (and, on an emulated bus, for the emulator); in simulation, the physics steps. The
+        # tick's cost minus this is the CPU of our own code.
         self.io_s = 0.0
 
     # Lifecycle. Subclasses override the on_* hooks; these wrappers keep the state machine honest.

@@ -1,5 +1,6 @@
 """The simulated Prime: a MuJoCo model that agrees with the description, and the MIT law inside it."""
 
+import time
 from pathlib import Path
 
 import mujoco
@@ -63,6 +64,21 @@ def test_one_write_advances_exactly_one_control_period(sim_robot):
     for _ in range(40):
         sim.write(0.0, command)
     assert sim.sim_time == pytest.approx(40 * 0.005, abs=1e-12)
+
+
+def test_a_writes_plant_time_is_the_physics_steps_it_ran(sim_robot):
+    sim = MujocoSystem(sim_robot)
+    spans: list[tuple[float, float]] = []
+
+    def advance(dt: float) -> None:
+        began = time.perf_counter()
+        mujoco.mj_step(sim.model, sim.data)
+        spans.append((began, time.perf_counter()))
+
+    sim.advance = advance
+    sim.write(0.0, CommandArrays(sim_robot.n))
+    assert len(spans) == sim.substeps
+    assert sim.io_s >= spans[-1][1] - spans[0][0] > 0
 
 
 def test_rates_that_are_not_a_whole_multiple_are_refused(sim_robot):

@@ -4,7 +4,8 @@ The MIT law ``tau = kp(q_cmd - q) + kd(qd_cmd - qd) + tau_ff``, saturated to eac
 is applied by MuJoCo itself at every physics step with the live q and qd: each joint has one affine
 actuator whose bias terms are ``-kp*q - kd*qd`` and whose control is ``kp*q_cmd + kd*qd_cmd + tau_ff``.
 ``write`` sets those per tick and advances physics by one control period, so simulated time moves
-exactly ``physics_rate / update_rate`` steps per tick.
+exactly ``physics_rate / update_rate`` steps per tick; the seconds those steps take are the tick's plant time
+(``io_s``), as the wire and the emulator are on the buses, so the tick's cost minus them is our own CPU.
 
 The system may own a subset of the joints (``joints``); the actuators of the others stay at zero gain
 and zero control, so another component (e.g. emulated motors applying their own torque) drives them.
@@ -18,6 +19,7 @@ description's limits (hard stops), and generates the actuators with the descript
 from __future__ import annotations
 
 import math
+import time
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -278,9 +280,11 @@ class MujocoSystem(HardwareComponent):
         u += self._a
         self._ctrl[actuators] = u
         advance = self.advance
+        began = time.perf_counter()  # the physics is this component's plant time (``io_s``)
         if advance is None:
             mujoco.mj_step(self.model, self.data, nstep=self.substeps)
         else:
             dt = self.physics_dt
             for _ in range(self.substeps):
                 advance(dt)
+        self.io_s = time.perf_counter() - began

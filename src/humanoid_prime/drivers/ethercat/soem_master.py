@@ -19,16 +19,15 @@ one transfer at a time (``bench/ethercat.py``); on a small machine a frame now a
 
 SOEM's socket. SOEM polls its socket for each frame it waits for ("non blocking call to retrieve frame from
 socket", oshw/linux/nicdrv.c) but opens it blocking with a 1 µs receive timeout, which the kernel rounds up to
-whole scheduler ticks. Blocking, a lost frame holds its thread for those ticks (6.4 ms measured) instead of
-the 2 ms frame timeout, and a thread whose frame another thread has already filed takes the receive lock and sleeps
-in ``recv`` until some other frame arrives: the last transfer of a parallel gain switch, or the loop's own
-receive while transfers run, waits for a frame that is already there. ``poll_frames`` makes the socket
-non-blocking, so each waiting thread polls until its frame is filed or its timeout passes. It is for the time
-a real-time thread owns the cycle: the bring-up loop, the drives' enabling and the keeper run at normal
-priority, and polling there put a loaded machine's bring-up behind its other work until a slave missed its
-DC lock. Nor does the master poll where the kernel delivers the NIC's frames from a thread (``threaded_receive``):
-a real-time thread polling on that thread's CPU would keep it, below the loop's priority, from delivering the
-very frame it waits for.
+whole scheduler ticks. Blocking, a lost frame holds its thread for those ticks (6.4 ms measured) instead of the
+2 ms frame timeout, and a thread whose frame another thread has already filed takes the receive lock and sleeps in
+``recv`` until some other frame arrives: the last transfer of a parallel gain switch, or the loop's own receive
+while transfers run, waits for a frame that is already there. ``poll_frames`` makes the socket non-blocking, so
+each waiting thread polls until its frame is filed or its timeout passes. It is for the time a real-time thread
+owns the cycle: the bring-up loop, the drives' enabling and the keeper run at normal priority, and polling there
+put a loaded machine's bring-up behind its other work until a slave missed its DC lock. Nor does the master poll
+where the kernel delivers the NIC's frames from a thread (``threaded_receive``): a real-time thread polling on that
+thread's CPU would keep it, below the loop's priority, from delivering the very frame it waits for.
 A supervision thread, woken by a working-counter mismatch, reads the AL states and acknowledges,
 reconfigures or recovers slaves that left OP, re-arming SYNC0 for each.
 """

@@ -94,7 +94,6 @@ class SoemMaster(EthercatMaster):
         self.recoveries = 0
         self.lost_frames = 0  # SDO transfers repeated because a frame of the exchange did not come back
         self.state_rereads = 0  # AL-state reads repeated because some slave did not answer one
-        self.frames_polled = False  # SOEM's socket non-blocking (module docstring)
         self.threaded_receive: str | None = None  # why the NIC's frames arrive through a kernel thread, if they do
         self._socket: int | None = None  # SOEM's socket, where it could be told from this process's others
         self.supervision_error: str | None = None  # the last exception a recovery attempt ran into
@@ -244,7 +243,6 @@ class SoemMaster(EthercatMaster):
         if self._socket is None or self._m is None or (poll and self.threaded_receive is not None):
             return False
         os.set_blocking(self._socket, not poll)
-        self.frames_polled = poll
         return poll
 
     # -------------------------------------------------------------------------------- cyclic
@@ -390,7 +388,6 @@ class SoemMaster(EthercatMaster):
             self._supervisor = None
         m, self._m = self._m, None
         self._socket = None
-        self.frames_polled = False
         if m is None:
             return
         try:

@@ -7,6 +7,7 @@ import pytest
 
 from doubles.control import Plant, constant_policy, with_policy
 from humanoid_prime.control.controllers.standby import min_jerk
+from humanoid_prime.control.interfaces import COMMAND_NAMES
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.policy import Policy
 from humanoid_prime.control.topics import REMOTE_COMMAND, SAFETY_STATUS, MitCommand
@@ -253,8 +254,9 @@ def test_remote_rejects_a_message_of_the_wrong_length(manager, robot, names, row
     assert remote.rejected == 1 and remote.last_rejection == problem
 
 
-def test_remote_quick_acceptance_agrees_with_the_worded_check(manager, robot):
-    """Every message is judged twice over: the quick all-rows test must accept exactly what the check accepts."""
+def test_remote_compiled_acceptance_agrees_with_the_worded_check(manager, robot):
+    """Every message is judged twice over: the compiled check must accept exactly what the worded check accepts,
+    take the rows it accepts into the inbox and leave the inbox as it was when it refuses."""
     remote = manager.controllers["remote_policy_controller"]
     rng = np.random.default_rng(7)
     sito = robot.indices("sito")
@@ -273,10 +275,32 @@ def test_remote_quick_acceptance_agrees_with_the_worded_check(manager, robot):
         if rng.random() < 0.05:
             rows["damping"][sito[0]] = np.nan
         m = message(robot, **rows)
-        accepted = remote._accept(m) is not None
+        before = remote._inbox.copy()
+        accepted = remote._take(*(getattr(m, name) for name in COMMAND_NAMES))
         assert accepted == (remote._check(m) == ""), remote._check(m)
+        expected = np.array([getattr(m, name) for name in COMMAND_NAMES]) if accepted else before
+        np.testing.assert_array_equal(remote._inbox, expected)
         judged[accepted] += 1
     assert min(judged.values()) > 50  # both verdicts were exercised
+
+
+@pytest.mark.parametrize(("rows", "accepted"), [
+    ({"position": [0.0] * 14, "stiffness": [5] * 14}, True),  # lists, integers
+    ({"position": np.zeros(14, dtype=np.float32)}, True),
+    ({"position": np.zeros(28)[::2]}, True),  # a strided view
+    ({"damping": np.ones((14, 1))}, False),
+    ({"damping": 1.0}, False),
+    ({"effort": ["x"] * 14}, False),
+    ({"effort": [[0.0, 1.0]] * 14}, False),
+    ({"velocity": None}, False),
+])
+def test_remote_judges_rows_of_any_kind_as_the_worded_check_does(manager, robot, rows, accepted):
+    remote = manager.controllers["remote_policy_controller"]
+    m = replace(message(robot), **rows)  # as given, not made arrays
+    assert remote._take(*(getattr(m, name) for name in COMMAND_NAMES)) is accepted
+    assert (remote._check(m) == "") is accepted
+    manager.topics.publish(REMOTE_COMMAND, m)
+    assert (remote.accepted, remote.rejected) == ((1, 0) if accepted else (0, 1))
 
 
 def test_remote_falls_back_to_a_damped_hold_after_100_ms_of_silence(manager, plant, robot, erob, sito):

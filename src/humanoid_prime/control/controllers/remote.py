@@ -7,6 +7,7 @@ import threading
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control._tick import CommandCheck
 from humanoid_prime.control.controller import Controller, gain_rows
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import COMMAND_NAMES, POSITION_MARGIN, CommandArrays, StateArrays
@@ -60,6 +61,9 @@ class RemotePolicyController(Controller):
         self._damp_kp, self._damp_kd = gain_rows(robot, (self.erob_kp, self.erob_kd), (0.0, self.stale_kd))
         self._lock = threading.Lock()
         self._inbox = np.zeros((5, robot.n))
+        # _check's rules with no words built, compiled: a message arrives every tick.
+        self._take = CommandCheck(self._inbox, self._lower, self._upper, self._effort_limit,
+                                  self._erob.astype(np.uint8), self._damp_kp).take
         self._current = np.zeros((5, robot.n))
         self._fresh = False
         self._has_command = False
@@ -69,41 +73,16 @@ class RemotePolicyController(Controller):
         topics.subscribe(self.topic, self._on_message)
 
     def _on_message(self, message: MitCommand) -> None:
-        rows = self._accept(message)
-        problem = "" if rows is not None else self._check(message)
         with self._lock:
-            if problem:
-                self.rejected += 1
-                self.last_rejection = problem
+            if tuple(message.joint_names) == self.names and self._take(
+                    message.position, message.velocity, message.effort, message.stiffness, message.damping):
+                self._fresh = True
+                self.accepted += 1
                 return
-            if rows is None:
-                for row, interface in enumerate(COMMAND_NAMES):
-                    self._inbox[row] = getattr(message, interface)
-            else:
-                np.copyto(self._inbox, rows)
-            self._fresh = True
-            self.accepted += 1
-
-    def _accept(self, message: MitCommand) -> np.ndarray | None:
-        """The message's five rows when every check passes, or None: ``_check`` then says what is wrong.
-
-        The same checks as ``_check`` on all five rows at once, with no words built: a message arrives every tick.
-        """
-        if tuple(message.joint_names) != self.names:
-            return None
-        try:
-            rows = np.array([getattr(message, interface) for interface in COMMAND_NAMES], dtype=np.float64)
-        except (TypeError, ValueError):
-            return None
-        if rows.shape != self._inbox.shape or not np.isfinite(rows).all() or (rows[3:] < 0.0).any():
-            return None
-        if (np.abs(rows[2]) > self._effort_limit).any():
-            return None
-        position = rows[0]
-        beyond = (position < self._lower) | (position > self._upper)
-        if beyond.any() and (beyond & (np.where(self._erob, self._damp_kp, rows[3]) > 0.0)).any():
-            return None
-        return rows
+        problem = self._check(message) or "refused by the command check"  # the two checks agree (tested)
+        with self._lock:
+            self.rejected += 1
+            self.last_rejection = problem
 
     def _check(self, message: MitCommand) -> str:
         names = tuple(message.joint_names)

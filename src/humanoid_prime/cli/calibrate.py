@@ -335,10 +335,7 @@ def _start_scripted(session: Session, virtual: Any, joints: tuple[str, ...], sto
     def work() -> None:
         try:
             operator = ScriptedOperator(session, virtual.control, stop=stop)
-            for joint in joints:
-                if stop.is_set():
-                    return
-                operator.sweep(joint)
+            operator.by_hand(joints, operator.sweep)
         except Exception as exc:  # reported with the run; the file is still written from what was swept
             session.record_fault("scripted_operator", f"{type(exc).__name__}: {exc}")
         finally:
@@ -413,12 +410,18 @@ def _verify_joints(session: Session, virtual: Any, joints: tuple[str, ...], rows
             from humanoid_prime.virtual.operator import ScriptedOperator
 
             operator = ScriptedOperator(session, virtual.control, stop=stop)
-            for joint in joints:
+
+            def check(joint: str) -> None:
                 spec = robot.joints[robot.index(joint)]
                 with operator.limp(joint):
                     for side, name, limit in ((-1, "lower", spec.lower), (+1, "upper", spec.upper)):
                         rows.append(VerifyRow(joint, name, limit, operator.push_to(joint, side)))
                     operator.let_go(joint)
+
+            try:
+                operator.by_hand(joints, check)
+            finally:  # both hands' rows in the order of the joints asked for, each lower stop first
+                rows.sort(key=lambda row: (joints.index(row.joint), row.stop != "lower"))
         else:
             position = session.manager.resources.state.position
             for joint in joints:

@@ -5,6 +5,10 @@ An eRob joint is made damped-limp first (the same procedure as ``prime limp``: g
 integral 0, damping kept, restored afterwards) with its CSP target following the joint; a Sito wrist is
 limp already. The hand moves the joint slowly toward the lower stop and presses it there (at most a fraction of the
 joint's effort limit), waits until it rests, does the same at the upper stop, then lets go.
+
+The operator has two hands: ``by_hand`` works through the left arm's joints with one and the other joints with
+the other, at the same time, as a person at the robot does. The arms hang from a fixed torso, so one hand's
+joint does not move under the other's; a calibration of all fourteen joints takes half as long.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.drivers.erob.gains import vel_reg_exact
@@ -92,6 +96,33 @@ class ScriptedOperator:
 
     def let_go(self, joint: str) -> None:
         self.control.call("hand", joint=joint, speed_rad_s=0.0, force_nm=0.0)
+
+    def by_hand(self, joints: Sequence[str], work: Callable[[str], None]) -> None:
+        """``work(joint)`` for each of ``joints`` in order, the left arm's with one hand (a thread) and the rest
+        with the other (this thread). A hand that fails makes the other let go (``stop``); its error is raised
+        once both are done."""
+        left = [j for j in joints if j.startswith("left_")]
+        rest = [j for j in joints if not j.startswith("left_")]
+        errors: list[BaseException] = []
+
+        def hand(chosen: list[str]) -> None:
+            try:
+                for joint in chosen:
+                    if self.stop.is_set():
+                        return
+                    work(joint)
+            except BaseException as exc:  # the other hand lets go; the error is raised below
+                errors.append(exc)
+                self.stop.set()
+
+        other = threading.Thread(target=hand, args=(left,), name="scripted-operator-left", daemon=True)
+        other.start()
+        try:
+            hand(rest)
+        finally:
+            other.join()
+        if errors:
+            raise errors[0]
 
     def sweep(self, joint: str) -> None:
         """Both stops, then let go."""

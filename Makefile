@@ -1,8 +1,10 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view.
-TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium
+# Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view,
+# and cyclictest, which the benchmarks run beside the 1 kHz loop to measure the machine's own real-time latency.
+TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium rt-tests
+BENCH_DEBS := rt-tests
 # The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.
 PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
@@ -25,6 +27,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
+	tools/install-debs $(BENCH_DEBS)
 	$(VENV)/bin/prime bench
 
 soak: $(STAMP)

@@ -41,9 +41,13 @@ def machine_latency(seconds: float, *, interval_us: int = 1000, late_us: int = 1
     with tempfile.TemporaryDirectory(prefix="prime-bench-") as tmp:
         path = Path(tmp) / "latency.json"
         # -S: a thread per CPU, pinned; -m: locked memory; -h: a histogram of lateness in us, up to late_us
-        proc = subprocess.run([executable, "-S", "-m", "-q", "-p", str(PROBE_PRIORITY), "-i", str(interval_us),
-                               "-D", str(max(1, round(seconds))), "-h", str(late_us), f"--json={path}"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=seconds + 60.0)
+        try:
+            proc = subprocess.run([executable, "-S", "-m", "-q", "-p", str(PROBE_PRIORITY), "-i", str(interval_us),
+                                   "-D", str(max(1, round(seconds))), "-h", str(late_us), f"--json={path}"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                  timeout=seconds + 60.0)
+        except subprocess.TimeoutExpired:
+            return None, f"{PROBE} did not end within a minute of its {seconds:g} s"
         if proc.returncode != 0 or not path.exists():
             last = proc.stderr.strip().splitlines()
             return None, f"{PROBE} measured nothing (exit {proc.returncode}): {last[-1] if last else 'no output'}"

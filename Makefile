@@ -2,7 +2,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view,
-# and cyclictest, which the benchmarks run beside the 1 kHz loop to measure the machine's own real-time latency.
+# and cyclictest, which the 1 kHz benchmark runs after its loop to measure the machine's own real-time latency.
 TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium rt-tests
 BENCH_DEBS := rt-tests
 # The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.

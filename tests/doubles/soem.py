@@ -4,8 +4,9 @@ It keeps pysoem's contracts that SoemMaster relies on: ``config_map`` calls each
 with its 0-based position and re-raises the first exception one raised; a slave maps whatever 0x1600/0x1A00
 hold (ZeroErr's power-up layout until a master remaps it); ``read_state`` leaves a state of NONE where a
 slave did not answer; transfers raise pysoem's own exception classes. Faults are scripted per transfer
-(``fail``) and per state read (``lose_state_reads``); ``clock`` is advanced by a mailbox timeout instead of
-waiting one out.
+(``fail``) and per state read (``lose_state_reads``: the next N reads lost; ``state_read_losses``: one
+True or False per read to come, before those); ``clock`` is advanced by a mailbox timeout instead of waiting
+one out.
 """
 
 from __future__ import annotations
@@ -111,6 +112,7 @@ class FakeSoemMaster:
         self.clock: Clock = options.get("clock") or Clock()
         self.failures: dict[tuple[int, int, int], list] = options.get("failures", {})
         self.lose_state_reads = options.get("lose_state_reads", 0)
+        self.state_read_losses: list[bool] = []
         self._rated = options.get("rated_torque_mnm", [23000] * options.get("slaves", 10))
         self.slaves: list[FakeSoemSlave] = []
         self.sdo_read_timeout = self.sdo_write_timeout = 700_000
@@ -136,8 +138,11 @@ class FakeSoemMaster:
 
     def read_state(self) -> int:
         self.state_reads += 1
-        lost = self.lose_state_reads > 0
-        self.lose_state_reads -= lost
+        if self.state_read_losses:
+            lost = self.state_read_losses.pop(0)
+        else:
+            lost = self.lose_state_reads > 0
+            self.lose_state_reads -= lost
         for slave in self.slaves:
             slave.state = pysoem.NONE_STATE if lost or not slave.answering else slave.true_state
         return min(slave.state for slave in self.slaves)

@@ -99,6 +99,20 @@ def test_empty_al_state_reads_flag_nobody(clock):
         assert master.health_version == version
 
 
+def test_a_slave_that_answered_one_read_of_the_pass_is_judged_by_that_answer(clock):
+    """With one slave silent, every read of a pass is made; when the last one's frame is lost (a supervision
+    thread kept off the CPU past the frame timeout, on a loaded machine), the others answered the reads before."""
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        fake.slaves[8].answering = False
+        fake.state_read_losses = [False] * (STATE_READS - 1) + [True]
+        master._check_ring()
+        assert list(master.slave_ok) == [True] * 8 + [False, True]
+        assert list(master.lost) == [False] * 8 + [True, False]
+        assert master.state_rereads == STATE_READS
+
+
 def wait_for(condition, what: str, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():

@@ -285,18 +285,25 @@ class SoemMaster(EthercatMaster):
     def _check_ring(self) -> None:
         """One pass of SOEM's state check: acknowledge, re-request OP, reconfigure or recover each slave.
 
-        A slave counts as not answering only after ``STATE_READS`` reads in a row without its state. The
-        health arrays record what the slaves reported, before any request is written.
+        A slave counts as not answering only after ``STATE_READS`` reads in a row without its state; one that
+        answered any read of the pass is judged by its latest answer. A lost frame leaves every slave's state at
+        NONE, and with one slave really gone every read of the pass is made, so the last may be such a frame (a
+        supervision thread kept off the CPU past the frame timeout, on a loaded machine). The health arrays
+        record what the slaves reported, before any request is written.
         """
         m = self._require()
-        for _ in range(STATE_READS):  # one lost frame leaves every slave's state at NONE: read again first
+        answered: dict[int, tuple[int, int]] = {}  # position -> (state, AL status code), the latest answer
+        for _ in range(STATE_READS):
             m.read_state()
-            if all(slave.state != pysoem.NONE_STATE for slave in self._pslaves):
+            for k, slave in enumerate(self._pslaves):
+                if slave.state != pysoem.NONE_STATE:
+                    answered[k] = (slave.state, slave.al_status)
+            if len(answered) == len(self._pslaves):
                 break
             self.state_rereads += 1
         changed = False
         for k, slave in enumerate(self._pslaves):
-            state, code = slave.state, slave.al_status
+            state, code = answered.get(k, (pysoem.NONE_STATE, slave.al_status))
             if (bool(self.slave_ok[k]), int(self.al_state[k]), int(self.al_status_code[k])) != (
                     state == AL_OP, state, code):
                 if self.slave_ok[k] and state != AL_OP:

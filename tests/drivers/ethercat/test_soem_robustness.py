@@ -100,8 +100,8 @@ def test_empty_al_state_reads_flag_nobody(clock):
 
 
 def test_a_slave_that_answered_one_read_of_the_pass_is_judged_by_that_answer(clock):
-    """With one slave silent, every read of a pass is made; when the last one's frame is lost (a supervision
-    thread kept off the CPU past the frame timeout, on a loaded machine), the others answered the reads before."""
+    """With one slave silent, every read of a pass is made; when the last one's frame is lost (a ring, or an
+    emulated robot, that stalled past SOEM's timeout), the others answered the reads before."""
     with ring(clock) as master:
         master.start(EXPECTED)
         fake = FakeSoemMaster.last

@@ -288,8 +288,8 @@ class SoemMaster(EthercatMaster):
         A slave counts as not answering only after ``STATE_READS`` reads in a row without its state; one that
         answered any read of the pass is judged by its latest answer. A lost frame leaves every slave's state at
         NONE, and with one slave really gone every read of the pass is made, so the last may be such a frame (a
-        supervision thread kept off the CPU past the frame timeout, on a loaded machine). The health arrays
-        record what the slaves reported, before any request is written.
+        ring, or an emulated robot, that stalled past SOEM's timeout). The health arrays record what the slaves
+        reported, before any request is written.
         """
         m = self._require()
         answered: dict[int, tuple[int, int]] = {}  # position -> (state, AL status code), the latest answer

@@ -31,19 +31,22 @@ SEQUENCE = "DAMPING,STANDBY,DAMPING,STANDBY,DAMPING,STANDBY,DAMPING"
 
 
 def bench_bringup(dwell: float = 2.0, *, sequential: bool = False, timeout: float = 180.0) -> dict[str, Any]:
+    options = ["--sequence", SEQUENCE, "--dwell", str(dwell), *(["--sequential-sdo"] if sequential else [])]
+    return bringup_figures(emulated_bringup(options, timeout=timeout), sequential=sequential)
+
+
+def emulated_bringup(options: list[str], *, timeout: float) -> dict[str, Any]:
+    """Run ``prime bringup --emulate`` with ``options`` in a process of its own and return its summary."""
     with tempfile.TemporaryDirectory(prefix="prime-bench-") as tmp:
         summary_path = Path(tmp) / "summary.json"
-        command = [sys.executable, "-m", "humanoid_prime", "bringup", "--emulate", "--no-live",
-                   "--sequence", SEQUENCE, "--dwell", str(dwell), "--summary", str(summary_path),
-                   "--socket", str(Path(tmp) / "control.sock")]
-        if sequential:
-            command.append("--sequential-sdo")
+        command = [sys.executable, "-m", "humanoid_prime", "bringup", "--emulate", "--no-live", *options,
+                   "--summary", str(summary_path), "--socket", str(Path(tmp) / "control.sock")]
         proc = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
         if not summary_path.exists():  # a faulted run still reports its figures, with its problems
             last = (proc.stderr.strip() or proc.stdout.strip()).splitlines()
-            raise PrimeError(f"emulated bringup failed (exit {proc.returncode}): {last[-1] if last else 'no output'}")
-        summary = json.loads(summary_path.read_text())
-    return bringup_figures(summary, sequential=sequential)
+            raise PrimeError(f"emulated bringup {' '.join(options)} failed (exit {proc.returncode}): "
+                             f"{last[-1] if last else 'no output'}")
+        return json.loads(summary_path.read_text())
 
 
 def bringup_figures(summary: dict[str, Any], *, sequential: bool = False) -> dict[str, Any]:

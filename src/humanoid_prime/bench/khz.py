@@ -17,12 +17,11 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.bench.bringup import emulated_bringup
 
 RATE_HZ = 1000.0
 DURATION_S = 60.0
@@ -67,18 +66,8 @@ def per_cpu_latency(report: dict[str, Any]) -> dict[int, dict[str, int]]:
 
 
 def bench_khz(duration: float = DURATION_S, *, cpu: int = 0, timeout: float | None = None) -> dict[str, Any]:
-    with tempfile.TemporaryDirectory(prefix="prime-bench-") as tmp:
-        summary_path = Path(tmp) / "summary.json"
-        command = [sys.executable, "-m", "humanoid_prime", "bringup", "--emulate", "--no-live",
-                   "--rate", f"{RATE_HZ:g}", "--cpu", str(cpu), "--duration", f"{duration:g}",
-                   "--summary", str(summary_path), "--socket", str(Path(tmp) / "control.sock")]
-        proc = subprocess.run(command, capture_output=True, text=True,
-                              timeout=timeout if timeout is not None else duration + 120.0)
-        if not summary_path.exists():
-            last = (proc.stderr.strip() or proc.stdout.strip()).splitlines()
-            raise PrimeError(f"emulated bringup at 1 kHz failed (exit {proc.returncode}): "
-                             f"{last[-1] if last else 'no output'}")
-        summary = json.loads(summary_path.read_text())
+    summary = emulated_bringup(["--rate", f"{RATE_HZ:g}", "--cpu", str(cpu), "--duration", f"{duration:g}"],
+                               timeout=timeout if timeout is not None else duration + 120.0)
     return khz_figures(summary, *machine_latency(duration), cpu=cpu, duration=duration)
 
 

@@ -32,6 +32,7 @@ class DriveMailboxes:
         self.fail_next: dict[int, int] = {}  # position -> number of writes to refuse
         self.dead: set[int] = set()
         self.held: dict[int, threading.Event] = {}  # position -> writes there wait until the event is set
+        self.slow: dict[int, float] = {}  # position -> its mailbox service time, instead of latency_s
         self.in_flight = 0  # transfers being served now, and the most ever served at once
         self.most_in_flight = 0
         self._lock = threading.Lock()
@@ -46,20 +47,20 @@ class DriveMailboxes:
         except KeyError:
             raise PrimeError(f"ring {position}: SDO abort 0x06020000 on 0x{index:04X}:{sub:02X}") from None
 
-    def _serve(self) -> None:
+    def _serve(self, position: int) -> None:
         """The mailbox service time, counting how many transfers overlap."""
         with self._lock:
             self.in_flight += 1
             self.most_in_flight = max(self.most_in_flight, self.in_flight)
         try:
-            time.sleep(self.latency_s)
+            time.sleep(self.slow.get(position, self.latency_s))
         finally:
             with self._lock:
                 self.in_flight -= 1
 
     def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
         name = self._check(position, index, sub_index)
-        self._serve()
+        self._serve(position)
         return self.values[position][name].to_bytes(self.sizes[name], "little")
 
     def hold(self, position: int) -> threading.Event:
@@ -71,7 +72,7 @@ class DriveMailboxes:
         name = self._check(position, index, sub_index)
         if position in self.held:
             self.held[position].wait()
-        self._serve()
+        self._serve(position)
         with self._lock:
             if self.fail_next.get(position, 0) > 0:
                 self.fail_next[position] -= 1

@@ -1,6 +1,7 @@
 """The eRob impedance manager writes each mode's loop gains as DESIGN §2/§3 require."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -223,6 +224,62 @@ def test_parallel_writes_overlap_on_the_slaves_and_sequential_ones_never_do(robo
         mgr.close()
         overlap[parallel] = drives.most_in_flight
     assert overlap == {True: overlap[True], False: 1} and overlap[True] > 1
+
+
+def switch_entries(drives, since):
+    """The writes of one switch from the drives' log: (log index, position, register) per write."""
+    return [(i, position, name) for i, (_t, position, name, _v) in enumerate(drives.log[since:])]
+
+
+def test_every_slave_makes_its_last_write_only_after_every_slave_made_its_others(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives, rendezvous_s=60.0)
+    mgr.arm()
+    drives.slow[3] = 0.05  # one slow mailbox: the other nine would be done before its first write
+    since = len(drives.log)
+    report = mgr.apply(Mode.STANDBY)
+    entries = switch_entries(drives, since)
+    last = {position: i for i, position, _name in entries}
+    earlier = [i for i, position, _name in entries if i != last[position]]
+    assert len(last) == 10 and len(earlier) == 20  # integral, vel_reg, then pos_reg on every slave
+    assert min(last.values()) > max(earlier)
+    assert report.ok and report.together
+    mgr.close()
+
+
+def test_a_slave_that_fails_before_its_last_write_does_not_hold_the_others(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives, retries=0, rendezvous_s=60.0)
+    mgr.arm()
+    drives.fail_next[7] = 100
+    report = mgr.apply(Mode.STANDBY)
+    assert report.together  # it met the others on its way out, so nobody waited for the 60 s
+    assert [s.position for s in report.slaves if s.error] == [7]
+    assert all(drives.registers(p) == (515, 19, 0) for p in range(10) if p != 7)
+    drives.fail_next[7] = 0
+    mgr.close()
+
+
+def test_a_slave_that_hangs_lets_the_others_make_their_last_write_after_the_rendezvous_time(robot, gains):
+    drives = DriveMailboxes()
+    mgr = make(robot, gains, drives, rendezvous_s=0.05)
+    mgr.arm()
+    release = drives.hold(3)
+    since = len(drives.log)
+    reports = []
+    switch = threading.Thread(target=lambda: reports.append(mgr.apply(Mode.STANDBY)))
+    switch.start()
+    others = set(range(10)) - {3}
+    deadline = time.monotonic() + 60.0
+    while {p for _i, p, name in switch_entries(drives, since) if name == "pos_reg"} != others:
+        assert time.monotonic() < deadline, "the others never made their last write"
+        time.sleep(0.005)
+    release.set()
+    switch.join()
+    (report,) = reports
+    assert report.ok and not report.together
+    assert report.as_dict()["together"] is False
+    mgr.close()
 
 
 def test_failed_write_is_retried_within_bound(robot, gains):

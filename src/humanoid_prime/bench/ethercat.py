@@ -6,8 +6,9 @@
   period excluded), idle and while gain switches run over SDO; wall time, and the loop thread's own CPU
   time (on a small machine the emulator process competes for the same cores); and back to back, where
   the caches stay warm (after a 20 ms idle period this VM runs the same code several times slower).
-- Gain switches: three registers on every slave, written one worker per slave (parallel) and from one
-  thread (sequential), with wall time and the spread of the slaves' finishing times (skew).
+- Gain switches: two registers on every slave, written one worker per slave (parallel, the workers meeting
+  before their last write as the impedance manager's do) and from one thread (sequential), with wall time
+  and the spread of the slaves' finishing times (skew).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VE
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.runtime.impedance import Rendezvous
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 # Two register sets a switch alternates between (pos_reg, vel_reg): STANDBY-like and DAMPING-like.
@@ -85,19 +87,22 @@ def _switches(master: SoemMaster, positions: list[int], count: int, parallel: bo
         objects.size(position, POS_LOOP_GAIN)
         objects.size(position, VEL_LOOP_GAIN)
 
-    def write(position: int, registers: tuple[int, int], start: float) -> float:
+    def write(position: int, registers: tuple[int, int], start: float, rendezvous: Rendezvous) -> float:
         objects.write(position, POS_LOOP_GAIN, registers[0])
+        rendezvous.meet()
         objects.write(position, VEL_LOOP_GAIN, registers[1])
         return time.monotonic() - start
 
+    alone = Rendezvous(1)
     with ThreadPoolExecutor(max_workers=len(positions)) as pool:
         for k in range(count):
             registers = SWITCH_REGISTERS[k % 2]
             start = time.monotonic()
             if parallel:
-                done = list(pool.map(lambda p, r=registers, s=start: write(p, r, s), positions))
+                rendezvous = Rendezvous(len(positions))
+                done = list(pool.map(lambda p, r=registers, s=start, m=rendezvous: write(p, r, s, m), positions))
             else:
-                done = [write(p, registers, start) for p in positions]
+                done = [write(p, registers, start, alone) for p in positions]
             walls.append(max(done))
             skews.append(max(done) - min(done))
     return {"switches": count, "writes_per_switch": 2 * len(positions),

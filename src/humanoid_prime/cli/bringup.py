@@ -32,6 +32,7 @@ from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.impedance import RENDEZVOUS_S
 from humanoid_prime.runtime.run import run_loop
 from humanoid_prime.runtime.session import (
     BACKENDS,
@@ -278,6 +279,8 @@ def _start_load_test(session: Session, virtual, joints: list[str], stop: threadi
 def _print_report(summary: dict) -> None:
     for switch in summary["mode_switches"]:
         state = "ok" if switch["ok"] else f"FAILED {switch['failed']}"
+        if not switch["together"]:
+            state += f" (a slave came late; the others made their last write after {RENDEZVOUS_S * 1e3:.0f} ms)"
         print(f"mode {switch['mode']:<12} gains on all slaves in {switch['wall_seconds'] * 1e3:6.1f} ms, "
               f"skew {switch['skew_seconds'] * 1e3:5.1f} ms, retries {switch['retries']}: {state}")
     tick, jitter = summary["tick_us"], summary["jitter_us"]

@@ -14,7 +14,10 @@ per mode, not per tick (DESIGN §2, §3). The manager:
 - on each mode change converts (kp, kd) with each joint's Kt, gear and the torque efficiency, and
   writes only the registers whose value changes, in the order that never leaves an intermediate
   pair stiffer than both modes;
-- writes all slaves concurrently (one worker per slave) unless ``parallel`` is off;
+- writes all slaves concurrently (one worker per slave) unless ``parallel`` is off, and holds each slave's
+  last write of a switch until every slave has made its others (``Rendezvous``): the new gains then take
+  effect on every drive within a few milliseconds of each other, and the wait holds a drive only in the
+  intermediate pair, which is no stiffer than both modes;
 - retries a failed write a bounded number of times, then raises a safety flag for that slave;
 - restores a slave that dropped out (power or link) once it is back in OP: its window, its gate and the
   current mode's gains again, since a drive that lost power comes back with factory values; its drive stays
@@ -71,6 +74,7 @@ class SwitchReport:
     skew_seconds: float
     retries: int
     slaves: tuple[SlaveSwitch, ...]
+    together: bool = True  # every slave met the others before its last write (``Rendezvous``)
 
     @property
     def ok(self) -> bool:
@@ -82,12 +86,16 @@ class SwitchReport:
             "wall_seconds": self.wall_seconds,
             "skew_seconds": self.skew_seconds,
             "retries": self.retries,
+            "together": self.together,
             "ok": self.ok,
             "failed": {s.joint: s.error for s in self.slaves if s.error},
         }
 
 
 RETRY_BACKOFF_S = 0.005
+# The longest the slaves of a switch wait for the slowest before their last write: one tick at 50 Hz, the time a
+# whole switch is allowed. A slave that is retrying or gone lets the others go after that.
+RENDEZVOUS_S = 0.02
 # While a held drive waits for its settings (after a failed restore too), the worker also looks this often.
 # Otherwise it sleeps until a mode change or the EtherCAT side's word that a held drive waits: a thread that wakes
 # on a timer can be preempted by a busy machine while it holds the interpreter, and the control loop then waits.
@@ -114,6 +122,28 @@ class DroppedDrives(Protocol):
     def settings_restored(self, position: int, left_op: int) -> None: ...
 
 
+class Rendezvous:
+    """Where the workers of one parallel switch meet before each one's last write.
+
+    Ten workers started together do not start together: on two cores the last one starts milliseconds after the
+    first, and the first may have finished by then. Met before the last write, they send it within a
+    fraction of that (the skew of ``prime bench``). ``meet`` returns for everybody once every party has
+    arrived, or once ``timeout`` has passed since the first waited; ``together`` says which.
+    """
+
+    def __init__(self, parties: int, timeout: float = RENDEZVOUS_S) -> None:
+        self._barrier = threading.Barrier(parties, timeout=timeout) if parties > 1 else None
+        self.together = True
+
+    def meet(self) -> None:
+        if self._barrier is None:
+            return
+        try:
+            self._barrier.wait()
+        except threading.BrokenBarrierError:  # the wait ran out; late arrivals find the barrier broken at once
+            self.together = False
+
+
 @dataclass
 class _Slave:
     joint: str
@@ -129,13 +159,15 @@ class _Slave:
 
 class ImpedanceManager(SafetyFlags):
     def __init__(self, robot: Robot, sdo: SdoClient, mode_gains: Mapping[Mode, tuple[float, float]], *,
-                 parallel: bool = True, retries: int = 3, clock: Callable[[], float] = time.monotonic) -> None:
+                 parallel: bool = True, retries: int = 3, clock: Callable[[], float] = time.monotonic,
+                 rendezvous_s: float = RENDEZVOUS_S) -> None:
         super().__init__("erob_impedance_manager")
         hw = robot.hardware
         self.sdo = sdo
         self.parallel = parallel
         self.retries = retries
         self.clock = clock
+        self.rendezvous_s = rendezvous_s
         self.efficiency = hw.torque_efficiency
         self.mode_gains = dict(mode_gains)
         self.slaves = [_Slave(j, hw.erob_slaves[j], hw.erob_kt[j], hw.erob_gear[j],
@@ -313,7 +345,24 @@ class ImpedanceManager(SafetyFlags):
             start = self.clock()
             targets = self.targets[mode]
 
+            # Each worker arrives once: before its last write, or on its way out (nothing to write, or failed).
+            rendezvous = Rendezvous(len(self.slaves) if self._pool is not None else 1, self.rendezvous_s)
+
             def switch_one(slave: _Slave) -> SlaveSwitch:
+                met = False
+
+                def meet() -> None:
+                    nonlocal met
+                    met = True
+                    rendezvous.meet()
+
+                try:
+                    return switch_slave(slave, meet)
+                finally:
+                    if not met:
+                        rendezvous.meet()
+
+            def switch_slave(slave: _Slave, meet: Callable[[], None]) -> SlaveSwitch:
                 new = targets[slave.position]
                 if not slave.gate_armed:  # gain writes are ignored until the gate is 1: arm it first
                     problem = self._arm_one(slave)
@@ -323,7 +372,7 @@ class ImpedanceManager(SafetyFlags):
                     if not slave.gate_armed:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
                                            f"{mode.value} gains not applied: the manager is closing")
-                written, retries, error = self._write_gains(slave, mode, new)
+                written, retries, error = self._write_gains(slave, mode, new, before_last=meet)
                 return SlaveSwitch(slave.position, slave.joint, written, retries, self.clock() - start, error)
 
             self.mode = mode
@@ -335,6 +384,7 @@ class ImpedanceManager(SafetyFlags):
                 skew_seconds=(max(finished) - min(finished)) if finished else 0.0,
                 retries=sum(r.retries for r in results),
                 slaves=tuple(results),
+                together=rendezvous.together,
             )
             self.reports.append(report)
             for r in results:
@@ -342,15 +392,19 @@ class ImpedanceManager(SafetyFlags):
                                (f"{r.joint} (ring {r.position}): {r.error}", Level.ERROR) if r.error else None)
             return report
 
-    def _write_gains(self, slave: _Slave, mode: Mode, new: ErobRegisters
+    def _write_gains(self, slave: _Slave, mode: Mode, new: ErobRegisters,
+                     before_last: Callable[[], None] | None = None
                      ) -> tuple[tuple[tuple[str, int], ...], int, str | None]:
         """``mode``'s registers to one armed slave, only those that change, in the safe order: (what was
-        written, retries, error or None)."""
+        written, retries, error or None). ``before_last`` runs before the last write."""
         written: list[tuple[str, int]] = []
         retries = 0
         with slave.lock:
             try:
-                for address, value in write_order(slave.registers, new):
+                writes = write_order(slave.registers, new)
+                for k, (address, value) in enumerate(writes):
+                    if k == len(writes) - 1 and before_last is not None:
+                        before_last()
                     retries += self._write(slave, address, value)
                     written.append((_NAMES[address], value))
                     slave.registers = _updated(slave.registers, address, value)

@@ -129,6 +129,10 @@ class Rendezvous:
     first, and the first may have finished by then. Met before the last write, they send it within a
     fraction of that (the skew of ``prime bench``). ``meet`` returns for everybody once every party has
     arrived, or once ``timeout`` has passed since the first waited; ``together`` says which.
+
+    It costs wall time: the first drive's new gains wait for the slowest worker's earlier writes. On the emulated
+    robot with frames polled (48 switches each way) the skew's median fell from 6.9 to 5.0 ms and the wall's rose
+    from 11.2 to 14.7 ms; switches within both targets (skew <= 5 ms, wall <= 20 ms) went from 7 to 26.
     """
 
     def __init__(self, parties: int, timeout: float = RENDEZVOUS_S) -> None:

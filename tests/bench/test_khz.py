@@ -10,6 +10,7 @@ from humanoid_prime.bench import khz
 from humanoid_prime.bench.khz import bench_khz, khz_figures, machine_latency, per_cpu_latency
 from humanoid_prime.cli import main
 from humanoid_prime.virtual.netns import netns_unavailable_reason
+from humanoid_prime.virtual.prime import EMULATOR_PRIORITY
 
 
 def test_late_wakeups_are_those_beyond_the_histogram():
@@ -33,7 +34,7 @@ def test_without_cyclictest_the_floor_says_why_and_the_loop_is_still_measured(mo
     machine, probe = machine_latency(1.0)
     assert machine is None and "rt-tests" in probe
     summary = {"update_rate": 1000.0, "ok": True, "problems": [], "ticks": 5000, "overruns": 1,
-               "tick_us": {}, "tick_cpu_us": {}, "tick_io_us": {}, "jitter_us": {}}
+               "tick_us": {}, "tick_cpu_us": {}, "tick_io_us": {}, "jitter_us": {}, "emulator": {}}
     figures = khz_figures(summary, machine, probe, cpu=0, duration=5.0)
     assert figures["overruns"] == 1
     assert figures["floors"]["machine_late_wakeups"] is None and figures["floors"]["machine_probe"] == probe
@@ -50,7 +51,10 @@ def test_a_short_run_reports_the_loop_and_the_probe_on_every_cpu():
     assert set(floors["machine"]) == {str(c) for c in os.sched_getaffinity(0)}, floors["machine_probe"]
     assert floors["machine_late_wakeups"] == sum(cpu["late"] for cpu in floors["machine"].values())
     assert floors["loop_cpu_late_wakeups"] == floors["machine"]["0"]["late"]
-    assert figures["emulator_cpus"] == sorted(set(os.sched_getaffinity(0)) - {0})
+    emulator = figures["emulator"]  # as the kernel had it at the end of the run: off the loop's CPU, below it
+    assert emulator["cpus"] == sorted(set(os.sched_getaffinity(0)) - {0})
+    if figures["realtime"]["scheduling"] != "SCHED_OTHER":
+        assert (emulator["policy"], emulator["priority"]) == ("SCHED_FIFO", EMULATOR_PRIORITY)
 
 
 def test_the_table_shows_the_overruns_with_the_machines_late_wakeups_beside_them(monkeypatch, capsys):

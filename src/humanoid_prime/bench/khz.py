@@ -14,7 +14,6 @@ about twice as often with the probe's wake-ups beside it on both CPUs.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import tempfile
@@ -93,5 +92,5 @@ def khz_figures(summary: dict[str, Any], machine: dict[int, dict[str, int]] | No
             "machine_probe": probe,
             "loop_cpu_late_wakeups": machine.get(cpu, {}).get("late") if machine is not None else None,
         },
-        "emulator_cpus": sorted(set(os.sched_getaffinity(0)) - {cpu}),
+        "emulator": summary["emulator"].get("process"),  # where the emulated robot ran, from the kernel
     }

@@ -118,11 +118,26 @@ def attach_virtual_prime(stack: contextlib.ExitStack, *, hardware_file: str | Pa
     return virtual
 
 
+_POLICIES = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO", os.SCHED_RR: "SCHED_RR",
+             os.SCHED_BATCH: "SCHED_BATCH", os.SCHED_IDLE: "SCHED_IDLE"}
+
+
+def scheduling(pid: int) -> dict[str, Any]:
+    """The CPUs, policy and real-time priority of process ``pid``'s main thread, read from the kernel."""
+    policy = os.sched_getscheduler(pid)
+    return {"cpus": sorted(os.sched_getaffinity(pid)), "policy": _POLICIES.get(policy, str(policy)),
+            "priority": os.sched_getparam(pid).sched_priority}
+
+
 _GAIN_OBJECTS = {POS_LOOP_GAIN[0], VEL_LOOP_GAIN[0], BUS_GAIN_GATE[0]}
 
 
 def _record_emulator(virtual: VirtualPrime, record: dict[str, Any]) -> None:
-    """The drives' final state and their log of gain-register writes, as the emulator saw them."""
+    """Where the emulator ran (as the kernel has it), the drives' final state and their log of gain-register
+    writes, as the emulator saw them."""
+    if virtual.pid is not None:
+        with contextlib.suppress(OSError):  # the emulator is already gone: its problems say why
+            record["process"] = scheduling(virtual.pid)
     with contextlib.suppress(PrimeError):
         slaves = virtual.control.call("status")
         record["slaves"] = [{"position": s["position"], "al_state": s["al_state"], "state": s["drive"]["state"],

@@ -68,3 +68,13 @@ def test_the_report_says_what_each_fault_did(soak):
     assert "faults injected" in proc.stdout
     assert f"{result['ticks']} ticks at 50 Hz" in proc.stdout
     assert "slave lost and returned" in proc.stdout
+
+
+def test_the_output_keeps_every_flag_with_its_words_and_times(soak):
+    _, result = soak
+    flags = {(f["key"], f["since_s"]) for f in result["flags"]}
+    for injection in result["injections"]:
+        for key in injection["flags"]:  # each flag an injection was judged by can be read back
+            assert any(k == key and s >= injection["at_s"] for k, s in flags), key
+    assert all(f["text"] and f["level"] in ("WARN", "ERROR") and (f["until_s"] is None or f["until_s"] >= f["since_s"])
+               for f in result["flags"])

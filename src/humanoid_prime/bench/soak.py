@@ -388,5 +388,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         "gates_left_set": gates_set,
         "drives_left_enabled": drives_on,
         "problems_at_end": [p for p in summary["problems"] if "at the end" in p or p.startswith("gate")],
+        # every flag of the run with its words, when it went up and down: what a fault judged wrong is read back from
+        "flags": summary["faults"],
     }
 

@@ -74,7 +74,7 @@ class SwitchReport:
     skew_seconds: float
     retries: int
     slaves: tuple[SlaveSwitch, ...]
-    together: bool = True  # every slave met the others before its last write (``Rendezvous``)
+    together: bool  # every slave met the others before its last write (``Rendezvous``)
 
     @property
     def ok(self) -> bool:

@@ -6,7 +6,9 @@ hold (ZeroErr's power-up layout until a master remaps it); ``read_state`` leaves
 slave did not answer; transfers raise pysoem's own exception classes. Faults are scripted per transfer
 (``fail``) and per state read (``lose_state_reads``: the next N reads lost; ``state_read_losses``: one
 True or False per read to come, before those); ``clock`` is advanced by a mailbox timeout instead of waiting
-one out.
+one out. A slave's ESC registers are reached with pysoem's ``_fprd``/``_fpwr`` (AL control and status, the
+SyncManagers and FMMUs as config_map leaves them); a state requested through AL control shows after
+``state_change_reads`` reads of the AL status, and the register writes are logged in ``register_writes``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,15 @@ import pysoem
 
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import POWER_UP_RXPDO, POWER_UP_TXPDO, RATED_TORQUE
+
+# What config_map leaves in an eRob's ESC: 4 SyncManagers (mailbox out/in, outputs, inputs), 2 FMMUs in use of 3
+ESC_SYNC_MANAGERS = (struct.pack("<HHBBBB", 0x1000, 128, 0x26, 0x01, 0x01, 0x00),
+                     struct.pack("<HHBBBB", 0x1080, 128, 0x22, 0x08, 0x03, 0x01),  # status, repeat, PDI set by it
+                     struct.pack("<HHBBBB", 0x1100, 13, 0x64, 0x00, 0x01, 0x00),
+                     struct.pack("<HHBBBB", 0x1400, 15, 0x20, 0x00, 0x01, 0x00))
+ESC_FMMUS = (struct.pack("<IHBBHBBBxxx", 0x0000, 13, 0, 7, 0x1100, 0, 2, 1),
+             struct.pack("<IHBBHBBBxxx", 0x0100, 15, 0, 7, 0x1400, 0, 1, 1),
+             bytes(16))
 
 NO_REPLY = "no reply"  # a scripted failure: the mailbox timeout runs out
 LOST_FRAME = "lost frame"  # a scripted failure: the working counter comes back 0 at once
@@ -50,7 +61,16 @@ class FakeSoemSlave:
                 self.objects[(mapping, sub)] = struct.pack("<I", entry.mapping)
         self.writes: list[tuple[int, int, bytes]] = []
         self.dc = False
-        self.reconfigured = 0
+        self.registers = bytearray(0x1000)
+        self.registers[0x0004:0x0006] = bytes((len(ESC_FMMUS), 8))
+        for n, data in enumerate(ESC_SYNC_MANAGERS):
+            self.registers[0x0800 + 8 * n:0x0808 + 8 * n] = data
+        for n, data in enumerate(ESC_FMMUS):
+            self.registers[0x0600 + 16 * n:0x0610 + 16 * n] = data
+        self.register_writes: list[tuple[int, bytes]] = []
+        self.state_change_reads = 0
+        self.status_reads = 0
+        self._change: list[int] = []  # [requested state, AL status reads left]
 
     def add_emergency_callback(self, callback: Callable) -> None:
         pass
@@ -91,12 +111,29 @@ class FakeSoemSlave:
             self.true_state = requested
         return 1
 
-    def reconfig(self, timeout: int = 500) -> int:
-        self.reconfigured += 1
-        if self.config_func is not None:
-            self.config_func(self.position)
-        self.true_state = pysoem.SAFEOP_STATE
-        return self.true_state
+    def _fprd(self, address: int, size: int, timeout_us: int = 2000) -> bytes:
+        if not self.answering:
+            raise pysoem.WkcError()
+        if address == 0x0130 and self._change:
+            self._change[1] -= 1
+            if self._change[1] <= 0:
+                self.true_state, self._change = self._change[0], []
+        if address == 0x0130:
+            self.status_reads += 1
+            struct.pack_into("<H", self.registers, 0x0130, self.true_state)
+        return bytes(self.registers[address:address + size])
+
+    def _fpwr(self, address: int, data: bytes, timeout_us: int = 2000) -> None:
+        if not self.answering:
+            raise pysoem.WkcError()
+        self.registers[address:address + len(data)] = data
+        self.register_writes.append((address, bytes(data)))
+        if address == 0x0120:
+            requested = data[0] & 0x0F
+            if self.state_change_reads:
+                self._change = [requested, self.state_change_reads]
+            else:
+                self.true_state = requested
 
     def recover(self, timeout: int = 500) -> int:
         return 1 if self.answering else 0

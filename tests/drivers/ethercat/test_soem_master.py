@@ -326,3 +326,22 @@ def test_a_restored_slave_is_recovered_to_op_and_its_drive_held_disabled_until_t
         wait_for(lambda: ring.control.slave(9)["drive"]["statusword"] == 5687, what="drive enabled again")
     assert system.master.recoveries >= 1
     assert system.master.left_op[9] >= 1
+
+
+def test_the_cycle_goes_on_while_a_returning_slave_takes_its_time_to_change_state(system, ring, robot):
+    # SOEM's reconfiguration waits for each state change in one call that holds Python's lock, so the loop sent
+    # nothing until the drive was done: with a drive that takes a second, every other drive's watchdog ran out
+    ring.control.set_options(dc_lock_cycles=20, state_change_s=1.0)
+    with Loop(system, robot.n):
+        ring.control.lose_slave(9)
+        wait_for(lambda: "ethercat/ring9/lost" in system.flags, what="lost flag")
+        ring.control.restore_slave(9)
+        try:
+            wait_for(lambda: set(system.flags) == {"ethercat/ring9/disabled"}, timeout_s=20.0,
+                     what="back in OP, its drive held disabled")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; flags: {system.flags}") from None
+    frames = ring.control.slave(9)["al_change_frames"]
+    assert len(frames) >= 2, frames  # PRE-OP and SAFE-OP, each a second late
+    assert all(count > 0 for count in frames), f"process-data frames while each state change was pending: {frames}"
+    assert not any(ring.control.slave(k)["drive"]["state"] == "FAULT" for k in range(9))

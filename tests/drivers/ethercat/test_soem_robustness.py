@@ -1,6 +1,6 @@
 """SoemMaster's handling of what a real ring does now and then, on a scripted pysoem double: frames lost in
-the PRE-OP mapping, a drive refusing it, a drive not answering, an AL-state read that comes back empty, and
-each drive's rated torque (0x6076)."""
+the PRE-OP mapping, a drive refusing it, a drive not answering, an AL-state read that comes back empty, a
+drive back from a power cycle, and each drive's rated torque (0x6076)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import time
 import pysoem
 import pytest
 
-from doubles.soem import LOST_FRAME, NO_REPLY, Clock, FakeSoemMaster
+from doubles.soem import ESC_FMMUS, ESC_SYNC_MANAGERS, LOST_FRAME, NO_REPLY, Clock, FakeSoemMaster
 from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RATED_TORQUE
+from humanoid_prime.drivers.ethercat import soem_master
 from humanoid_prime.drivers.ethercat.master import RingError, expected_ring
 from humanoid_prime.drivers.ethercat.soem_master import STATE_READS, SoemMaster
 
@@ -135,16 +136,60 @@ def test_a_slave_silent_over_every_read_is_lost_alone(clock):
         assert not master.lost.any()
 
 
-def test_a_slave_back_in_pre_op_is_remapped_on_reconfiguration(clock):
+def power_cycle(slave) -> None:
+    """What a power cycle leaves in the double's ESC: INIT, SyncManagers and FMMUs cleared."""
+    slave.true_state = pysoem.INIT_STATE
+    slave.registers[0x0600:0x0900] = bytes(0x300)
+    slave.writes.clear()
+    slave.register_writes.clear()
+
+
+def test_a_power_cycled_slave_is_reconfigured_one_frame_at_a_time_as_soem_would(clock):
+    # SOEM's ecx_reconfig_slave waits for each state change inside one call that holds Python's lock: the loop
+    # stops for as long as the drive takes. The double has no reconfig(), so calling it fails this test.
     with ring(clock) as master:
         master.start(EXPECTED)
-        fake = FakeSoemMaster.last
-        slave = fake.slaves[5]
-        slave.writes.clear()
-        slave.true_state = pysoem.PREOP_STATE  # the drive was power-cycled
+        slave = FakeSoemMaster.last.slaves[5]
+        power_cycle(slave)
         master._check_ring()
-        assert slave.reconfigured == 1 and slave.writes == MAPPING_WRITES
+        ack_init, preop, safeop = (bytes((state, 0)) for state in (0x11, pysoem.PREOP_STATE, pysoem.SAFEOP_STATE))
+        sms = [(0x0800 + 8 * n, data[:5] + bytes((0, data[6] & ~0x02, 0))) for n, data in enumerate(ESC_SYNC_MANAGERS)]
+        fmmus = [(0x0600 + 16 * n, data) for n, data in enumerate(ESC_FMMUS) if any(data)]
+        assert slave.register_writes == [(0x0120, ack_init), *sms, (0x0120, preop), (0x0120, safeop), *fmmus]
+        assert slave.writes == MAPPING_WRITES  # between PRE-OP and SAFE-OP
+        assert slave.true_state == pysoem.OP_STATE and slave.dc
         assert master.recoveries == 1
+
+
+def test_a_slow_state_change_is_polled_not_waited_on(clock):
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        slave = FakeSoemMaster.last.slaves[2]
+        power_cycle(slave)
+        slave.state_change_reads = 5  # each requested state shows on the 5th read of the AL status
+        master._check_ring()
+        assert slave.true_state == pysoem.OP_STATE and master.recoveries == 1
+
+
+def test_a_slave_that_refuses_pre_op_is_not_waited_out(clock, monkeypatch):
+    monkeypatch.setattr(soem_master, "STATE_CHANGE_TIMEOUT_S", 5.0)  # thousands of reads, if waited out
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        slave = FakeSoemMaster.last.slaves[7]
+        power_cycle(slave)
+        original = slave._fpwr
+
+        def refuse_pre_op(address: int, data: bytes, timeout_us: int = 2000) -> None:
+            original(address, data, timeout_us)
+            if address == 0x0120 and data[0] == pysoem.PREOP_STATE:
+                slave.true_state = pysoem.INIT_STATE | pysoem.STATE_ACK  # INIT + error: invalid mailbox config
+                slave.status_reads = 0
+
+        slave._fpwr = refuse_pre_op
+        master._check_ring()
+        assert slave.status_reads == 1
+        assert slave.writes == [] and master.recoveries == 0
+        assert slave.register_writes[-1] == (0x0120, bytes((pysoem.PREOP_STATE, 0)))
 
 
 def test_a_frame_that_never_came_back_does_not_wake_the_supervision_but_a_short_one_does(clock):

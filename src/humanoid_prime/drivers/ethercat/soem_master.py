@@ -30,15 +30,25 @@ where the kernel delivers the NIC's frames from a thread (``threaded_receive``):
 thread's CPU would keep it, below the loop's priority, from delivering the very frame it waits for.
 A supervision thread, woken by a working-counter mismatch, reads the AL states and acknowledges,
 reconfigures or recovers slaves that left OP, re-arming SYNC0 for each.
+
+Reconfiguration. A slave back from a power cycle starts in INIT with its SyncManagers and FMMUs cleared. SOEM's
+``ecx_reconfig_slave`` brings it to SAFE-OP again, but waits for each state change inside one C call, and pysoem
+holds Python's interpreter lock through it: while the drive's firmware takes its time (up to SOEM's 2 s per state),
+the control loop cannot run, and every other drive's output watchdog runs out. ``_reconfigure`` takes the same steps
+from Python instead, one frame per call: the SyncManager and FMMU settings read back from each ESC at bring-up are
+written again, the mapping hook runs with its transfers outside the lock, and each state change is polled with the
+lock free in between.
 """
 
 from __future__ import annotations
 
 import os
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +63,7 @@ from humanoid_prime.drivers.erob.objects import (
 )
 from humanoid_prime.drivers.ethercat.master import (
     AL_ERROR,
+    AL_INIT,
     AL_OP,
     AL_PRE_OP,
     AL_SAFE_OP,
@@ -68,6 +79,29 @@ from humanoid_prime.drivers.ethercat.master import (
 STATE_TIMEOUT_US = 3_000_000  # PRE-OP and SAFE-OP transitions (blocking, before the cycle starts)
 TRANSFER_ATTEMPTS = 4  # one SDO transfer, when frames get lost or another slave's error was popped
 STATE_READS = 3  # AL-state reads in a row a slave must miss before it counts as not answering
+# A returning slave's state changes, as SOEM's ecx_statecheck waits for them (EC_TIMEOUTSTATE, 2 s, polled each ms)
+STATE_CHANGE_TIMEOUT_S = 2.0
+STATE_POLL_S = 0.001
+
+# ESC registers (ETG.1000.4): AL control and status, the FMMUs (16 bytes each) and SyncManagers (8 bytes each)
+REG_AL_CONTROL = 0x0120
+REG_AL_STATUS = 0x0130
+REG_FMMU = 0x0600
+REG_SM = 0x0800
+REG_FMMU_SM_COUNT = 0x0004  # u8 FMMUs, u8 SyncManagers the ESC has
+SOEM_MAXSM, SOEM_MAXFMMU = 8, 4  # what SOEM configures at most (EC_MAXSM, EC_MAXFMMU in ethercatmain.h)
+SM_REPEAT = 0x02  # SyncManager activate bit 1: the mailbox repeat request, which SOEM toggles; a fresh ESC has it clear
+_U16 = struct.Struct("<H")
+
+
+@dataclass(frozen=True)
+class EscSetup:
+    """A slave's SyncManager and FMMU registers as SOEM programmed them at bring-up: (address, bytes) each, in the
+    order ``ecx_reconfig_slave`` writes them. Only SOEM's own fields: the SyncManager's status and PDI-control bytes,
+    which the ESC sets, go back as 0, as SOEM writes them, and its activate byte without a mailbox repeat request."""
+
+    sync_managers: tuple[tuple[int, bytes], ...]
+    fmmus: tuple[tuple[int, bytes], ...]
 
 
 class SoemMaster(EthercatMaster):
@@ -103,6 +137,7 @@ class SoemMaster(EthercatMaster):
         self._stray: dict[int, Exception] = {}
         self._stray_lock = threading.Lock()
         self._hook_errors: dict[int, str] = {}
+        self._esc_setups: list[EscSetup] = []
         self._lost = np.zeros(0, dtype=bool)
         self._check = threading.Event()
         self._stop = threading.Event()
@@ -153,29 +188,31 @@ class SoemMaster(EthercatMaster):
         return found
 
     # -------------------------------------------------------------------------- configuration
-    def _map_pdos(self, k: int) -> None:
-        """PRE-OP -> SAFE-OP hook (SOEM calls it from config_map and from reconfig): write the PDO mapping,
-        each write with the runtime SDOs' bounded retry, then read the drive's rated torque (0x6076).
+    def _map_pdos(self, k: int, release_gil: bool = False) -> None:
+        """PRE-OP -> SAFE-OP hook (SOEM calls it from config_map, ``_reconfigure`` with ``release_gil``): write
+        the PDO mapping, each write with the runtime SDOs' bounded retry, then read the drive's rated torque
+        (0x6076).
 
         A drive powers up with ZeroErr's own mapping (``POWER_UP_RXPDO``), so these writes always change it.
         """
         slave = self._pslaves[k]
         try:
             for index, sub_index, data in MAPPING_WRITES:
-                self._transfer(k, index, sub_index, lambda i=index, s=sub_index, d=data: slave.sdo_write(i, s, d))
+                self._transfer(k, index, sub_index, lambda i=index, s=sub_index, d=data:
+                               slave.sdo_write(i, s, d, release_gil=release_gil))
         except SdoError as exc:
             verdict = "the drive refused it" if exc.abort_code is not None else "the drive did not answer"
             self._hook_errors[k] = (f"ring {k}: PDO mapping write 0x{exc.index:04X}:{exc.sub_index:02X}: "
                                     f"{exc.problem} ({verdict})")
             raise
         self._hook_errors.pop(k, None)
-        self._read_rated_torque(k)
+        self._read_rated_torque(k, release_gil)
 
-    def _read_rated_torque(self, k: int) -> None:
+    def _read_rated_torque(self, k: int, release_gil: bool = False) -> None:
         """0x6076 of ring ``k`` into ``rated_torque_nm`` (u32 mN*m); an unreadable one is left NaN and said why."""
         slave = self._pslaves[k]
         try:
-            raw = self._transfer(k, RATED_TORQUE, 0, lambda: slave.sdo_read(RATED_TORQUE, 0))
+            raw = self._transfer(k, RATED_TORQUE, 0, lambda: slave.sdo_read(RATED_TORQUE, 0, release_gil=release_gil))
         except SdoError as exc:
             self.rated_torque_problems[k] = exc.problem
             return
@@ -200,6 +237,7 @@ class SoemMaster(EthercatMaster):
                 raise RingError(f"ring {k} maps {len(slave.output)} output and {len(slave.input)} input bytes, "
                                 f"expected {RXPDO_STRUCT.size} and {TXPDO_STRUCT.size} (drivers/erob/objects.py); "
                                 "the drive did not accept the PDO mapping")
+        self._esc_setups = [self._read_esc_setup(k) for k in range(n)]
         if not m.config_dc():
             raise RingError(f"no slave on {self.interface} supports distributed clocks; eRob CSP needs DC "
                             "(CSP in free run faults the drives with 4616)")
@@ -325,14 +363,79 @@ class SoemMaster(EthercatMaster):
             self.health_version += 1
 
     def _reconfigure(self, k: int) -> None:
+        """A slave back in INIT or PRE-OP: SAFE-OP again (``_reconfig_slave``), then SYNC0 and OP."""
         slave = self._pslaves[k]
         with self._locks[k]:
-            state = slave.reconfig(round(self.frame_timeout_us * 3))
-        if state == pysoem.SAFEOP_STATE:
+            state = self._reconfig_slave(k)
+        if state == AL_SAFE_OP:
             slave.dc_sync(True, self.sync0_ns)
             slave.state = pysoem.OP_STATE
             slave.write_state()
             self.recoveries += 1
+
+    def _read_esc_setup(self, k: int) -> EscSetup:
+        """Ring ``k``'s SyncManagers (those with a start address, as SOEM writes them) and FMMUs (those SOEM set)."""
+        slave = self._pslaves[k]
+        try:
+            fmmu_count, sm_count = slave._fprd(REG_FMMU_SM_COUNT, 2)
+            sms = slave._fprd(REG_SM, 8 * min(sm_count, SOEM_MAXSM))
+            fmmus = slave._fprd(REG_FMMU, 16 * min(fmmu_count, SOEM_MAXFMMU))
+        except pysoem.WkcError:
+            raise RingError(f"ring {k}: its SyncManager and FMMU registers could not be read back (no reply), so it "
+                            "could not be reconfigured after a power cycle") from None
+        sync_managers = tuple((REG_SM + 8 * n, sms[8 * n:8 * n + 5] + bytes((0, sms[8 * n + 6] & ~SM_REPEAT & 0xFF, 0)))
+                              for n in range(len(sms) // 8) if _U16.unpack_from(sms, 8 * n)[0])
+        return EscSetup(sync_managers=sync_managers,
+                        fmmus=tuple((REG_FMMU + 16 * n, fmmus[16 * n:16 * n + 16])
+                                    for n in range(len(fmmus) // 16) if any(fmmus[16 * n:16 * n + 16])))
+
+    def _reconfig_slave(self, k: int) -> int:
+        """SOEM's ``ecx_reconfig_slave`` (ethercatconfig.c) one frame at a time: INIT, the SyncManagers, PRE-OP,
+        the mapping hook, SAFE-OP, the FMMUs. Returns the state reached (0 when a frame went unanswered). INIT goes
+        with an error acknowledge, as SOEM's ``ecx_config_init`` sends it: a slave whose error flag stayed set would
+        refuse PRE-OP.
+
+        Each state change is polled with the interpreter lock free between reads, and a slave that refuses one
+        (its AL status shows the error flag) is not waited out: the next supervision pass takes it from there.
+        The EEPROM stays with the master: SOEM's cached owner cannot be changed from here, and a later recovery
+        reads the EEPROM as the master."""
+        slave, setup = self._pslaves[k], self._esc_setups[k]
+        timeout = round(self.frame_timeout_us * 3)
+        try:
+            slave._fpwr(REG_AL_CONTROL, _U16.pack(pysoem.INIT_STATE | pysoem.STATE_ACK), timeout)
+            state = self._await_state(slave, AL_INIT)
+            if state != AL_INIT:
+                return state
+            for address, data in setup.sync_managers:
+                slave._fpwr(address, data, timeout)
+            slave._fpwr(REG_AL_CONTROL, _U16.pack(AL_PRE_OP), timeout)
+            state = self._await_state(slave, AL_PRE_OP)
+            if state != AL_PRE_OP:
+                return state
+            try:
+                self._map_pdos(k, release_gil=True)
+            except SdoError:  # it stays in PRE-OP (flagged, "in PRE-OP") and the next pass tries again
+                return state
+            slave._fpwr(REG_AL_CONTROL, _U16.pack(AL_SAFE_OP), timeout)
+            state = self._await_state(slave, AL_SAFE_OP)
+            for address, data in setup.fmmus:
+                slave._fpwr(address, data, timeout)
+            return state
+        except pysoem.WkcError:
+            return 0
+
+    def _await_state(self, slave: pysoem.CdefSlave, wanted: int) -> int:
+        """Poll the slave's AL status until it shows ``wanted``, refuses (error flag), the wait runs out or the
+        master closes; returns the state (without the error flag). One frame per read, the lock free between."""
+        deadline = time.monotonic() + STATE_CHANGE_TIMEOUT_S
+        while True:
+            try:
+                status = _U16.unpack(slave._fprd(REG_AL_STATUS, 2))[0]
+            except pysoem.WkcError:
+                status = 0
+            state = status & 0x0F
+            if state == wanted or status & AL_ERROR or time.monotonic() > deadline or self._stop.wait(STATE_POLL_S):
+                return state
 
     @property
     def lost(self) -> np.ndarray:

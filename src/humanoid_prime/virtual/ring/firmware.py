@@ -145,6 +145,8 @@ class ErobFirmware:
         self.error = False
         self.code = AL_OK
         self.pending_op = False
+        self.pending_change: tuple[int, int] | None = None  # (requested state, due ns): options.state_change_s
+        self.change_frames: list[int] = []  # per delayed state change, process-data frames the ring carried meanwhile
         self.silent = False
         self.locked = False
         self.lock_count = 0
@@ -169,6 +171,11 @@ class ErobFirmware:
             self.error = False
             self.code = AL_OK
         elif self.error and requested >= self.state:
+            return
+        self.pending_change = None
+        if self.options.state_change_s and requested in (AlState.PREOP, AlState.SAFEOP) and requested > self.state:
+            self.pending_change = (requested, self.esc.frame_time_ns + round(self.options.state_change_s * 1e9))
+            self.change_frames.append(0)
             return
         self._request(requested)
         self._publish()
@@ -445,6 +452,10 @@ class ErobFirmware:
             return
         if self._replies:
             self._post_reply(now_ns)
+        if self.pending_change is not None and now_ns >= self.pending_change[1]:
+            requested, self.pending_change = self.pending_change[0], None
+            self._request(requested)
+            self._publish()
         if self.state != AlState.OP:
             return
         watchdog = self.esc.output_watchdog_ns
@@ -464,6 +475,7 @@ class ErobFirmware:
         self.coe = CoeServer(self.drive.od, self.options.mailbox_size, on_download=self._downloaded)
         self._guard_pdo_objects()
         self.esc.power_on()
+        self.pending_change = None
         self.state = AlState.INIT
         self.error = False
         self.code = AL_OK

@@ -27,6 +27,8 @@ class RingOptions:
     sync_fault_cycles: int = _option(5, "consecutive too-long frame intervals that fault a drive in OP")
     mailbox_latency_s: float = _option(0.0005, "time from an SDO request to its reply in the read mailbox")
     mailbox_size: int = _option(128, "bytes of each mailbox (SM0/SM1)")
+    state_change_s: float = _option(0.0, "time the firmware takes to carry out a request for PRE-OP or SAFE-OP from a "
+                                         "lower state (its AL status shows the old state meanwhile)")
     physics_dt_s: float = _option(0.001, "integration step of drives and plant")
     hop_delay_ns: int = _option(700, "frame delay per slave, as latched in the DC receive-time registers")
     plant: str = _option("inertia", "mechanics: inertia (one joint per drive) or mujoco (Prime's arms, bundled "
@@ -48,6 +50,8 @@ class RingOptions:
             raise ValueError(f"sync_fault_cycles must be >= 1, got {self.sync_fault_cycles}")
         if not 0 <= self.mailbox_latency_s < 1:
             raise ValueError(f"mailbox_latency_s must be in [0, 1), got {self.mailbox_latency_s}")
+        if not 0 <= self.state_change_s <= 10:
+            raise ValueError(f"state_change_s must be in [0, 10], got {self.state_change_s}")
         if not 32 <= self.mailbox_size <= 1024:
             raise ValueError(f"mailbox_size must be 32..1024 bytes, got {self.mailbox_size}")
         if not 1e-5 <= self.physics_dt_s <= 0.01:

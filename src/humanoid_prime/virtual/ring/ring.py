@@ -170,7 +170,10 @@ class Ring:
         now_ns, time_distributed = self._pending_frame
         self._pending_frame = None
         hit = self._hit
+        cyclic = any(hit)
         for i, slave in enumerate(self.reachable):
+            if cyclic and slave.pending_change is not None:  # the master's cycle went on while this slave changed state
+                slave.change_frames[-1] += 1
             if hit[i]:
                 hit[i] = False
                 slave.on_cycle(now_ns, time_distributed)

@@ -247,6 +247,7 @@ class EmulatorServer:
             "al_status": esc.al_status,
             "al_status_code": esc.al_status_code,
             "al_pending_op": slave.pending_op,
+            "al_change_frames": list(slave.change_frames),
             "dc": {
                 "activation": esc.sync_activation,
                 "sync0_cycle_ns": esc.sync0_cycle_ns,
@@ -336,7 +337,7 @@ class EmulatorServer:
         self._slave(position).drive.clear_latched()
 
     def _op_set_options(self, **options: Any) -> None:
-        allowed = {"dc_lock_cycles", "sync_tolerance", "sync_fault_cycles", "mailbox_latency_s"}
+        allowed = {"dc_lock_cycles", "sync_tolerance", "sync_fault_cycles", "mailbox_latency_s", "state_change_s"}
         unknown = set(options) - allowed
         if unknown:
             raise ValueError(f"cannot change {sorted(unknown)} at run time; changeable: {sorted(allowed)}")

@@ -540,6 +540,30 @@ def test_with_a_settings_keeper_a_reset_releases_a_dropped_drive_only_after_its_
     assert "ethercat/ring4/disabled" not in rig.system.flags
 
 
+def test_a_held_drive_whose_slave_drops_again_after_its_settings_came_back_waits_for_them_anew(rig):
+    # restored, not yet released by the operator, and then its slave lost power again: factory settings once more
+    from doubles.master import SWITCH_ON_DISABLED
+
+    rig.system.on_restore_needed = lambda: None
+    rig.tick()
+    rig.master.statusword[4] = SWITCH_ON_DISABLED
+    rig.tick()
+    rig.system.settings_restored(4, 0)
+    rig.tick()
+    assert rig.system.awaiting_restore() == [] and "latched" in rig.system.flags["ethercat/ring4/disabled"]
+    for ok in (False, True):  # out of OP and back: the supervision counts the departure
+        rig.master.slave_ok[4] = ok
+        rig.master.left_op[4] += not ok
+        rig.master.health_version += 1
+        rig.tick()
+    assert rig.system.awaiting_restore() == [(4, 1)]
+    assert "impedance settings are restored" in rig.system.flags["ethercat/ring4/disabled"]
+    rig.system.reset_faults()
+    for _ in range(5):
+        rig.tick()
+    assert rig.master.statusword[4] == SWITCH_ON_DISABLED  # not released on the settings it booted with
+
+
 def test_a_faulted_drive_that_leaves_its_fault_by_itself_is_held_until_the_operators_reset(rig):
     """A drive in fault that loses power comes back out of it: without a fault reset of ours, that is a drop."""
     from doubles.master import SWITCH_ON_DISABLED

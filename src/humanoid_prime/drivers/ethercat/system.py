@@ -155,6 +155,7 @@ class EthercatSystem(HardwareComponent):
         # it), a drive held disabled is released by a reset only after ``settings_restored`` for its slave.
         self.on_restore_needed: Callable[[], None] | None = None
         self._restore_pending = np.zeros(n, dtype=bool)
+        self._left_op_seen = np.zeros(n, dtype=np.int64)  # each slave's departures from OP, when the loop last looked
         self._held_text_stale = False
         self._fault = np.zeros(n, dtype=bool)
         self._held = np.zeros(n)  # the last CSP target sent (raw), what a NaN position command keeps
@@ -353,7 +354,10 @@ class EthercatSystem(HardwareComponent):
         master = self.master
         if master.left_op[position] != left_op or not master.slave_ok[position]:
             return
-        self._restore_pending[int(np.flatnonzero(self.ring == position)[0])] = False
+        k = int(np.flatnonzero(self.ring == position)[0])
+        self._restore_pending[k] = False
+        if master.left_op[position] != left_op:  # it left OP meanwhile, after the loop marked it pending again
+            self._restore_pending[k] = True
         self._held_text_stale = True  # the loop's thread rewords the flag: it alone sets and clears it
 
     def _step_controlwords(self, reset: np.ndarray | None = None) -> None:
@@ -417,6 +421,13 @@ class EthercatSystem(HardwareComponent):
             state = int(master.al_state[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
             self.set_flag(key, f"{joint} (ring {position}): slave lost ({why}); recovering")
+        # A held drive whose slave left OP again may have lost its settings again, restored or not: restore anew
+        left = master.left_op[self.ring]
+        again = self._held_off & (left != self._left_op_seen)
+        np.copyto(self._left_op_seen, left)
+        if self.on_restore_needed is not None and again.any():
+            self._restore_pending |= again
+            self._held_text_stale = True
         if self.on_restore_needed is not None and self._restore_pending.any():  # a held drive's slave may be back
             self.on_restore_needed()
 

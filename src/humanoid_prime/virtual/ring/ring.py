@@ -68,7 +68,7 @@ class Ring:
         self._torque = np.zeros(options.slaves)
         self._braked = np.ones(options.slaves, dtype=bool)
         self._hit = [False] * options.slaves
-        self._pending_frame: tuple[int, bool] | None = None
+        self._pending_frame: tuple[int, bool, bool] | None = None  # (time, DC time distributed, process data)
         self._update_topology()
         self.advance(now)
 
@@ -120,7 +120,7 @@ class Ring:
         for slave in slaves:
             slave.esc.frame_time_ns = now_ns
             slave.deliver_replies(now_ns)
-        time_distributed = False
+        time_distributed = cyclic = False
         for command, offset, length in datagrams:
             data = offset + DATAGRAM_HEADER_SIZE
             wkc_at = data + length
@@ -132,7 +132,7 @@ class Ring:
                     increment = slave.esc.logical(command, address, frame, data, length)
                     if increment:
                         wkc += increment
-                        hit[i] = True
+                        hit[i] = cyclic = True
             elif command in _CONFIGURED:
                 if command == Command.FRMW:
                     if ado == REG_DC_SYSTEM_TIME:
@@ -159,7 +159,7 @@ class Ring:
                 for slave in slaves:
                     wkc += _physical(command, slave, ado, frame, data, length)
             _U16.pack_into(frame, wkc_at, wkc & 0xFFFF)
-        self._pending_frame = (now_ns, time_distributed)
+        self._pending_frame = (now_ns, time_distributed, cyclic)
         return True
 
     def finish_frame(self) -> None:
@@ -167,10 +167,9 @@ class Ring:
         the reply is on its way, before the next frame or time step."""
         if self._pending_frame is None:
             return
-        now_ns, time_distributed = self._pending_frame
+        now_ns, time_distributed, cyclic = self._pending_frame
         self._pending_frame = None
         hit = self._hit
-        cyclic = any(hit)
         for i, slave in enumerate(self.reachable):
             if cyclic and slave.pending_change is not None:  # the master's cycle went on while this slave changed state
                 slave.change_frames[-1] += 1

@@ -102,6 +102,37 @@ def test_a_slave_slower_to_return_than_the_settle_time_waits_disabled_for_the_ne
     assert injection.outcome == "latched"
 
 
+def test_a_latched_fault_whose_ring_was_whole_only_after_its_settle_time_is_reset_once_it_is():
+    """The soak used to send a latched fault's reset only within its settle time. A returning slave whose clock
+    took longer to relock left its drive held, and every later reset waited on it: the rest of the run went
+    unreset (seen twice). The reset it is owed now goes out before a later injection, once the ring is whole."""
+    import threading
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from humanoid_prime.bench.soak import Injector
+
+    requested = []
+    ethercat = SimpleNamespace(master=SimpleNamespace(slave_ok=np.ones(10, dtype=bool)), restore_pending=lambda: [9])
+    session = SimpleNamespace(plan=SimpleNamespace(began=0.0), ethercat=ethercat, impedance=None,
+                              faults=[record("PrimeEtherCATSide/ethercat/ring9/disabled", 12.0)],
+                              manager=SimpleNamespace(request_reset=lambda: requested.append(True)))
+    injector = Injector(None, session, 6.0, threading.Event(), 600.0)
+    owed = Injection(LOST, at_s=10.0, done_s=11.0)
+    injector.owed.append(owed)
+    injector._reset_owed()
+    assert not requested and injector.owed == [owed]  # its settings are not back yet: no reset
+    ethercat.restore_pending = lambda: []
+    injector._reset_owed()
+    assert requested == [True] and injector.owed == [] and len(injector.resets) == 1
+    cleared = Injection(LOST, at_s=10.0, done_s=11.0)  # another fault's reset cleared its flag: nothing owed
+    session.faults = [record("PrimeEtherCATSide/ethercat/ring9/disabled", 12.0, 30.0)]
+    injector.owed.append(cleared)
+    injector._reset_owed()
+    assert requested == [True] and injector.owed == []
+
+
 def test_a_lost_frame_that_raised_an_error_was_not_merely_counted():
     quiet = Injection(ONE_FRAME, at_s=10.0)
     judge(quiet, [record("PrimeSitoCAN/x/invalid_frame", 10.5, 11.0, Level.WARN)], ended_s=60.0)

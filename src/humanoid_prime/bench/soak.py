@@ -8,8 +8,9 @@ turn from ``FAULTS``; each fault states what the stack must do about it:
 
 - ``counted``: absorbed without a flag (one lost or garbage frame), and visible in a counter;
 - ``recovered``: flagged under ``flag``, then cleared by the stack itself;
-- ``latched``: flagged, held until the operator's reset (which the soak then sends), then cleared (a drive
-  fault, and a drive whose slave was lost and came back: it stays disabled until the operator says so);
+- ``latched``: flagged, held until the operator's reset (which the soak sends once the ring is whole), then
+  cleared (a drive fault, and a drive whose slave was lost and came back: it stays disabled until the operator
+  says so);
 - ``refused``: an SDO the drive aborts reaches its caller as that abort, and nothing else changes.
 
 Each injection is judged from the run's own fault history (the summary's), and every ERROR flag that no
@@ -187,6 +188,7 @@ class Injector(threading.Thread):
         self.ends_s = self._now() + run_s  # no fault is injected that could not settle before the run ends
         self.injections: list[Injection] = []
         self.resets: list[float] = []  # when the operator's resets were sent (seconds since the run began)
+        self.owed: list[Injection] = []  # latched faults not reset within their settle time: reset when whole
         self.error: str | None = None
 
     def _now(self) -> float:
@@ -196,6 +198,7 @@ class Injector(threading.Thread):
         try:
             k = 0
             while not self.stop.wait(self.every_s):
+                self._reset_owed()
                 if self.once and k == len(FAULTS):
                     self.stop.wait(FAULTS[-1].settle_s)
                     self.stop.set()
@@ -214,28 +217,49 @@ class Injector(threading.Thread):
                 if fault.end is not None:
                     fault.end(self.control)
                 injection.done_s = self._now()
-                if fault.expect == "latched":
-                    self._reset_when_flagged(injection)
+                if fault.expect == "latched" and not self._reset_when_flagged(injection):
+                    self.owed.append(injection)
         except Exception as exc:  # a control call that failed ends the soak's injections, and says why
             self.error = f"{type(exc).__name__}: {exc}"
 
-    def _reset_when_flagged(self, injection: Injection) -> None:
+    def _whole(self, fault: Fault) -> bool:
+        """The operator resets once the ring is whole and its drives' settings are back."""
+        ethercat = self.session.ethercat
+        return fault.bus != "ethercat" or (ethercat.master.slave_ok.all() and not ethercat.restore_pending())
+
+    def _flagged(self, injection: Injection, still: bool = False) -> bool:
+        return any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
+                   and not (still and r.until_s is not None) for r in list(self.session.faults))
+
+    def _reset(self, injection: Injection) -> None:
+        self.resets.append(self._now())
+        self.session.manager.request_reset()
+        if injection.fault.verify is not None:
+            injection.released_wrong = injection.fault.verify(self.control, self.session)
+            if injection.released_wrong:
+                injection.detail = injection.released_wrong
+
+    def _reset_when_flagged(self, injection: Injection) -> bool:
+        """The reset once the fault is flagged and the ring whole, within the fault's settle time; False if the
+        ring was not whole by then."""
         deadline = time.monotonic() + injection.fault.settle_s
         while time.monotonic() < deadline and not self.stop.is_set():
-            ethercat = self.session.ethercat
-            whole = injection.fault.bus != "ethercat" or (ethercat.master.slave_ok.all()
-                                                          and not ethercat.restore_pending())
-            if whole and any(fnmatch.fnmatch(r.key, injection.fault.flag) and r.since_s >= injection.at_s
-                             for r in list(self.session.faults)):  # the operator resets once the ring is whole
-                # and its drives' settings are back
-                self.resets.append(self._now())
-                self.session.manager.request_reset()
-                if injection.fault.verify is not None:
-                    injection.released_wrong = injection.fault.verify(self.control, self.session)
-                    if injection.released_wrong:
-                        injection.detail = injection.released_wrong
-                return
+            if self._whole(injection.fault) and self._flagged(injection):
+                self._reset(injection)
+                return True
             time.sleep(0.02)
+        return False
+
+    def _reset_owed(self) -> None:
+        """A latched fault whose ring took longer than its settle time to be whole (a returning slave's clock
+        relocking on a loaded machine) gets its reset before the next injection, once the ring is whole, as an
+        operator would give it; one whose flag another reset has cleared meanwhile is owed nothing."""
+        for injection in list(self.owed):
+            if not self._flagged(injection, still=True):
+                self.owed.remove(injection)
+            elif self._whole(injection.fault):
+                self.owed.remove(injection)
+                self._reset(injection)
 
 
 def judge(injection: Injection, faults: list[Any], ended_s: float, next_at_s: float = float("inf"),

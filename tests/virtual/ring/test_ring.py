@@ -150,6 +150,21 @@ def test_error_needs_acknowledging_before_going_up():
     assert master.al_status(0x1001) == (0x02, 0)
 
 
+def test_a_slow_firmware_shows_the_old_state_until_its_state_change_is_done():
+    ring, master = make(1, state_change_s=0.05)
+    master.set_station_addresses()
+    master.program_mailbox(0x1001)
+    master.request_state(0x1001, 0x02)
+    assert master.al_status(0x1001) == (0x01, 0)
+    master.now_ns += 30 * MS
+    ring.advance(master.now_ns)
+    master.request_state(0x1001, 0x02)  # asked again while under way: it goes on, it does not start over
+    assert master.al_status(0x1001) == (0x01, 0)
+    master.now_ns += 30 * MS
+    ring.advance(master.now_ns)
+    assert master.al_status(0x1001) == (0x02, 0)
+
+
 def test_safeop_needs_sm2_matching_the_rxpdo_size():
     _ring, master = make(1)
     master.set_station_addresses()

@@ -172,6 +172,8 @@ class ErobFirmware:
             self.code = AL_OK
         elif self.error and requested >= self.state:
             return
+        if self.pending_change is not None and self.pending_change[0] == requested:
+            return  # asked again while it is under way
         self.pending_change = None
         if self.options.state_change_s and requested in (AlState.PREOP, AlState.SAFEOP) and requested > self.state:
             self.pending_change = (requested, self.esc.frame_time_ns + round(self.options.state_change_s * 1e9))

@@ -155,7 +155,8 @@ def test_a_power_cycled_slave_is_reconfigured_one_frame_at_a_time_as_soem_would(
         ack_init, preop, safeop = (bytes((state, 0)) for state in (0x11, pysoem.PREOP_STATE, pysoem.SAFEOP_STATE))
         sms = [(0x0800 + 8 * n, data[:5] + bytes((0, data[6] & ~0x02, 0))) for n, data in enumerate(ESC_SYNC_MANAGERS)]
         fmmus = [(0x0600 + 16 * n, data) for n, data in enumerate(ESC_FMMUS) if any(data)]
-        assert slave.register_writes == [(0x0120, ack_init), *sms, (0x0120, preop), (0x0120, safeop), *fmmus]
+        assert slave.register_writes == [(0x0120, ack_init), (0x0500, b"\x01"), *sms, (0x0120, preop),
+                                         (0x0120, safeop), *fmmus]
         assert slave.writes == MAPPING_WRITES  # between PRE-OP and SAFE-OP
         assert slave.true_state == pysoem.OP_STATE and slave.dc
         assert master.recoveries == 1

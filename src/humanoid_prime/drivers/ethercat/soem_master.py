@@ -83,9 +83,11 @@ STATE_READS = 3  # AL-state reads in a row a slave must miss before it counts as
 STATE_CHANGE_TIMEOUT_S = 2.0
 STATE_POLL_S = 0.001
 
-# ESC registers (ETG.1000.4): AL control and status, the FMMUs (16 bytes each) and SyncManagers (8 bytes each)
+# ESC registers (ETG.1000.4): AL control and status, EEPROM owner, the FMMUs (16 bytes each) and SyncManagers
 REG_AL_CONTROL = 0x0120
 REG_AL_STATUS = 0x0130
+REG_EEPROM_CONFIG = 0x0500
+EEPROM_TO_PDI = b"\x01"
 REG_FMMU = 0x0600
 REG_SM = 0x0800
 REG_FMMU_SM_COUNT = 0x0004  # u8 FMMUs, u8 SyncManagers the ESC has
@@ -397,12 +399,14 @@ class SoemMaster(EthercatMaster):
 
         Each state change is polled with the interpreter lock free between reads, and a slave that refuses one
         (its AL status shows the error flag) is not waited out: the next supervision pass takes it from there.
-        The EEPROM stays with the master: SOEM's cached owner cannot be changed from here, and a later recovery
-        reads the EEPROM as the master."""
+        The EEPROM goes to the drive's PDI before INIT is awaited, as in SOEM's function and at bring-up. SOEM's
+        cache then still says the master holds it; only a recovery from the next power cycle reads it again, and a
+        power cycle gives it back to the master."""
         slave, setup = self._pslaves[k], self._esc_setups[k]
         timeout = round(self.frame_timeout_us * 3)
         try:
             slave._fpwr(REG_AL_CONTROL, _U16.pack(pysoem.INIT_STATE | pysoem.STATE_ACK), timeout)
+            slave._fpwr(REG_EEPROM_CONFIG, EEPROM_TO_PDI, timeout)
             state = self._await_state(slave, AL_INIT)
             if state != AL_INIT:
                 return state

@@ -1,6 +1,8 @@
 """The soak's verdicts: each injected fault judged from the run's own fault history, and every flag no injection
 explains reported."""
 
+import time
+
 from humanoid_prime.bench.soak import FAULTS, SETTLE_S, Injection, explained, judge
 from humanoid_prime.control.flags import Level
 from humanoid_prime.runtime.session import FaultRecord
@@ -131,6 +133,50 @@ def test_a_latched_fault_whose_ring_was_whole_only_after_its_settle_time_is_rese
     injector.owed.append(cleared)
     injector._reset_owed()
     assert requested == [True] and injector.owed == []
+
+
+def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(monkeypatch):
+    """Injected onto a drive still held from the last slave loss, a fault finds its flag already up and is judged
+    not flagged (seen in a soak of slave losses alone). The injector waits for the owed reset instead."""
+    import threading
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from humanoid_prime.bench import soak
+
+    injected, looked = threading.Event(), threading.Semaphore(0)
+    fault = replace(LOST, inject=lambda control, session: injected.set(), hold_s=0.0, end=None, verify=None)
+    monkeypatch.setattr(soak, "FAULTS", (fault,))
+    slave_ok = np.zeros(10, dtype=bool)
+    session = SimpleNamespace(plan=SimpleNamespace(began=time.monotonic()), impedance=None,
+                              ethercat=SimpleNamespace(master=SimpleNamespace(slave_ok=slave_ok),
+                                                       restore_pending=lambda: []),
+                              faults=[record("PrimeEtherCATSide/ethercat/ring9/disabled", 0.0)],
+                              manager=SimpleNamespace(request_reset=lambda: None))
+    stop = threading.Event()
+    injector = soak.Injector(None, session, 0.001, stop, 600.0)
+    injector.owed.append(Injection(fault, at_s=0.0, done_s=0.0))
+    original = injector._reset_owed
+
+    def reset_owed() -> None:
+        original()
+        looked.release()
+
+    injector._reset_owed = reset_owed
+    injector.start()
+    try:
+        for _ in range(3):  # three turns of the injector with ring 9 still away
+            assert looked.acquire(timeout=60.0)
+        assert not injected.is_set() and len(injector.owed) == 1
+        slave_ok[:] = True  # whole again: the owed reset goes out, then the next fault
+        assert injected.wait(timeout=60.0)
+        assert all(owed.at_s > 0.0 for owed in injector.owed)  # the one it was owed went out
+        assert len(injector.resets) >= 1
+    finally:
+        stop.set()
+        injector.join(timeout=60.0)
 
 
 def test_a_lost_frame_that_raised_an_error_was_not_merely_counted():

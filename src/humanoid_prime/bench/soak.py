@@ -204,6 +204,8 @@ class Injector(threading.Thread):
                     self.stop.set()
                     return
                 fault = FAULTS[k % len(FAULTS)]
+                if any(owed.fault.bus == fault.bus for owed in self.owed):
+                    continue  # its bus still waits for a latched fault's reset: the next fault goes onto a whole ring
                 k += 1
                 if self._now() + fault.hold_s + fault.settle_s + 1.0 > self.ends_s:
                     return
@@ -253,7 +255,8 @@ class Injector(threading.Thread):
     def _reset_owed(self) -> None:
         """A latched fault whose ring took longer than its settle time to be whole (a returning slave's clock
         relocking on a loaded machine) gets its reset before the next injection, once the ring is whole, as an
-        operator would give it; one whose flag another reset has cleared meanwhile is owed nothing."""
+        operator would give it; one whose flag another reset has cleared meanwhile is owed nothing. Until then no
+        fault is injected on its bus: one injected onto a drive still held would find its flag already up."""
         for injection in list(self.owed):
             if not self._flagged(injection, still=True):
                 self.owed.remove(injection)

@@ -405,7 +405,7 @@ class SoemMaster(EthercatMaster):
         slave, setup = self._pslaves[k], self._esc_setups[k]
         timeout = round(self.frame_timeout_us * 3)
         try:
-            slave._fpwr(REG_AL_CONTROL, _U16.pack(pysoem.INIT_STATE | pysoem.STATE_ACK), timeout)
+            slave._fpwr(REG_AL_CONTROL, _U16.pack(AL_INIT | AL_ERROR), timeout)  # the error bit acknowledges
             slave._fpwr(REG_EEPROM_CONFIG, EEPROM_TO_PDI, timeout)
             state = self._await_state(slave, AL_INIT)
             if state != AL_INIT:

@@ -9,6 +9,10 @@ True or False per read to come, before those); ``clock`` is advanced by a mailbo
 one out. A slave's ESC registers are reached with pysoem's ``_fprd``/``_fpwr`` (AL control and status, the
 SyncManagers and FMMUs as config_map leaves them); a state requested through AL control shows after
 ``state_change_reads`` reads of the AL status, and the register writes are logged in ``register_writes``.
+With ``dc`` the slaves have distributed clocks: a local time (``local_ns``, fixed: no time passes), the offset
+and delay registers, and 0x092C as the reference clock's (slave 0's) system time minus its own, or
+``clock_error_ns`` whatever the offset (a clock that will not come into step); ``Master.dc_time`` moves on each
+read, as it does with every cycle.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ ESC_FMMUS = (struct.pack("<IHBBHBBBxxx", 0x0000, 13, 0, 7, 0x1100, 0, 2, 1),
 
 NO_REPLY = "no reply"  # a scripted failure: the mailbox timeout runs out
 LOST_FRAME = "lost frame"  # a scripted failure: the working counter comes back 0 at once
+RING_TIME_NS = 816_000_000_000_000_000  # the reference clock's system time (ns since 2000)
 
 
 class Clock:
@@ -68,6 +73,12 @@ class FakeSoemSlave:
         for n, data in enumerate(ESC_FMMUS):
             self.registers[0x0600 + 16 * n:0x0610 + 16 * n] = data
         self.register_writes: list[tuple[int, bytes]] = []
+        self.local_ns = RING_TIME_NS + 1_000 * position
+        self.clock_error_ns = 0
+        if master.dc:
+            self.registers[0x0008] = 0x04  # ESC features: DC
+            struct.pack_into("<QI", self.registers, 0x0920, (-1_000 * position) % (1 << 64), 700 * position)
+            struct.pack_into("<H", self.registers, 0x0930, 0x1000)
         self.state_change_reads = 0
         self.status_reads = 0
         self._change: list[int] = []  # [requested state, AL status reads left]
@@ -121,7 +132,16 @@ class FakeSoemSlave:
         if address == 0x0130:
             self.status_reads += 1
             struct.pack_into("<H", self.registers, 0x0130, self.true_state)
+        if address <= 0x0910 < address + size:
+            struct.pack_into("<Q", self.registers, 0x0910, self.system_time())
+        if address <= 0x092C < address + size:
+            difference = self.clock_error_ns or self._master.slaves[0].system_time() - self.system_time()
+            magnitude = min(abs(difference), 0x7FFFFFFF)
+            struct.pack_into("<I", self.registers, 0x092C, magnitude | (0x80000000 if difference > 0 else 0))
         return bytes(self.registers[address:address + size])
+
+    def system_time(self) -> int:
+        return (self.local_ns + struct.unpack_from("<Q", self.registers, 0x0920)[0]) % (1 << 64)
 
     def _fpwr(self, address: int, data: bytes, timeout_us: int = 2000) -> None:
         if not self.answering:
@@ -151,6 +171,8 @@ class FakeSoemMaster:
         self.lose_state_reads = options.get("lose_state_reads", 0)
         self.state_read_losses: list[bool] = []
         self._rated = options.get("rated_torque_mnm", [23000] * options.get("slaves", 10))
+        self.dc = options.get("dc", False)
+        self._dc_time = RING_TIME_NS
         self.slaves: list[FakeSoemSlave] = []
         self.sdo_read_timeout = self.sdo_write_timeout = 700_000
         self.manual_state_change = 0
@@ -205,6 +227,11 @@ class FakeSoemMaster:
 
     def send_processdata(self) -> int:
         return 1
+
+    @property
+    def dc_time(self) -> int:
+        self._dc_time += 10_000_000
+        return self._dc_time
 
     def receive_processdata(self, timeout: int = 2000, release_gil: bool = False) -> int:
         return self.expected_wkc if all(s.answering for s in self.slaves) else self.expected_wkc - 3

@@ -17,6 +17,7 @@ MAILBOX_IN = 0x1080
 OUTPUTS = 0x1100
 INPUTS = 0x1180
 DC_TIME = 0x0910
+RING_TIME_NS = 816_000_000_000_000_000  # a system time in 2025 (ns since 2000, the DC epoch)
 
 
 class WireMaster:
@@ -87,8 +88,20 @@ class WireMaster:
             reply = self.sdo_download(station, index, sub, data)
             assert reply[8] == 0x60, f"0x{index:04X}:{sub:02X} refused: {reply[6:16].hex()}"  # download response
 
+    def set_clocks(self, master_time_ns: int = RING_TIME_NS) -> None:
+        """SOEM's ``ecx_configdc`` without the delays: latch every slave's receive time in one frame, then set each
+        offset so that its system time read ``master_time_ns`` then."""
+        self.bwr(0x0900, bytes(4))
+        for i in range(len(self.ring.reachable)):
+            self.set_clock(STATION_BASE + i, master_time_ns)
+
+    def set_clock(self, station: int, master_time_ns: int = RING_TIME_NS) -> None:
+        local = struct.unpack("<Q", self.fprd(station, 0x0918, 8).data)[0]
+        self.fpwr(station, 0x0920, struct.pack("<Q", (master_time_ns - local) % (1 << 64)))
+
     def bring_to_safeop(self, map_pdos: bool = True) -> None:
         self.set_station_addresses()
+        self.set_clocks()
         for i in range(len(self.ring.reachable)):
             station = STATION_BASE + i
             self.program_mailbox(station)

@@ -328,6 +328,43 @@ def test_a_restored_slave_is_recovered_to_op_and_its_drive_held_disabled_until_t
     assert system.master.left_op[9] >= 1
 
 
+def test_a_slave_back_from_a_power_cycle_runs_on_the_ring_s_time_again(system, ring, robot):
+    # a power cycle clears the slave's DC offset and restarts its clock: SYNC0 on that clock never locks
+    ring.control.set_options(dc_lock_cycles=20)
+    with Loop(system, robot.n):
+        ring.control.lose_slave(9)
+        wait_for(lambda: "ethercat/ring9/lost" in system.flags, what="lost flag")
+        ring.control.restore_slave(9)
+        wait_for(lambda: system.master.slave_ok.all(), timeout_s=10.0, what="ring 9 back in OP")
+        differences = [ring.control.slave(k)["dc"]["time_difference_ns"] for k in range(1, 10)]
+    assert all(abs(d) <= 10_000 for d in differences), differences
+    assert not system.master.recovery_problems
+
+
+def test_a_reference_clock_back_from_a_power_cycle_is_set_to_the_ring_s_time_again(system, ring, robot):
+    # the first slave's clock is the ring's time: back from a power cycle it would restart the ring's time from 0,
+    # and every other slave's SYNC0 would be out of step with the frames
+    ring.control.set_options(dc_lock_cycles=20)
+
+    def all_in_op() -> bool:
+        return (all(s["al_state"] == "OP" for s in ring.control.status()) and system.master.slave_ok.all()
+                and "ethercat/wkc" not in system.flags)
+
+    with Loop(system, robot.n):
+        ring.control.lose_slave(0)  # the line ends at the master: no slave answers
+        wait_for(lambda: "ethercat/wkc" in system.flags, what="working-counter flag")
+        wait_for(lambda: ring.control.slave(9)["al_state"] == "SAFEOP", what="the others' watchdogs ran out")
+        ring.control.restore_slave(0)
+        try:
+            wait_for(all_in_op, timeout_s=20.0, what="the whole ring back in OP")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; flags: {system.flags}; problems: {system.master.recovery_problems}; "
+                                 f"states: {[s['al_state'] for s in ring.control.status()]}") from None
+        differences = [ring.control.slave(k)["dc"]["time_difference_ns"] for k in range(1, 10)]
+    assert all(abs(d) <= 10_000 for d in differences), differences
+    assert not system.master.recovery_problems
+
+
 def test_the_cycle_goes_on_while_a_returning_slave_takes_its_time_to_change_state(system, ring, robot):
     # SOEM's reconfiguration waits for each state change in one call that holds Python's lock, so the loop sent
     # nothing until the drive was done: with a drive that takes a second, every other drive's watchdog ran out

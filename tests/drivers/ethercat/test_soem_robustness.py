@@ -5,6 +5,7 @@ drive back from a power cycle, and each drive's rated torque (0x6076)."""
 from __future__ import annotations
 
 import math
+import struct
 import time
 
 import pysoem
@@ -137,8 +138,9 @@ def test_a_slave_silent_over_every_read_is_lost_alone(clock):
 
 
 def power_cycle(slave) -> None:
-    """What a power cycle leaves in the double's ESC: INIT, SyncManagers and FMMUs cleared."""
+    """What a power cycle leaves in the double's ESC: INIT, SyncManagers and FMMUs cleared, SYNC0 off."""
     slave.true_state = pysoem.INIT_STATE
+    slave.dc = False
     slave.registers[0x0600:0x0900] = bytes(0x300)
     slave.writes.clear()
     slave.register_writes.clear()
@@ -160,6 +162,71 @@ def test_a_power_cycled_slave_is_reconfigured_one_frame_at_a_time_as_soem_would(
         assert slave.writes == MAPPING_WRITES  # between PRE-OP and SAFE-OP
         assert slave.true_state == pysoem.OP_STATE and slave.dc
         assert master.recoveries == 1
+
+
+def power_cycle_clock(slave) -> None:
+    """And its clock: local time from 0, offset and delay cleared."""
+    slave.local_ns = 3_000_000_000
+    slave.registers[0x0920:0x092C] = bytes(12)
+
+
+def test_a_power_cycled_slave_s_clock_is_set_to_the_ring_s_time_before_sync0_starts(clock):
+    with ring(clock, dc=True) as master:
+        master.start(EXPECTED)
+        slave = FakeSoemMaster.last.slaves[5]
+        power_cycle(slave)
+        power_cycle_clock(slave)
+        master._check_ring()
+        reference = FakeSoemMaster.last.slaves[0].system_time()
+        offset = (reference - slave.local_ns) % (1 << 64)
+        clock_writes = [(a, d) for a, d in slave.register_writes if 0x0900 <= a < 0x0A00]
+        assert clock_writes == [(0x0920, struct.pack("<QI", offset, 3_500)),  # with the delay bring-up read
+                                (0x0930, struct.pack("<H", 0x1000))]  # the difference filter reset, then read
+        assert slave.system_time() == reference
+        assert slave.true_state == pysoem.OP_STATE and slave.dc and master.recoveries == 1
+        assert not master.recovery_problems
+
+
+def test_a_clock_off_by_more_than_10_us_is_corrected_by_the_difference_its_esc_measures(clock):
+    with ring(clock, dc=True) as master:
+        master.start(EXPECTED)
+        slave = FakeSoemMaster.last.slaves[3]
+        power_cycle(slave)
+        slave.registers[0x0920:0x0928] = struct.pack("<Q", (-3_000 - 250_000) % (1 << 64))  # 250 us behind
+        master._check_ring()
+        assert [d for a, d in slave.register_writes if a == 0x0920] == [struct.pack("<Q", (-3_000) % (1 << 64))]
+        assert slave.system_time() == FakeSoemMaster.last.slaves[0].system_time()
+        assert slave.true_state == pysoem.OP_STATE
+
+
+def test_a_clock_that_will_not_come_into_step_keeps_its_slave_in_safe_op_and_says_why(clock):
+    with ring(clock, dc=True) as master:
+        master.start(EXPECTED)
+        slave = FakeSoemMaster.last.slaves[6]
+        power_cycle(slave)
+        power_cycle_clock(slave)
+        slave.clock_error_ns = 50_000  # whatever offset it is given, it reads 50 us off
+        master._check_ring()
+        assert slave.true_state == pysoem.SAFEOP_STATE and not slave.dc and master.recoveries == 0
+        assert "did not come into step with the ring's: 50000 ns off" in master.recovery_problems[6]
+        master._check_ring()  # tried again on each pass, never armed meanwhile
+        assert slave.true_state == pysoem.SAFEOP_STATE and not slave.dc
+        slave.clock_error_ns = 0  # the supervision's next pass gets it into step
+        wait_for(lambda: slave.true_state == pysoem.OP_STATE, "ring 6 in OP")
+        assert slave.dc and master.recoveries >= 1
+        wait_for(lambda: not master.recovery_problems, "the problem cleared")
+
+
+def test_a_reference_clock_back_from_a_power_cycle_is_set_to_the_next_slave_s_time(clock):
+    with ring(clock, dc=True) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        slave = fake.slaves[0]
+        power_cycle(slave)
+        power_cycle_clock(slave)
+        master._check_ring()
+        assert slave.system_time() == fake.slaves[1].system_time()
+        assert slave.true_state == pysoem.OP_STATE and not master.recovery_problems
 
 
 def test_a_slow_state_change_is_polled_not_waited_on(clock):

@@ -289,6 +289,17 @@ def test_a_lost_slave_raises_a_flag_naming_the_joint_and_its_state(rig):
     assert "ethercat/ring2/lost" not in rig.system.flags
 
 
+def test_a_lost_slave_s_flag_says_why_its_recovery_cannot_go_on(rig):
+    rig.master.slave_ok[2] = False
+    rig.master.al_state[2] = AL_SAFE_OP
+    rig.master.recovery_problems[2] = "its clock did not come into step with the ring's: 50000 ns off"
+    rig.master.health_version += 1
+    rig.tick()
+    assert rig.system.flags["ethercat/ring2/lost"] == (
+        "left_shoulder_yaw (ring 2): slave lost (in SAFE-OP; its clock did not come into step with the ring's: "
+        "50000 ns off); recovering")
+
+
 def test_deactivation_disables_every_drive_and_keeps_the_ring_fed(rig):
     rig.tick()
     rig.system.deactivate()

@@ -258,6 +258,71 @@ def test_free_run_csp_without_dc_faults():
     assert struct.unpack_from("<H", inputs[0])[0] == 4616
 
 
+def system_time(master: WireMaster, station: int) -> int:
+    return struct.unpack("<Q", master.fprd(station, 0x0910, 8).data)[0]
+
+
+def time_difference(master: WireMaster, station: int) -> int:
+    """0x092C as a signed number: received minus local (bit 31 set when the local copy is the smaller)."""
+    raw = struct.unpack("<I", master.fprd(station, 0x092C, 4).data)[0]
+    return raw & 0x7FFFFFFF if raw & 0x80000000 else -(raw & 0x7FFFFFFF)
+
+
+def test_the_time_distribution_shows_how_far_each_clock_is_off_and_a_speed_counter_write_clears_it():
+    ring, master = in_safeop(2, sync0_ns=None)
+    run_cycles(master, 1, MS)
+    assert time_difference(master, 0x1002) == 700  # latched one hop after the reference, so that far behind
+    offset = struct.unpack("<Q", master.fprd(0x1002, 0x0920, 8).data)[0]
+    master.fpwr(0x1002, 0x0920, struct.pack("<Q", offset - 5_000))
+    run_cycles(master, 1, MS)
+    assert time_difference(master, 0x1002) == 5_700
+    assert struct.unpack("<I", master.fprd(0x1002, 0x092C, 4).data)[0] & 0x80000000  # the local copy is smaller
+    master.fpwr(0x1002, 0x0920, struct.pack("<Q", offset + 3_000))
+    run_cycles(master, 1, MS)
+    assert time_difference(master, 0x1002) == -2_300
+    speed = master.fprd(0x1002, 0x0930, 2).data
+    assert speed == struct.pack("<H", 0x1000)
+    master.fpwr(0x1002, 0x0930, speed)
+    assert master.fprd(0x1002, 0x092C, 4).data == bytes(4)
+
+
+def test_a_slave_back_from_a_power_cycle_stays_out_of_step_until_the_master_sets_its_clock_again():
+    ring, master = in_op(2)
+    ring.lose(1)
+    ring.restore(1)
+    master.set_station_addresses()
+    master.program_mailbox(0x1002)
+    master.request_state(0x1002, 0x02)
+    master.map_pdos(0x1002)
+    master.program_process_data(1)
+    master.request_state(0x1002, 0x04)
+    assert system_time(master, 0x1002) < 10**12  # its clock started again, with no offset
+    master.start_sync0(0x1002, 10 * MS)
+    master.request_state(0x1002, 0x08)
+    run_cycles(master, 20, MS)
+    assert states(master, 2) == [(0x08, 0), (0x04, 0)]  # its OP request waits: SYNC0 on its own time never locks
+    assert time_difference(master, 0x1002) == 0x7FFFFFFF  # saturated, and behind
+    assert ring.slaves[1].lock_count == 0
+    own = struct.unpack("<Q", master.fprd(0x1002, 0x0920, 8).data)[0]
+    master.fpwr(0x1002, 0x0920, struct.pack("<Q", own + system_time(master, 0x1001) - system_time(master, 0x1002)))
+    master.start_sync0(0x1002, 10 * MS)
+    run_cycles(master, 10, MS)
+    assert abs(time_difference(master, 0x1002)) < 1_000
+    assert states(master, 2) == [(0x08, 0), (0x08, 0)]
+
+
+def test_a_reference_clock_that_starts_again_from_zero_throws_the_others_out_of_step():
+    ring, master = in_op(3)
+    ring.lose(0)
+    ring.restore(0)
+    master.set_station_addresses()  # the time distribution reads the reference's fresh clock again
+    run_cycles(master, 4, MS)
+    assert states(master, 3)[1:] == [(0x08, 0), (0x08, 0)]
+    run_cycles(master, 1, MS)  # the fifth frame in a row that far off
+    assert states(master, 3)[1:] == [(0x14, 0x001A), (0x14, 0x001A)]
+    assert not ring.slaves[1].locked and not ring.slaves[2].locked
+
+
 def test_mailbox_traffic_during_dc_activation_faults_with_0xa000():
     ring, master = in_safeop(2, dc_lock_cycles=50)
     request_op(master, 2)

@@ -247,6 +247,7 @@ class EthercatMaster(ABC):
         self.al_state = np.zeros(0, dtype=np.uint16)
         self.al_status_code = np.zeros(0, dtype=np.uint16)
         self.health_version = 0
+        self.recovery_problems: dict[int, str] = {}  # ring position -> why its recovery cannot go on (e.g. its clock)
         # Rated torque of each drive (0x6076, read in PRE-OP by implementations that can; NaN = not read), the
         # torque that 0x6077 and 0x60B2 count in per mille; why a drive's could not be read.
         self.rated_torque_nm = np.zeros(0)

@@ -93,7 +93,28 @@ REG_SM = 0x0800
 REG_FMMU_SM_COUNT = 0x0004  # u8 FMMUs, u8 SyncManagers the ESC has
 SOEM_MAXSM, SOEM_MAXFMMU = 8, 4  # what SOEM configures at most (EC_MAXSM, EC_MAXFMMU in ethercatmain.h)
 SM_REPEAT = 0x02  # SyncManager activate bit 1: the mailbox repeat request, which SOEM toggles; a fresh ESC has it clear
+# Distributed clock (ETG.1000.4): ESC features bit 2 = DC (SOEM's hasdc), the system time, its offset (u64) and the
+# propagation delay (u32) after it, the difference to the reference clock's time the frames bring (0x092C: received
+# minus local in bits 0-30, bit 31 set when the local copy is the smaller), the speed counter start (0x0930: a write
+# resets the difference's filter, ESC datasheet section I 9.1.3.6)
+REG_ESC_FEATURES = 0x0008
+ESC_FEATURE_DC = 0x04
+REG_DC_SYSTEM_TIME = 0x0910
+REG_DC_OFFSET = 0x0920
+REG_DC_DELAY = 0x0928
+REG_DC_DIFFERENCE = 0x092C
+REG_DC_SPEED_START = 0x0930
+DC_LOCAL_SMALLER = 0x80000000
+DC_DIFFERENCE_SATURATED = 0x7FFFFFFF
+DC_STEP_NS = 1_000_000  # a clock further off than this gets a new offset at once (IgH's EC_SYSTEM_TIME_TOLERANCE_NS)
+DC_SYNC_WINDOW_NS = 10_000  # in step with the ring (IgH waits for this before starting SYNC0: EC_DC_MAX_SYNC_DIFF_NS)
+DC_FILTER_FRAMES = 16  # time distributions to let through after a filter reset before the difference is read
+DC_CORRECTIONS = 4  # offset corrections by the measured difference before a clock counts as not coming into step
 _U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_CLOCK = struct.Struct("<QQQ")  # 0x0910 system time, 0x0918 receive time, 0x0920 offset: read in one datagram
+_OFFSET_DELAY = struct.Struct("<QI")  # 0x0920 offset and 0x0928 delay: written in one datagram, as IgH does
 
 
 @dataclass(frozen=True)
@@ -104,6 +125,8 @@ class EscSetup:
 
     sync_managers: tuple[tuple[int, bytes], ...]
     fmmus: tuple[tuple[int, bytes], ...]
+    dc: bool = False  # the ESC has a distributed clock
+    dc_delay: int = 0  # its propagation delay from the reference clock (0x0928), as ``config_dc`` measured it
 
 
 class SoemMaster(EthercatMaster):
@@ -140,6 +163,8 @@ class SoemMaster(EthercatMaster):
         self._stray_lock = threading.Lock()
         self._hook_errors: dict[int, str] = {}
         self._esc_setups: list[EscSetup] = []
+        self._dc_reference: int | None = None  # ring position of the reference clock: SOEM's first slave with DC
+        self._clock_pending: set[int] = set()  # reconfigured slaves in SAFE-OP whose clock is not in step yet
         self._lost = np.zeros(0, dtype=bool)
         self._check = threading.Event()
         self._stop = threading.Event()
@@ -239,10 +264,11 @@ class SoemMaster(EthercatMaster):
                 raise RingError(f"ring {k} maps {len(slave.output)} output and {len(slave.input)} input bytes, "
                                 f"expected {RXPDO_STRUCT.size} and {TXPDO_STRUCT.size} (drivers/erob/objects.py); "
                                 "the drive did not accept the PDO mapping")
-        self._esc_setups = [self._read_esc_setup(k) for k in range(n)]
         if not m.config_dc():
             raise RingError(f"no slave on {self.interface} supports distributed clocks; eRob CSP needs DC "
                             "(CSP in free run faults the drives with 4616)")
+        self._esc_setups = [self._read_esc_setup(k) for k in range(n)]
+        self._dc_reference = next((k for k, setup in enumerate(self._esc_setups) if setup.dc), None)
         for slave in self._pslaves:
             slave.dc_sync(True, self.sync0_ns)
         m.state = pysoem.SAFEOP_STATE
@@ -328,8 +354,9 @@ class SoemMaster(EthercatMaster):
         A slave counts as not answering only after ``STATE_READS`` reads in a row without its state; one that
         answered any read of the pass is judged by its latest answer. A lost frame leaves every slave's state at
         NONE, and with one slave really gone every read of the pass is made, so the last may be such a frame (a
-        ring, or an emulated robot, that stalled past SOEM's timeout). The health arrays record what the slaves
-        reported, before any request is written.
+        ring, or an emulated robot, that stalled past SOEM's timeout). The health arrays record what every slave
+        reported before any request is written (a reference clock back from a power cycle is set to the time of a
+        slave that this pass found in SAFE-OP or OP).
         """
         m = self._require()
         answered: dict[int, tuple[int, int]] = {}  # position -> (state, AL status code), the latest answer
@@ -342,8 +369,10 @@ class SoemMaster(EthercatMaster):
                 break
             self.state_rereads += 1
         changed = False
+        states = []
         for k, slave in enumerate(self._pslaves):
             state, code = answered.get(k, (pysoem.NONE_STATE, slave.al_status))
+            states.append(state)
             if (bool(self.slave_ok[k]), int(self.al_state[k]), int(self.al_status_code[k])) != (
                     state == AL_OP, state, code):
                 if self.slave_ok[k] and state != AL_OP:
@@ -352,8 +381,11 @@ class SoemMaster(EthercatMaster):
                 self.al_state[k] = state
                 self.al_status_code[k] = code
                 changed = True
+        for k, (slave, state) in enumerate(zip(self._pslaves, states, strict=True)):
             if state == AL_OP:
                 self._lost[k] = False
+            elif state == AL_SAFE_OP and k in self._clock_pending:
+                self._start_clock(k)
             elif not _push_toward_op(slave, state):
                 if state > pysoem.NONE_STATE:
                     self._reconfigure(k)
@@ -365,31 +397,123 @@ class SoemMaster(EthercatMaster):
             self.health_version += 1
 
     def _reconfigure(self, k: int) -> None:
-        """A slave back in INIT or PRE-OP: SAFE-OP again (``_reconfig_slave``), then SYNC0 and OP."""
-        slave = self._pslaves[k]
+        """A slave back in INIT or PRE-OP: SAFE-OP again (``_reconfig_slave``), then its clock, SYNC0 and OP."""
         with self._locks[k]:
             state = self._reconfig_slave(k)
         if state == AL_SAFE_OP:
-            slave.dc_sync(True, self.sync0_ns)
-            slave.state = pysoem.OP_STATE
-            slave.write_state()
-            self.recoveries += 1
+            self._clock_pending.add(k)
+            self._start_clock(k)
+
+    def _start_clock(self, k: int) -> None:
+        """Ring ``k``, reconfigured and in SAFE-OP: its clock back in step with the ring's (``_set_clock``), then
+        SYNC0 armed on it and OP requested. A clock that does not come into step keeps the slave in SAFE-OP, said
+        in ``recovery_problems``, and the next supervision pass tries again."""
+        problem = self._set_clock(k)
+        if problem is not None:
+            if self.recovery_problems.get(k) != problem:
+                self.recovery_problems[k] = problem
+                self.health_version += 1
+            return
+        self._clock_pending.discard(k)
+        if self.recovery_problems.pop(k, None) is not None:
+            self.health_version += 1
+        slave = self._pslaves[k]
+        slave.dc_sync(True, self.sync0_ns)
+        slave.state = pysoem.OP_STATE
+        slave.write_state()
+        self.recoveries += 1
+
+    def _set_clock(self, k: int) -> str | None:
+        """Bring ring ``k``'s system time back onto the ring's; None once it is within ``DC_SYNC_WINDOW_NS``, else
+        why not.
+
+        A power cycle clears a slave's offset (0x0920) and delay (0x0928) and starts its local clock from 0, and
+        neither SOEM's reconfiguration nor its recovery sets them again: SYNC0 would then run on a clock years off
+        the ring's, out of step with the frames. As IgH's master does for a slave it finds reset, a clock more than
+        ``DC_STEP_NS`` off gets a new offset at once, written with the delay measured at bring-up; the time it is
+        compared with is another clock's, read in the next frame (the reference clock's, or for the reference
+        clock itself that of the first slave that kept its own). Then the difference the ESC measures against the
+        time distribution (0x092C) is read, after a filter reset and ``DC_FILTER_FRAMES`` cycles, and taken off
+        the offset until it is within ``DC_SYNC_WINDOW_NS``, at most ``DC_CORRECTIONS`` times."""
+        setup = self._esc_setups[k]
+        reference = self._dc_reference
+        if not setup.dc or reference is None:
+            return None
+        if k == reference:  # compared with, and measured by, a slave that kept its clock: not one reconfigured
+            others = [j for j in range(len(self._pslaves)) if j != k and self._esc_setups[j].dc
+                      and j not in self._clock_pending and self.al_state[j] & 0x0F in (AL_SAFE_OP, AL_OP)]
+            if not others:
+                return None  # every clock started again: the others are set to this one's
+            measured, sign = others[0], -1
+        else:
+            measured, sign = k, 1
+        slave, timeout = self._pslaves[k], round(self.frame_timeout_us * 3)
+        source = self._pslaves[others[0] if k == reference else reference]
+        try:
+            own, _received, offset = _CLOCK.unpack(slave._fprd(REG_DC_SYSTEM_TIME, _CLOCK.size, timeout))
+            step = _signed64(_U64.unpack(source._fprd(REG_DC_SYSTEM_TIME, 8, timeout))[0] - own)
+            if abs(step) > DC_STEP_NS:
+                offset = (offset + step) & 0xFFFFFFFFFFFFFFFF
+                slave._fpwr(REG_DC_OFFSET, _OFFSET_DELAY.pack(offset, setup.dc_delay), timeout)
+            for _ in range(DC_CORRECTIONS + 1):
+                difference = self._clock_difference(measured)
+                if difference is None:
+                    return "its clock could not be compared with the ring's: no time distribution reached it"
+                difference *= sign
+                if abs(difference) <= DC_SYNC_WINDOW_NS:
+                    return None
+                offset = (offset + difference) & 0xFFFFFFFFFFFFFFFF
+                slave._fpwr(REG_DC_OFFSET, _U64.pack(offset), timeout)
+        except pysoem.WkcError:
+            return "its clock registers did not answer"
+        return (f"its clock did not come into step with the ring's: {difference} ns off after {DC_CORRECTIONS} "
+                f"corrections (SYNC0 needs it within {DC_SYNC_WINDOW_NS} ns)")
+
+    def _clock_difference(self, k: int) -> int | None:
+        """Ring ``k``'s 0x092C as signed ns (the reference clock's time minus its own) over the time distributions
+        of ``DC_FILTER_FRAMES`` cycles after a filter reset; None when the cycle brought none in time."""
+        slave, timeout = self._pslaves[k], round(self.frame_timeout_us * 3)
+        slave._fpwr(REG_DC_SPEED_START, slave._fprd(REG_DC_SPEED_START, 2, timeout), timeout)
+        if not self._await_cycles(DC_FILTER_FRAMES):
+            return None
+        raw = _U32.unpack(slave._fprd(REG_DC_DIFFERENCE, 4, timeout))[0]
+        magnitude = raw & DC_DIFFERENCE_SATURATED
+        return magnitude if raw & DC_LOCAL_SMALLER else -magnitude
+
+    def _await_cycles(self, count: int) -> bool:
+        """Wait until the cycle has brought the reference clock's time ``count`` times (SOEM's ``DCtime`` changed),
+        polled with the lock free; False if that took more than four times as long as it should, or the master
+        closes."""
+        m = self._require()
+        deadline = time.monotonic() + 4 * count * self.cycle_ns / 1e9 + 1.0
+        seen, last = 0, m.dc_time
+        while seen < count:
+            if time.monotonic() > deadline or self._stop.wait(STATE_POLL_S):
+                return False
+            now = m.dc_time
+            if now != last:
+                seen, last = seen + 1, now
+        return True
 
     def _read_esc_setup(self, k: int) -> EscSetup:
-        """Ring ``k``'s SyncManagers (those with a start address, as SOEM writes them) and FMMUs (those SOEM set)."""
+        """Ring ``k``'s SyncManagers (those with a start address, as SOEM writes them), FMMUs (those SOEM set) and
+        distributed clock: whether it has one and its propagation delay, read after ``config_dc``."""
         slave = self._pslaves[k]
         try:
             fmmu_count, sm_count = slave._fprd(REG_FMMU_SM_COUNT, 2)
             sms = slave._fprd(REG_SM, 8 * min(sm_count, SOEM_MAXSM))
             fmmus = slave._fprd(REG_FMMU, 16 * min(fmmu_count, SOEM_MAXFMMU))
+            dc = bool(_U16.unpack(slave._fprd(REG_ESC_FEATURES, 2))[0] & ESC_FEATURE_DC)
+            delay = _U32.unpack(slave._fprd(REG_DC_DELAY, 4))[0] if dc else 0
         except pysoem.WkcError:
-            raise RingError(f"ring {k}: its SyncManager and FMMU registers could not be read back (no reply), so it "
-                            "could not be reconfigured after a power cycle") from None
+            raise RingError(f"ring {k}: its SyncManager, FMMU and clock registers could not be read back (no reply), "
+                            "so it could not be reconfigured after a power cycle") from None
         sync_managers = tuple((REG_SM + 8 * n, sms[8 * n:8 * n + 5] + bytes((0, sms[8 * n + 6] & ~SM_REPEAT & 0xFF, 0)))
                               for n in range(len(sms) // 8) if _U16.unpack_from(sms, 8 * n)[0])
         return EscSetup(sync_managers=sync_managers,
                         fmmus=tuple((REG_FMMU + 16 * n, fmmus[16 * n:16 * n + 16])
-                                    for n in range(len(fmmus) // 16) if any(fmmus[16 * n:16 * n + 16])))
+                                    for n in range(len(fmmus) // 16) if any(fmmus[16 * n:16 * n + 16])),
+                        dc=dc, dc_delay=delay)
 
     def _reconfig_slave(self, k: int) -> int:
         """SOEM's ``ecx_reconfig_slave`` (ethercatconfig.c) one frame at a time: INIT, the SyncManagers, PRE-OP,
@@ -516,6 +640,11 @@ class SoemMaster(EthercatMaster):
         if self._m is None:
             raise RingError(f"EtherCAT master on {self.interface} is not open")
         return self._m
+
+
+def _signed64(value: int) -> int:
+    value &= 0xFFFFFFFFFFFFFFFF
+    return value - (1 << 64) if value >= 1 << 63 else value
 
 
 def _push_toward_op(slave: pysoem.CdefSlave, state: int) -> bool:

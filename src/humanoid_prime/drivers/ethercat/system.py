@@ -420,6 +420,9 @@ class EthercatSystem(HardwareComponent):
                 continue
             state = int(master.al_state[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
+            problem = master.recovery_problems.get(position)
+            if problem:
+                why += f"; {problem}"
             self.set_flag(key, f"{joint} (ring {position}): slave lost ({why}); recovering")
         # A held drive whose slave left OP again may have lost its settings again, restored or not: restore anew
         left = master.left_op[self.ring]

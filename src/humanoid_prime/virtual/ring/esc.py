@@ -28,9 +28,14 @@ Register facts relied on (ETG.1000.4, Beckhoff ESC datasheet section II; read th
 - DC: 0x0900-0x090F receive times of ports 0-3 (latched by any write to 0x0900), 0x0910 system time
   (u64, local time + 0x0920 offset; a write is a drift sample from the reference clock and does not
   set the time), 0x0918 local time of the latching frame (u64), 0x0920 system time offset (u64),
-  0x0928 propagation delay, 0x092C system time difference (sign bit 31), 0x0980 cycle unit control,
+  0x0928 propagation delay, 0x092C system time difference (received minus local in bits 0-30, saturated; bit 31
+  set when the local copy is the smaller, as Infineon's XMC4300 register description spells it), 0x0930
+  speed counter start (0x1000 after power-on; a write resets the difference filter, as the clock initialisation
+  of Beckhoff's ESC datasheet, section I 9.1.3.6, uses it), 0x0980 cycle unit control,
   0x0981 activation (bit 0 cyclic operation, bit 1 SYNC0, bit 2 SYNC1), 0x0990 SYNC0 start time
-  (u64 system time), 0x09A0 SYNC0 cycle time (u32 ns), 0x09A4 SYNC1 cycle time.
+  (u64 system time), 0x09A0 SYNC0 cycle time (u32 ns), 0x09A4 SYNC1 cycle time. The local clock starts at 0
+  at power-on and the offset is cleared, so a slave back from a power cycle is far off the ring's time until the
+  master sets its offset again. There is no time control loop: the difference stays as the master left it.
 """
 
 from __future__ import annotations
@@ -65,6 +70,8 @@ REG_DC_FRAME_TIME = 0x0918
 REG_DC_OFFSET = 0x0920
 REG_DC_DELAY = 0x0928
 REG_DC_DIFFERENCE = 0x092C
+REG_DC_SPEED_START = 0x0930
+DC_DIFFERENCE_LOCAL_SMALLER = 0x80000000
 REG_DC_ACTIVATION = 0x0981
 REG_DC_SYNC0_START = 0x0990
 REG_DC_SYNC0_CYCLE = 0x09A0
@@ -123,6 +130,8 @@ class Esc:
         self.port1_delay_ns: int | None = None
         self.last_output_write_ns: int | None = None
         self.dc_samples = 0
+        self.dc_difference_ns: int | None = None  # received minus local system time at the last sample
+        self.dc_sample_ns: int | None = None  # frame time of that sample
         self.sync0_missed = False
         self.output_watchdog_ns = 0  # SM watchdog period; 0 = disabled
         self.dc_offset_ns = 0
@@ -141,8 +150,12 @@ class Esc:
         self.power_on()
 
     # ---- power-on values ------------------------------------------------------------------------------
-    def power_on(self) -> None:
-        """Registers as after power-up: INIT, no station address, SMs and FMMUs cleared."""
+    def power_on(self, now_ns: int | None = None) -> None:
+        """Registers as after power-up: INIT, no station address, SMs, FMMUs and the DC offset cleared; the local
+        clock starts again from 0 at ``now_ns`` (when given)."""
+        if now_ns is not None:
+            self.clock_origin_ns = now_ns
+        self.dc_difference_ns = self.dc_sample_ns = None
         mem = self.mem
         mem[:] = bytes(MEMORY_SIZE)
         struct.pack_into("<BBHBBBBH", mem, 0, 0x11, 0x00, 0x0002, FMMU_COUNT, SM_COUNT, 8, 0x0F, 0x01FC)
@@ -152,6 +165,7 @@ class Esc:
         _U16.pack_into(mem, REG_WD_DIVIDER, 2498)
         _U16.pack_into(mem, REG_WD_SM_TIME, 1000)
         _U16.pack_into(mem, REG_WD_STATUS, 0x0001)
+        _U16.pack_into(mem, REG_DC_SPEED_START, 0x1000)
         _U16.pack_into(mem, REG_EEPROM_CONTROL, EEPROM_STATUS_READ_8)
         self.last_output_write_ns = None
         self.sync0_missed = False
@@ -320,8 +334,14 @@ class Esc:
         if diff >= 1 << (8 * width - 1):
             diff -= 1 << (8 * width)
         magnitude = min(abs(diff), 0x7FFFFFFF)
-        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (0x80000000 if diff < 0 else 0))
+        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (DC_DIFFERENCE_LOCAL_SMALLER if diff > 0 else 0))
+        self.dc_difference_ns = diff
+        self.dc_sample_ns = self.frame_time_ns
         self.dc_samples += 1
+
+    def _reset_time_filter(self) -> None:
+        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, 0)
+        self.dc_difference_ns = self.dc_sample_ns = None
 
     def _activation_written(self) -> None:
         if self.sync_activation & 0x03 == 0x03:
@@ -461,6 +481,8 @@ class Esc:
             self._update_dc()
         if _overlaps(touched, REG_DC_RECEIVE_TIME, 4):
             self._latch_receive_times()
+        if _overlaps(touched, REG_DC_SPEED_START, 2):
+            self._reset_time_filter()
         if drift is not None and len(drift) >= 4:
             self._drift_sample(drift)
         if _overlaps(touched, REG_DC_ACTIVATION, 1):

@@ -12,12 +12,17 @@ DC model. SYNC0 runs once 0x0981 = 3 and the system time has reached the start t
 time already past at activation never starts, as on a real ESC). A slave locks after ``dc_lock_cycles``
 process-data frames that also carry the master's time distribution (the FRMW/ARMW on 0x0910), each no
 more than ``SYNC0 cycle * (1 + sync_tolerance)`` after the previous one; a longer gap (SYNC0 faster
-than the frames) restarts the count, so a SYNC0 faster than the frame rate never locks. SAFE-OP -> OP
-waits, without error, until the slave has locked (a pending OP request completes then). In OP,
-``sync_fault_cycles`` consecutive gaps longer than that fault the drive (0xA000) and drop the slave to
-SAFE-OP with AL code 0x001A. In OP with SYNC0 not running, a drive enabled in CSP faults at once (0xA000):
-CSP needs DC. A mailbox request while SYNC0 is on but not yet locked (the activation phase) faults the
-drive with 0xA000 and restarts the lock. A SYNC0 cycle below 500 us is refused at SAFE-OP -> OP (0x0035).
+than the frames) restarts the count, so a SYNC0 faster than the frame rate never locks. So does a frame
+whose time distribution finds the slave's system time more than ``dc_sync_window_ns`` off the reference
+clock's (0x092C): SYNC0 runs on the slave's own copy of the ring's time, and a copy that far off (a slave
+back from a power cycle whose offset the master did not set again, or a ring whose reference clock
+started again from 0) puts SYNC0 out of step with the frames. A locked slave in SAFE-OP loses its lock on
+such a frame. SAFE-OP -> OP waits, without error, until the slave has locked (a pending OP request
+completes then). In OP, ``sync_fault_cycles`` consecutive gaps longer than that, or frames that far off,
+fault the drive (0xA000) and drop the slave to SAFE-OP with AL code 0x001A. In OP with SYNC0 not running,
+a drive enabled in CSP faults at once (0xA000): CSP needs DC. A mailbox request while SYNC0 is on but not
+yet locked (the activation phase) faults the drive with 0xA000 and restarts the lock. A SYNC0 cycle below
+500 us is refused at SAFE-OP -> OP (0x0035).
 
 Watchdog: in OP, no output write for the ESC's SM watchdog time (100 ms by default) -> SAFE-OP with AL
 code 0x001B. Leaving OP while the drive is enabled faults it with 0xA000.
@@ -411,8 +416,10 @@ class ErobFirmware:
             return
         limit = self.esc.sync0_cycle_ns * (1.0 + self.options.sync_tolerance)
         too_slow = previous is not None and now_ns - previous > limit
+        difference = self.esc.dc_difference_ns if self.esc.dc_sample_ns == now_ns else None  # this frame's sample
+        off_time = time_distributed and difference is not None and abs(difference) > self.options.dc_sync_window_ns
         if not self.locked:
-            if too_slow:
+            if too_slow or off_time:
                 self.lock_count = 0
             elif time_distributed:
                 self.lock_count += 1
@@ -421,14 +428,18 @@ class ErobFirmware:
                     if self.pending_op:
                         self._enter(AlState.OP)
             return
-        if self.state == AlState.OP:
-            self.sync_mismatch = self.sync_mismatch + 1 if too_slow else 0
-            if self.sync_mismatch >= self.options.sync_fault_cycles:
-                self.sync_mismatch = 0
-                self.drive.fault(ERROR_COMMUNICATION)
+        if self.state != AlState.OP:
+            if off_time:
                 self.locked = False
                 self.lock_count = 0
-                self._fail(AL_SYNC_ERROR, AlState.SAFEOP)
+            return
+        self.sync_mismatch = self.sync_mismatch + 1 if too_slow or off_time else 0
+        if self.sync_mismatch >= self.options.sync_fault_cycles:
+            self.sync_mismatch = 0
+            self.drive.fault(ERROR_COMMUNICATION)
+            self.locked = False
+            self.lock_count = 0
+            self._fail(AL_SYNC_ERROR, AlState.SAFEOP)
 
     def apply_outputs(self) -> None:
         """Decode outputs the master completed in this frame and let the drive react."""
@@ -471,12 +482,13 @@ class ErobFirmware:
     def _new_drive(self, serial: int) -> ErobDrive:
         return ErobDrive(serial, gain_bytes=self.options.gain_bytes, rated_torque_mnm=self.options.rated_torque_mnm)
 
-    def power_cycle(self) -> None:
-        """The slave lost power and came back: ESC registers, AL state and the drive start afresh."""
+    def power_cycle(self, now_ns: int | None = None) -> None:
+        """The slave lost power and came back at ``now_ns``: ESC registers, its local clock, AL state and the drive
+        start afresh."""
         self.drive = self._new_drive(self.drive.serial)  # the same model as before, factory state
         self.coe = CoeServer(self.drive.od, self.options.mailbox_size, on_download=self._downloaded)
         self._guard_pdo_objects()
-        self.esc.power_on()
+        self.esc.power_on(now_ns)
         self.pending_change = None
         self.state = AlState.INIT
         self.error = False

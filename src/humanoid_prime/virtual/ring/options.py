@@ -24,6 +24,10 @@ class RingOptions:
     sync_tolerance: float = _option(
         0.2, "a frame interval above SYNC0 cycle * (1 + this) counts as SYNC0 outrunning the frames (restarts "
              "the lock; in OP, sync_fault_cycles in a row fault the drive)")
+    dc_sync_window_ns: int = _option(
+        10_000, "largest difference (0x092C) between a slave's system time and the reference clock's at which its "
+                "SYNC0 counts as in step with the ring: a frame further off restarts the lock, and counts towards "
+                "sync_fault_cycles in OP (10 us: what IgH's master waits for before starting SYNC0)")
     sync_fault_cycles: int = _option(5, "consecutive too-long frame intervals that fault a drive in OP")
     mailbox_latency_s: float = _option(0.0005, "time from an SDO request to its reply in the read mailbox")
     mailbox_size: int = _option(128, "bytes of each mailbox (SM0/SM1)")
@@ -46,6 +50,8 @@ class RingOptions:
             raise ValueError(f"dc_lock_cycles must be >= 0, got {self.dc_lock_cycles}")
         if not 0 <= self.sync_tolerance < 10:
             raise ValueError(f"sync_tolerance must be in [0, 10), got {self.sync_tolerance}")
+        if not 0 < self.dc_sync_window_ns <= 0x7FFFFFFF:
+            raise ValueError(f"dc_sync_window_ns must be 1..{0x7FFFFFFF}, got {self.dc_sync_window_ns}")
         if self.sync_fault_cycles < 1:
             raise ValueError(f"sync_fault_cycles must be >= 1, got {self.sync_fault_cycles}")
         if not 0 <= self.mailbox_latency_s < 1:

@@ -100,7 +100,7 @@ class Ring:
         """Power the slave at ``position`` on again; it starts in INIT with fresh registers."""
         self.finish_frame()
         if not self.powered[position]:
-            self.slaves[position].power_cycle()
+            self.slaves[position].power_cycle(self.clock())
             self.powered[position] = True
             self._update_topology()
 

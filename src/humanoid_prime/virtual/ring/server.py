@@ -255,6 +255,7 @@ class EmulatorServer:
                 "locked": slave.locked,
                 "lock_count": slave.lock_count,
                 "time_samples": esc.dc_samples,
+                "time_difference_ns": esc.dc_difference_ns,
             },
             "mailbox_faults": slave.mailbox_faults,
             "drive": {

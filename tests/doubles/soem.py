@@ -75,6 +75,7 @@ class FakeSoemSlave:
         self.register_writes: list[tuple[int, bytes]] = []
         self.local_ns = RING_TIME_NS + 1_000 * position
         self.clock_error_ns = 0
+        self.difference_reversed = False  # bit 31 of 0x092C the other way round
         if master.dc:
             self.registers[0x0008] = 0x04  # ESC features: DC
             struct.pack_into("<QI", self.registers, 0x0920, (-1_000 * position) % (1 << 64), 700 * position)
@@ -137,7 +138,8 @@ class FakeSoemSlave:
         if address <= 0x092C < address + size:
             difference = self.clock_error_ns or self._master.slaves[0].system_time() - self.system_time()
             magnitude = min(abs(difference), 0x7FFFFFFF)
-            struct.pack_into("<I", self.registers, 0x092C, magnitude | (0x80000000 if difference > 0 else 0))
+            behind = difference > 0 if not self.difference_reversed else difference < 0
+            struct.pack_into("<I", self.registers, 0x092C, magnitude | (0x80000000 if behind else 0))
         return bytes(self.registers[address:address + size])
 
     def system_time(self) -> int:

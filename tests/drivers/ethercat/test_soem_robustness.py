@@ -199,6 +199,21 @@ def test_a_clock_off_by_more_than_10_us_is_corrected_by_the_difference_its_esc_m
         assert slave.true_state == pysoem.OP_STATE
 
 
+def test_an_esc_that_reads_the_difference_s_sign_the_other_way_round_is_still_brought_into_step(clock):
+    # ESC documents disagree on bit 31 of 0x092C: a correction that doubles the difference is turned round
+    with ring(clock, dc=True) as master:
+        master.start(EXPECTED)
+        slave = FakeSoemMaster.last.slaves[3]
+        power_cycle(slave)
+        slave.difference_reversed = True
+        slave.registers[0x0920:0x0928] = struct.pack("<Q", (-3_000 - 250_000) % (1 << 64))  # 250 us behind
+        master._check_ring()
+        offsets = [struct.unpack("<Q", d)[0] for a, d in slave.register_writes if a == 0x0920]
+        assert offsets == [(-3_000 - 500_000) % (1 << 64), (-3_000) % (1 << 64)]  # the wrong way, then right
+        assert slave.system_time() == FakeSoemMaster.last.slaves[0].system_time()
+        assert slave.true_state == pysoem.OP_STATE
+
+
 def test_a_clock_that_will_not_come_into_step_keeps_its_slave_in_safe_op_and_says_why(clock):
     with ring(clock, dc=True) as master:
         master.start(EXPECTED)

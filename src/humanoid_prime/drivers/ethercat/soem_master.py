@@ -455,6 +455,7 @@ class SoemMaster(EthercatMaster):
             if abs(step) > DC_STEP_NS:
                 offset = (offset + step) & 0xFFFFFFFFFFFFFFFF
                 slave._fpwr(REG_DC_OFFSET, _OFFSET_DELAY.pack(offset, setup.dc_delay), timeout)
+            before = None
             for _ in range(DC_CORRECTIONS + 1):
                 difference = self._clock_difference(measured)
                 if difference is None:
@@ -462,6 +463,11 @@ class SoemMaster(EthercatMaster):
                 difference *= sign
                 if abs(difference) <= DC_SYNC_WINDOW_NS:
                     return None
+                if before is not None and abs(difference) > abs(before):
+                    # the correction made it worse: this ESC reads bit 31 the other way round (ESC documents
+                    # disagree on it), so the last correction goes back and this one the other way
+                    sign, difference = -sign, -difference
+                before = difference
                 offset = (offset + difference) & 0xFFFFFFFFFFFFFFFF
                 slave._fpwr(REG_DC_OFFSET, _U64.pack(offset), timeout)
         except pysoem.WkcError:

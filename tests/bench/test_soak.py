@@ -9,6 +9,7 @@ from humanoid_prime.runtime.session import FaultRecord
 
 BY_NAME = {fault.name: fault for fault in FAULTS}
 LOST = BY_NAME["slave lost and returned"]
+REFERENCE_LOST = BY_NAME["reference clock slave lost and returned"]
 SILENT = BY_NAME["silent Sito"]
 DRIVE_FAULT = BY_NAME["drive fault 0x7500"]
 ONE_FRAME = BY_NAME["one EtherCAT frame lost"]
@@ -42,6 +43,18 @@ def test_a_returned_slave_is_latched_when_its_drive_waited_disabled_for_the_oper
     judge(injection, [record("PrimeEtherCATSide/ethercat/ring9/lost", 10.1, 18.0),
                       record("PrimeEtherCATSide/ethercat/ring9/disabled", 18.0, 18.1)], ended_s=60.0, resets=[18.05])
     assert injection.outcome == "latched" == LOST.expect
+
+
+def test_the_other_drives_watchdog_faults_are_consequences_of_losing_the_reference_clock_slave_not_surprises():
+    injection = Injection(REFERENCE_LOST, at_s=10.0, done_s=11.0)
+    flags = [record("PrimeEtherCATSide/ethercat/wkc", 10.1, 12.0),
+             *(record(f"PrimeEtherCATSide/ethercat/ring{k}/fault", 10.2, 24.0) for k in range(1, 10)),
+             record("PrimeEtherCATSide/ethercat/ring0/disabled", 20.0, 24.0)]
+    judge(injection, flags, ended_s=60.0, resets=[23.9])
+    assert injection.outcome == "latched" == REFERENCE_LOST.expect
+    assert all(explained(r, [injection], flags) for r in flags)
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring4/fault", 40.0), [injection], flags)
+    assert not explained(record("PrimeEtherCATSide/ethercat/ring4/fault", 10.2), [Injection(LOST, 10.0, 11.0)], [])
 
 
 def test_a_returned_drive_released_on_gains_nobody_chose_is_not_as_designed():

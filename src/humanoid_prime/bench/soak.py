@@ -47,6 +47,7 @@ from humanoid_prime.runtime.session import BringupOptions, claim_control_socket,
 MODE_CYCLE = (Mode.ZERO_TORQUE, Mode.DAMPING, Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE, Mode.STANDBY, Mode.DAMPING)
 SETTLE_S = 3.0  # how long after an injection (or its end) the stack has to flag and recover
 LOST_RING = 9  # the last slave: losing it leaves the rest of the line reachable
+REFERENCE_RING = 0  # the first slave, the reference clock: losing it cuts the whole line off
 READ_ONLY_ABORT = "0X06010002"  # CiA 301 abort: attempt to write a read-only object
 VERIFY_READS = 3  # reads of the returned drive's settings, when a mode switch falls between two
 
@@ -85,24 +86,28 @@ def _sdo_abort(control: Any, session: Any) -> str:
     raise PrimeError("the drive accepted a write to its read-only 0x6076")
 
 
-def _settings_restored(control: Any, session: Any) -> str | None:
-    """The returned drive holds the gate and the gains of the mode the impedance manager applied last: a drive
-    that lost power comes back on factory gains, and must not be enabled on them."""
-    impedance = session.impedance
-    if impedance is None or impedance.mode is None:  # no impedance manager, or no mode's gains applied yet
-        return None
-    for _ in range(VERIFY_READS):  # a mode switch between the two reads: read again
-        impedance.wait_idle(5.0)
-        mode, switches = impedance.mode, len(impedance.reports)
-        drive = control.slave(LOST_RING)["drive"]
-        want = impedance.targets[mode][LOST_RING]
-        held = (drive["gate"], drive["pos_reg"], drive["vel_reg"], drive["integral"])
-        if held == (1, want.pos_reg, want.vel_reg, want.integral):
+def _settings_restored(ring: int) -> Callable[[Any, Any], str | None]:
+    """The check that the drive at ``ring``, returned, holds the gate and the gains of the mode the impedance
+    manager applied last: a drive that lost power comes back on factory gains, and must not be enabled on them."""
+
+    def verify(control: Any, session: Any) -> str | None:
+        impedance = session.impedance
+        if impedance is None or impedance.mode is None:  # no impedance manager, or no mode's gains applied yet
             return None
-        if len(impedance.reports) == switches:
-            break
-    return (f"ring {LOST_RING} was released with gate {held[0]} and registers {held[1:]}, not the gate 1 and "
-            f"{mode.value}'s {(want.pos_reg, want.vel_reg, want.integral)}")
+        for _ in range(VERIFY_READS):  # a mode switch between the two reads: read again
+            impedance.wait_idle(5.0)
+            mode, switches = impedance.mode, len(impedance.reports)
+            drive = control.slave(ring)["drive"]
+            want = impedance.targets[mode][ring]
+            held = (drive["gate"], drive["pos_reg"], drive["vel_reg"], drive["integral"])
+            if held == (1, want.pos_reg, want.vel_reg, want.integral):
+                return None
+            if len(impedance.reports) == switches:
+                break
+        return (f"ring {ring} was released with gate {held[0]} and registers {held[1:]}, not the gate 1 and "
+                f"{mode.value}'s {(want.pos_reg, want.vel_reg, want.integral)}")
+
+    return verify
 
 
 FAULTS: tuple[Fault, ...] = (
@@ -117,9 +122,18 @@ FAULTS: tuple[Fault, ...] = (
     # back in OP once it has relocked (350 frames at the control rate: 7 s at 50 Hz), its drive held disabled
     Fault("slave lost and returned", "ethercat", "latched", f"*/ethercat/ring{LOST_RING}/disabled",
           lambda c, s: c.call("lose", position=LOST_RING), hold_s=1.0,
-          end=lambda c: c.call("restore", position=LOST_RING), settle_s=15.0, verify=_settings_restored,
+          end=lambda c: c.call("restore", position=LOST_RING), settle_s=15.0, verify=_settings_restored(LOST_RING),
           also=(f"*/ethercat/ring{LOST_RING}/lost", "*/ethercat/wkc",
                 "*/erob/impedance/ring*")),  # a mode switch meanwhile is refused, and flagged
+    # the first slave: the ring's time (the reference clock) restarts from 0 with it, and the line behind it is cut
+    # meanwhile, so every other drive's watchdog runs out (0xA000, latched too); its clock is set to the time of a
+    # drive that kept its own before SYNC0 starts again, and the others relock on it
+    Fault("reference clock slave lost and returned", "ethercat", "latched", f"*/ethercat/ring{REFERENCE_RING}/disabled",
+          lambda c, s: c.call("lose", position=REFERENCE_RING), hold_s=1.0,
+          end=lambda c: c.call("restore", position=REFERENCE_RING), settle_s=20.0,
+          verify=_settings_restored(REFERENCE_RING),
+          also=("*/ethercat/ring*/lost", "*/ethercat/wkc", "*/ethercat/ring*/fault", "*/ethercat/ring*/disabled",
+                "*/erob/impedance/ring*")),
     Fault("drive fault 0x7500", "ethercat", "latched", "*/ethercat/ring6/fault",
           lambda c, s: c.call("fault", position=6, code=0x7500)),
     Fault("SDO abort", "ethercat", "refused", None, _sdo_abort),

@@ -83,11 +83,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     soak = p.add_subparsers(dest="bench_command", metavar="{soak}").add_parser(
         "soak", help="the emulated robot for minutes through all modes, loaded, with faults on both buses",
         description="Run the emulated robot at its control rate through all five modes with a REMOTE stream, both "
-                    "cores loaded, and faults injected on both buses in turn (frames lost, delayed and garbled, a "
-                    "slave lost and returned, a drive fault, an SDO abort, a silent Sito, garbage and dropped CAN "
-                    "frames). Reports ticks, overruns, the worst tick, jitter, what each fault did against what it "
-                    "should, any fault nobody injected, and that every gate was reset and every drive left "
-                    "disabled; exit 1 if any of that fails.")
+                    "cores loaded, and faults injected on both buses in turn (frames lost, delayed and garbled, the "
+                    "last slave and the first (the reference clock) lost and returned, a drive fault, an SDO abort, "
+                    "a silent Sito, garbage and dropped CAN frames). Reports ticks, overruns, the worst tick, "
+                    "jitter, what each fault did against what it should, any fault nobody injected, and that every "
+                    "gate was reset and every drive left disabled; exit 1 if any of that fails.")
     soak.add_argument("--minutes", type=real(above=0.0), default=10.0, metavar="M", help="length (default 10)")
     soak.add_argument("--rate", type=real(above=0.0, at_most=2000.0), metavar="HZ",
                       help="control rate (default: update_rate of the controllers file)")

@@ -353,6 +353,8 @@ def test_a_reference_clock_back_from_a_power_cycle_is_set_to_the_ring_s_time_aga
     with Loop(system, robot.n):
         ring.control.lose_slave(0)  # the line ends at the master: no slave answers
         wait_for(lambda: "ethercat/wkc" in system.flags, what="working-counter flag")
+        assert system.flags["ethercat/wkc"].startswith("no EtherCAT drive answered")
+        assert "the power of ring 0 (left_shoulder_pitch)" in system.flags["ethercat/wkc"]
         wait_for(lambda: ring.control.slave(9)["al_state"] == "SAFEOP", what="the others' watchdogs ran out")
         ring.control.restore_slave(0)
         try:

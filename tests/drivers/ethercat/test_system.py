@@ -231,6 +231,21 @@ def test_a_working_counter_mismatch_for_three_cycles_raises_a_flag_until_it_reco
     assert "ethercat/wkc" not in rig.system.flags
 
 
+def test_a_line_cut_before_the_first_drive_is_flagged_as_such_and_the_text_follows_the_count(rig):
+    rig.master.wkc_override = 0  # nothing answers: no slave can be named by the supervision either
+    for _ in range(3):
+        rig.tick()
+    assert rig.system.flags["ethercat/wkc"] == (
+        "no EtherCAT drive answered on fake0 for 3 cycles (working counter 0): the line is cut before the first "
+        "drive; check the cable from fake0 and the power of ring 0 (left_shoulder_pitch)")
+    rig.master.wkc_override = 20  # the first drive is back, some of the others not yet
+    rig.tick()
+    assert rig.system.flags["ethercat/wkc"].startswith("EtherCAT working counter 20, expected 30 on fake0")
+    rig.master.wkc_override = None
+    rig.tick()
+    assert "ethercat/wkc" not in rig.system.flags
+
+
 def test_a_drive_fault_raises_a_flag_with_the_decoded_statusword_and_error(rig):
     rig.master.fault(3, 0x8500)
     rig.system.read(0.0, rig.state)

@@ -161,6 +161,7 @@ class EthercatSystem(HardwareComponent):
         self._held = np.zeros(n)  # the last CSP target sent (raw), what a NaN position command keeps
         self._tick: EcTick | None = None  # the compiled read and write, bound to the process image at start
         self._wkc_flagged = False
+        self._wkc_silent = False  # the flag says that nothing answered (working counter <= 0)
         self._fault_seen: tuple = ()
         self._health_seen = -1
 
@@ -379,7 +380,8 @@ class EthercatSystem(HardwareComponent):
             self._wkc_bad_cycles += 1
         else:
             self._wkc_bad_cycles = 0
-        if (self._wkc_bad_cycles >= self.wkc_tolerance_cycles) != self._wkc_flagged:
+        if (self._wkc_bad_cycles >= self.wkc_tolerance_cycles) != self._wkc_flagged or (
+                self._wkc_flagged and (wkc <= 0) != self._wkc_silent):
             self._update_wkc_flag(wkc)
         if master.health_version != self._health_seen:
             self._update_health_flags()
@@ -400,13 +402,22 @@ class EthercatSystem(HardwareComponent):
     # ------------------------------------------------------------------------------- flags
     def _update_wkc_flag(self, wkc: int) -> None:
         master = self._master()
-        self._wkc_flagged = not self._wkc_flagged
-        if self._wkc_flagged:
+        self._wkc_flagged = self._wkc_bad_cycles >= self.wkc_tolerance_cycles
+        self._wkc_silent = wkc <= 0
+        if not self._wkc_flagged:
+            self.clear_flag("ethercat/wkc")
+        elif self._wkc_silent:
+            # the supervision cannot name a slave then (every state read goes unanswered too)
+            first = next((f"ring 0 ({joint})" for joint, position in zip(self.joints, self.ring, strict=True)
+                          if position == 0), "ring 0")
+            self.set_flag("ethercat/wkc", f"no EtherCAT drive answered on {master.interface} for "
+                                          f"{self._wkc_bad_cycles} cycles (working counter {wkc}): the line is cut "
+                                          f"before the first drive; check the cable from {master.interface} and "
+                                          f"the power of {first}")
+        else:
             self.set_flag("ethercat/wkc", f"EtherCAT working counter {wkc}, expected {master.expected_wkc} on "
                                           f"{master.interface} for {self._wkc_bad_cycles} cycles: process data is "
                                           "not reaching every drive")
-        else:
-            self.clear_flag("ethercat/wkc")
 
     def _update_health_flags(self) -> None:
         master = self._master()

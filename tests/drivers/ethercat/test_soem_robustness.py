@@ -123,6 +123,20 @@ def wait_for(condition, what: str, timeout_s: float = 30.0) -> None:
         time.sleep(0.005)
 
 
+def test_a_mismatch_wakes_the_supervision_only_while_every_slave_was_in_op(clock):
+    # with a slave out of OP every cycle mismatches: at 1 kHz back-to-back passes held the interpreter lock often
+    # enough that a returning slave never got the steady frames its clock needs to lock
+    with ring(clock) as master:
+        master.open()  # no supervision thread: the pause is called by hand
+        master.slave_ok[:] = True
+        master._check.set()
+        assert master._pause(30.0) is True  # at once: something new happened
+        master.slave_ok[4] = False
+        assert master._pause(0.01) is False  # waited out: the next pass comes with the period
+        master._stop.set()
+        assert master._pause(30.0) is True  # a stop ends it at once
+
+
 def test_a_slave_silent_over_every_read_is_lost_alone(clock):
     with ring(clock) as master:
         master.start(EXPECTED)

@@ -334,8 +334,8 @@ class SoemMaster(EthercatMaster):
     # ---------------------------------------------------------------------------- supervision
     def _supervise(self) -> None:
         """Check the ring every ``supervise_period_s`` while a slave is out of OP, and at once when the cycle
-        sees a working-counter mismatch."""
-        rate = Rate(1.0 / self.supervise_period_s, sleep=self._check.wait)
+        sees a working-counter mismatch while every slave was in OP (``_pause``)."""
+        rate = Rate(1.0 / self.supervise_period_s, sleep=self._pause)
         while not self._stop.is_set():
             rate.wait()
             if self._stop.is_set():
@@ -347,6 +347,15 @@ class SoemMaster(EthercatMaster):
                     self._check_ring()
                 except Exception as exc:  # the cycle must survive whatever recovery runs into
                     self.supervision_error = _describe(exc)
+
+    def _pause(self, seconds: float) -> bool:
+        """The supervision's sleep: a working-counter mismatch ends it only while every slave was in OP. With one
+        out, every cycle mismatches and says nothing new; passes back to back (hundreds a second at 1 kHz) would
+        hold the interpreter lock in pysoem's state reads often enough that the loop's frames came too late for the
+        returning slave's distributed clock ever to lock."""
+        if self.slave_ok.all():
+            return self._check.wait(seconds)
+        return self._stop.wait(seconds)
 
     def _check_ring(self) -> None:
         """One pass of SOEM's state check: acknowledge, re-request OP, reconfigure or recover each slave.

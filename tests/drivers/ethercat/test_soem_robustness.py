@@ -137,6 +137,22 @@ def test_a_mismatch_wakes_the_supervision_only_while_every_slave_was_in_op(clock
         assert master._pause(30.0) is True  # a stop ends it at once
 
 
+def test_no_supervision_pass_runs_while_no_slave_answers_the_cycle_at_all(clock, monkeypatch):
+    # its state reads and recoveries would wait out their timeouts holding the interpreter lock, to learn nothing
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        monkeypatch.setattr(FakeSoemMaster, "receive_processdata", lambda self, timeout=2000, release_gil=False: 0)
+        wait_for(lambda: master.wkc == 0, "the keeper's frames unanswered")
+        master.slave_ok[3] = False  # a slave out of OP: the supervision would look every period
+        reads = fake.state_reads
+        time.sleep(5 * master.supervise_period_s)
+        assert fake.state_reads == reads
+        monkeypatch.undo()
+        wait_for(lambda: fake.state_reads > reads, "a pass once frames are answered again")
+        wait_for(lambda: master.slave_ok.all(), "slave 3 found in OP")
+
+
 def test_a_slave_silent_over_every_read_is_lost_alone(clock):
     with ring(clock) as master:
         master.start(EXPECTED)

@@ -334,7 +334,9 @@ class SoemMaster(EthercatMaster):
     # ---------------------------------------------------------------------------- supervision
     def _supervise(self) -> None:
         """Check the ring every ``supervise_period_s`` while a slave is out of OP, and at once when the cycle
-        sees a working-counter mismatch while every slave was in OP (``_pause``)."""
+        sees a working-counter mismatch while every slave was in OP (``_pause``). Not while the cycle's frames
+        get no answer at all (the line cut before the first slave): pysoem's state reads and SOEM's recovery hold
+        the interpreter lock while they wait out their timeouts, and would stall the cycle to learn nothing."""
         rate = Rate(1.0 / self.supervise_period_s, sleep=self._pause)
         while not self._stop.is_set():
             rate.wait()
@@ -342,7 +344,7 @@ class SoemMaster(EthercatMaster):
                 return
             woken = self._check.is_set()
             self._check.clear()
-            if woken or not self.slave_ok.all():
+            if (woken or not self.slave_ok.all()) and self.wkc > 0:
                 try:
                     self._check_ring()
                 except Exception as exc:  # the cycle must survive whatever recovery runs into

@@ -28,7 +28,8 @@ class RingOptions:
         10_000, "largest difference (0x092C) between a slave's system time and the reference clock's at which its "
                 "SYNC0 counts as in step with the ring: a frame further off restarts the lock, and counts towards "
                 "sync_fault_cycles in OP (10 us: what IgH's master waits for before starting SYNC0)")
-    sync_fault_cycles: int = _option(5, "consecutive too-long frame intervals that fault a drive in OP")
+    sync_fault_cycles: int = _option(5, "consecutive too-long frame intervals, or frames off the ring's time, that "
+                                        "fault a drive in OP")
     mailbox_latency_s: float = _option(0.0005, "time from an SDO request to its reply in the read mailbox")
     mailbox_size: int = _option(128, "bytes of each mailbox (SM0/SM1)")
     state_change_s: float = _option(0.0, "time the firmware takes to carry out a request for PRE-OP or SAFE-OP from a "

@@ -217,29 +217,22 @@ def test_a_power_cycled_slave_s_clock_is_set_to_the_ring_s_time_before_sync0_sta
         assert not master.recovery_problems
 
 
-def test_a_clock_off_by_more_than_10_us_is_corrected_by_the_difference_its_esc_measures(clock):
-    with ring(clock, dc=True) as master:
-        master.start(EXPECTED)
-        slave = FakeSoemMaster.last.slaves[3]
-        power_cycle(slave)
-        slave.registers[0x0920:0x0928] = struct.pack("<Q", (-3_000 - 250_000) % (1 << 64))  # 250 us behind
-        master._check_ring()
-        assert [d for a, d in slave.register_writes if a == 0x0920] == [struct.pack("<Q", (-3_000) % (1 << 64))]
-        assert slave.system_time() == FakeSoemMaster.last.slaves[0].system_time()
-        assert slave.true_state == pysoem.OP_STATE
-
-
-def test_an_esc_that_reads_the_difference_s_sign_the_other_way_round_is_still_brought_into_step(clock):
+@pytest.mark.parametrize("reversed_sign, offsets", [
+    (False, [-3_000]),
     # ESC documents disagree on bit 31 of 0x092C: a correction that doubles the difference is turned round
+    (True, [-3_000 - 500_000, -3_000]),
+])
+def test_a_clock_250_us_behind_is_corrected_by_the_difference_its_esc_measures_either_way_it_reads_the_sign(
+        clock, reversed_sign, offsets):
     with ring(clock, dc=True) as master:
         master.start(EXPECTED)
         slave = FakeSoemMaster.last.slaves[3]
         power_cycle(slave)
-        slave.difference_reversed = True
+        slave.difference_reversed = reversed_sign
         slave.registers[0x0920:0x0928] = struct.pack("<Q", (-3_000 - 250_000) % (1 << 64))  # 250 us behind
         master._check_ring()
-        offsets = [struct.unpack("<Q", d)[0] for a, d in slave.register_writes if a == 0x0920]
-        assert offsets == [(-3_000 - 500_000) % (1 << 64), (-3_000) % (1 << 64)]  # the wrong way, then right
+        written = [struct.unpack("<Q", d)[0] for a, d in slave.register_writes if a == 0x0920]
+        assert written == [offset % (1 << 64) for offset in offsets]
         assert slave.system_time() == FakeSoemMaster.last.slaves[0].system_time()
         assert slave.true_state == pysoem.OP_STATE
 

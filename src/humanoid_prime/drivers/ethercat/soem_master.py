@@ -148,6 +148,7 @@ class SoemMaster(EthercatMaster):
         self._in_flight_slots = threading.BoundedSemaphore(self.sdo_in_flight)
         self.sdo_timeout_us = round(sdo_timeout_s * 1e6)
         self.frame_timeout_us = frame_timeout_us
+        self._register_timeout_us = round(frame_timeout_us * 3)  # one register frame, or a recovery's frames
         self._clock = clock  # tells a lost frame (early) from a mailbox timeout (late)
         self.emergencies: dict[int, int] = {}  # ring position -> last EMCY error code
         self.recoveries = 0
@@ -402,7 +403,7 @@ class SoemMaster(EthercatMaster):
                     self._reconfigure(k)
                 else:
                     self._lost[k] = True
-                    if slave.recover(round(self.frame_timeout_us * 3)) > 0:
+                    if slave.recover(self._register_timeout_us) > 0:
                         self._lost[k] = False
         if changed:
             self.health_version += 1
@@ -451,15 +452,15 @@ class SoemMaster(EthercatMaster):
         if not setup.dc or reference is None:
             return None
         if k == reference:  # compared with, and measured by, a slave that kept its clock: not one reconfigured
-            others = [j for j in range(len(self._pslaves)) if j != k and self._esc_setups[j].dc
-                      and j not in self._clock_pending and self.al_state[j] & 0x0F in (AL_SAFE_OP, AL_OP)]
-            if not others:
+            kept = next((j for j in range(len(self._pslaves)) if j != k and self._esc_setups[j].dc
+                         and j not in self._clock_pending and self.al_state[j] & 0x0F in (AL_SAFE_OP, AL_OP)), None)
+            if kept is None:
                 return None  # every clock started again: the others are set to this one's
-            measured, sign = others[0], -1
+            other, measured, sign = kept, kept, -1
         else:
-            measured, sign = k, 1
-        slave, timeout = self._pslaves[k], round(self.frame_timeout_us * 3)
-        source = self._pslaves[others[0] if k == reference else reference]
+            other, measured, sign = reference, k, 1
+        slave, timeout = self._pslaves[k], self._register_timeout_us
+        source = self._pslaves[other]
         try:
             own, _received, offset = _CLOCK.unpack(slave._fprd(REG_DC_SYSTEM_TIME, _CLOCK.size, timeout))
             step = _signed64(_U64.unpack(source._fprd(REG_DC_SYSTEM_TIME, 8, timeout))[0] - own)
@@ -489,7 +490,7 @@ class SoemMaster(EthercatMaster):
     def _clock_difference(self, k: int) -> int | None:
         """Ring ``k``'s 0x092C as signed ns (the reference clock's time minus its own) over the time distributions
         of ``DC_FILTER_FRAMES`` cycles after a filter reset; None when the cycle brought none in time."""
-        slave, timeout = self._pslaves[k], round(self.frame_timeout_us * 3)
+        slave, timeout = self._pslaves[k], self._register_timeout_us
         slave._fpwr(REG_DC_SPEED_START, slave._fprd(REG_DC_SPEED_START, 2, timeout), timeout)
         if not self._await_cycles(DC_FILTER_FRAMES):
             return None
@@ -544,7 +545,7 @@ class SoemMaster(EthercatMaster):
         cache then still says the master holds it; only a recovery from the next power cycle reads it again, and a
         power cycle gives it back to the master."""
         slave, setup = self._pslaves[k], self._esc_setups[k]
-        timeout = round(self.frame_timeout_us * 3)
+        timeout = self._register_timeout_us
         try:
             slave._fpwr(REG_AL_CONTROL, _U16.pack(AL_INIT | AL_ERROR), timeout)  # the error bit acknowledges
             slave._fpwr(REG_EEPROM_CONFIG, EEPROM_TO_PDI, timeout)

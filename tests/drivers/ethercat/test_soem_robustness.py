@@ -101,18 +101,31 @@ def test_empty_al_state_reads_flag_nobody(clock):
         assert master.health_version == version
 
 
-def test_a_slave_that_answered_one_read_of_the_pass_is_judged_by_that_answer(clock):
-    """With one slave silent, every read of a pass is made; when the last one's frame is lost (a ring, or an
-    emulated robot, that stalled past SOEM's timeout), the others answered the reads before."""
+@pytest.mark.parametrize("lost_before", [0, STATE_READS - 1])
+def test_a_state_read_that_came_back_is_not_made_again_for_a_slave_that_did_not_answer_it(clock, lost_before):
+    """Each state read holds the interpreter lock for two frames: with one slave gone, a pass reads once. Only a
+    read that no slave answered (its frame lost) is made again."""
     with ring(clock) as master:
         master.start(EXPECTED)
         fake = FakeSoemMaster.last
         fake.slaves[8].answering = False
-        fake.state_read_losses = [False] * (STATE_READS - 1) + [True]
+        fake.state_read_losses = [True] * lost_before
+        reads = fake.state_reads
         master._check_ring()
+        assert fake.state_reads == reads + lost_before + 1
+        assert master.state_rereads == lost_before
         assert list(master.slave_ok) == [True] * 8 + [False, True]
         assert list(master.lost) == [False] * 8 + [True, False]
+
+
+def test_a_pass_whose_every_state_read_is_lost_counts_every_slave_as_not_answering(clock):
+    with ring(clock) as master:
+        master.start(EXPECTED)
+        fake = FakeSoemMaster.last
+        fake.state_read_losses = [True] * STATE_READS
+        master._check_ring()
         assert master.state_rereads == STATE_READS
+        assert not master.slave_ok.any()
 
 
 def wait_for(condition, what: str, timeout_s: float = 30.0) -> None:
@@ -161,7 +174,7 @@ def test_a_slave_silent_over_every_read_is_lost_alone(clock):
         wait_for(lambda: master.lost.any(), "slave 8 found lost")
         assert list(master.slave_ok) == [True] * 8 + [False, True]
         assert list(master.lost) == [False] * 8 + [True, False]
-        assert master.state_rereads >= STATE_READS
+        assert master.state_rereads == 0  # the reads came back without slave 8's state: none made again
         fake.slaves[8].answering = True
         wait_for(lambda: master.slave_ok.all(), "slave 8 back in OP")
         assert not master.lost.any()

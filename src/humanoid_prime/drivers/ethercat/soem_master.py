@@ -78,7 +78,7 @@ from humanoid_prime.drivers.ethercat.master import (
 
 STATE_TIMEOUT_US = 3_000_000  # PRE-OP and SAFE-OP transitions (blocking, before the cycle starts)
 TRANSFER_ATTEMPTS = 4  # one SDO transfer, when frames get lost or another slave's error was popped
-STATE_READS = 3  # AL-state reads in a row a slave must miss before it counts as not answering
+STATE_READS = 3  # AL-state reads in a pass, while no slave answers them (their frames lost)
 # A returning slave's state changes, as SOEM's ecx_statecheck waits for them (EC_TIMEOUTSTATE, 2 s, polled each ms)
 STATE_CHANGE_TIMEOUT_S = 2.0
 STATE_POLL_S = 0.001
@@ -153,7 +153,7 @@ class SoemMaster(EthercatMaster):
         self.emergencies: dict[int, int] = {}  # ring position -> last EMCY error code
         self.recoveries = 0
         self.lost_frames = 0  # SDO transfers repeated because a frame of the exchange did not come back
-        self.state_rereads = 0  # AL-state reads repeated because some slave did not answer one
+        self.state_rereads = 0  # AL-state reads repeated because no slave answered one (its frame lost)
         self.threaded_receive: str | None = None  # why the NIC's frames arrive through a kernel thread, if they do
         self._socket: int | None = None  # SOEM's socket, where it could be told from this process's others
         self.supervision_error: str | None = None  # the last exception a recovery attempt ran into
@@ -363,21 +363,22 @@ class SoemMaster(EthercatMaster):
     def _check_ring(self) -> None:
         """One pass of SOEM's state check: acknowledge, re-request OP, reconfigure or recover each slave.
 
-        A slave counts as not answering only after ``STATE_READS`` reads in a row without its state; one that
-        answered any read of the pass is judged by its latest answer. A lost frame leaves every slave's state at
-        NONE, and with one slave really gone every read of the pass is made, so the last may be such a frame (a
-        ring, or an emulated robot, that stalled past SOEM's timeout). The health arrays record what every slave
-        reported before any request is written (a reference clock back from a power cycle is set to the time of a
-        slave that this pass found in SAFE-OP or OP).
+        The states are read again only after a read that no slave answered: its frame was lost (a ring, or an
+        emulated robot, that stalled past SOEM's timeout, or a supervision thread kept off the CPU that long), and
+        it says nothing. A read that some slave answered came back, so a slave it has no state for did not answer
+        at its address. A read costs two frames with the interpreter lock held; with a slave gone, three of them
+        each pass held it for milliseconds at 1 kHz on the emulated robot. After ``STATE_READS`` lost reads every
+        slave counts as not answering. The health arrays record what every slave reported before any request is
+        written (a reference clock back from a power cycle is set to the time of a slave that this pass found in
+        SAFE-OP or OP).
         """
         m = self._require()
-        answered: dict[int, tuple[int, int]] = {}  # position -> (state, AL status code), the latest answer
+        answered: dict[int, tuple[int, int]] = {}  # position -> (state, AL status code)
         for _ in range(STATE_READS):
             m.read_state()
-            for k, slave in enumerate(self._pslaves):
-                if slave.state != pysoem.NONE_STATE:
-                    answered[k] = (slave.state, slave.al_status)
-            if len(answered) == len(self._pslaves):
+            answered = {k: (slave.state, slave.al_status) for k, slave in enumerate(self._pslaves)
+                        if slave.state != pysoem.NONE_STATE}
+            if answered:
                 break
             self.state_rereads += 1
         changed = False

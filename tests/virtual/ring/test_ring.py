@@ -10,7 +10,7 @@ import pytest
 from doubles.wire import STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import POWER_UP_RXPDO, POWER_UP_TXPDO, RXPDO_STRUCT, TXPDO_STRUCT
-from humanoid_prime.virtual.ring.frames import Command, Datagram
+from humanoid_prime.virtual.ring.frames import Command, Datagram, build_frame, parse_frame
 from humanoid_prime.virtual.ring.mailbox import sdo_abort_code
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
@@ -148,6 +148,28 @@ def test_error_needs_acknowledging_before_going_up():
     assert master.al_status(0x1001) == (0x11, 0x0011)
     master.request_state(0x1001, 0x12)
     assert master.al_status(0x1001) == (0x02, 0)
+
+
+def test_frames_that_arrive_during_a_step_are_answered_between_its_parts():
+    # an ESC answers in microseconds; one step of the emulated robot's Python takes hundreds of them, and a
+    # master's state read (which pysoem makes holding its interpreter lock) would wait the whole step out
+    ring, master = in_op(2)
+    answered: list[Datagram] = []
+
+    def serve() -> None:  # each time the step looks, a frame has come in 0.6 ms later than the last
+        master.now_ns += 600_000
+        frame = bytearray(build_frame([Datagram(Command.FPRD, bytes(2), adp=STATION_BASE, ado=0x0130)]))
+        assert ring.process(frame, master.now_ns)
+        answered.append(parse_frame(frame)[0])
+
+    checked: list[int] = []
+    tick = ring.slaves[0].tick
+    ring.slaves[0].tick = lambda now_ns: (checked.append(now_ns), tick(now_ns))
+    ring.serve_waiting = serve
+    ring.advance(master.now_ns + MS)  # one physics step
+    assert [(d.wkc, d.data) for d in answered] == [(1, struct.pack("<H", 0x08))] * 2  # before the plant, after
+    assert ring._pending_frame is None  # the slaves' reaction to it ran there too, not at the next step
+    assert checked == [master.now_ns]  # the timed checks never run at a time before a frame already answered
 
 
 def test_a_slow_firmware_shows_the_old_state_until_its_state_change_is_done():

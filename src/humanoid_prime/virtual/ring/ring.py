@@ -69,6 +69,10 @@ class Ring:
         self._braked = np.ones(options.slaves, dtype=bool)
         self._hit = [False] * options.slaves
         self._pending_frame: tuple[int, bool, bool] | None = None  # (time, DC time distributed, process data)
+        self._frame_ns = now  # when the latest frame passed
+        # the server's: answer the frames that arrived while a step runs, between its parts (an ESC answers in
+        # microseconds; a whole step of the robot's Python is hundreds, and a master's state read waits it out)
+        self.serve_waiting: Callable[[], None] | None = None
         self._update_topology()
         self.advance(now)
 
@@ -115,6 +119,7 @@ class Ring:
             return False
         self.finish_frame()
         self.frames += 1
+        self._frame_ns = now_ns
         slaves = self.reachable
         hit = self._hit
         for slave in slaves:
@@ -192,7 +197,9 @@ class Ring:
     # ---- time --------------------------------------------------------------------------------------------
     def advance(self, now_ns: int, max_steps: int | None = None) -> bool:
         """Integrate drives and plant up to ``now_ns`` (at most ``max_steps`` physics steps of it), run the
-        slaves' timed checks and refresh their inputs; True when the physics has caught up with ``now_ns``."""
+        slaves' timed checks and refresh their inputs; True when the physics has caught up with ``now_ns``.
+        Frames that arrive meanwhile are answered between the drives' step and the plant's, and after the plant's
+        (``serve_waiting``)."""
         self.finish_frame()
         dt_ns = self._dt_ns
         if now_ns - self._sim_ns > _MAX_CATCH_UP_NS:
@@ -204,6 +211,7 @@ class Ring:
         torque = self._torque
         braked = self._braked
         dt = dt_ns / 1e9
+        serve = self.serve_waiting
         while self._sim_ns + dt_ns <= until_ns:
             q = plant.q.tolist()
             qd = plant.qd.tolist()
@@ -215,14 +223,21 @@ class Ring:
                 else:
                     torque[i] = 0.0
                     braked[i] = True
+            if serve is not None:
+                serve()
+                self.finish_frame()
             plant.step(torque, braked, dt)
             self._sim_ns += dt_ns
+            if serve is not None:
+                serve()
+                self.finish_frame()
         q = plant.q.tolist()
         qd = plant.qd.tolist()
+        checked_ns = max(now_ns, self._frame_ns)  # never before a frame these slaves have already answered
         for i, slave in enumerate(slaves):
             if not powered[i] or slave.silent:
                 continue
-            slave.tick(now_ns)
+            slave.tick(checked_ns)
             slave.drive.update_feedback(q[i], qd[i])
             slave.refresh_inputs()
         return self._sim_ns + dt_ns > now_ns

@@ -101,6 +101,7 @@ class EmulatorServer:
         gc.disable()
         self.running = True
         caught_up = True
+        ring.serve_waiting = lambda: self._serve_frames(buffer, view)
         try:
             while self.running:
                 timeout_ms = 1
@@ -123,6 +124,7 @@ class EmulatorServer:
                     gc.collect(0)
                     self._last_gc_ns = now
         finally:
+            ring.serve_waiting = None
             gc.enable()
             gc.unfreeze()
 

@@ -180,8 +180,12 @@ def test_a_slave_silent_over_every_read_is_lost_alone(clock):
         assert not master.lost.any()
 
 
-def power_cycle(slave) -> None:
-    """What a power cycle leaves in the double's ESC: INIT, SyncManagers and FMMUs cleared, SYNC0 off."""
+def power_cycle(slave, *, clock: bool = False) -> None:
+    """What a power cycle leaves in the double's ESC: INIT, SyncManagers and FMMUs cleared, SYNC0 off; with
+    ``clock``, its clock too: local time from 0, offset and delay cleared."""
+    if clock:
+        slave.local_ns = 3_000_000_000
+        slave.registers[0x0920:0x092C] = bytes(12)
     slave.true_state = pysoem.INIT_STATE
     slave.dc = False
     slave.registers[0x0600:0x0900] = bytes(0x300)
@@ -207,18 +211,11 @@ def test_a_power_cycled_slave_is_reconfigured_one_frame_at_a_time_as_soem_would(
         assert master.recoveries == 1
 
 
-def power_cycle_clock(slave) -> None:
-    """And its clock: local time from 0, offset and delay cleared."""
-    slave.local_ns = 3_000_000_000
-    slave.registers[0x0920:0x092C] = bytes(12)
-
-
 def test_a_power_cycled_slave_s_clock_is_set_to_the_ring_s_time_before_sync0_starts(clock):
     with ring(clock, dc=True) as master:
         master.start(EXPECTED)
         slave = FakeSoemMaster.last.slaves[5]
-        power_cycle(slave)
-        power_cycle_clock(slave)
+        power_cycle(slave, clock=True)
         master._check_ring()
         reference = FakeSoemMaster.last.slaves[0].system_time()
         offset = (reference - slave.local_ns) % (1 << 64)
@@ -254,8 +251,7 @@ def test_a_clock_that_will_not_come_into_step_keeps_its_slave_in_safe_op_and_say
     with ring(clock, dc=True) as master:
         master.start(EXPECTED)
         slave = FakeSoemMaster.last.slaves[6]
-        power_cycle(slave)
-        power_cycle_clock(slave)
+        power_cycle(slave, clock=True)
         slave.clock_error_ns = 50_000  # whatever offset it is given, it reads 50 us off
         master._check_ring()
         assert slave.true_state == pysoem.SAFEOP_STATE and not slave.dc and master.recoveries == 0
@@ -273,8 +269,7 @@ def test_a_reference_clock_back_from_a_power_cycle_is_set_to_the_next_slave_s_ti
         master.start(EXPECTED)
         fake = FakeSoemMaster.last
         slave = fake.slaves[0]
-        power_cycle(slave)
-        power_cycle_clock(slave)
+        power_cycle(slave, clock=True)
         master._check_ring()
         assert slave.system_time() == fake.slaves[1].system_time()
         assert slave.true_state == pysoem.OP_STATE and not master.recovery_problems

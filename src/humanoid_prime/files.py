@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import difflib
 import os
 import stat
 import tempfile
@@ -12,12 +13,30 @@ from typing import Any
 
 import yaml
 
-from humanoid_prime.errors import ConfigError
+from humanoid_prime.errors import ConfigError, PrimeError
 
 
 def bundled(name: str) -> Path:
     """Path of a file shipped in the package's data folder (e.g. ``prime_hardware.yaml``)."""
     return Path(str(resources.files("humanoid_prime") / "data" / name))
+
+
+def package_root() -> Path:
+    """The installed package's own folder (its code and templates): nothing is ever written under it."""
+    return Path(__file__).resolve().parent
+
+
+def inside_package(path: str | Path) -> bool:
+    target = Path(path).expanduser().absolute().resolve()
+    return target == package_root() or package_root() in target.parents
+
+
+def check_not_package(path: str | Path, what: str = "this file") -> None:
+    """Refuse to write ``path`` when it lies inside the installed package (its templates are read-only)."""
+    if inside_package(path):
+        raise PrimeError(f"{what} would be written inside the installed package ({Path(path)}), whose files are "
+                         "read-only templates; make the robot's own copy with `prime config init`, or name a "
+                         "file elsewhere")
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -73,10 +92,23 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def check_keys(path: str | Path, where: str, mapping: dict[str, Any], known: tuple[str, ...]) -> None:
+    """Refuse a key of ``mapping`` (at ``where`` in the file) that is not one of ``known``, naming the closest
+    known key: a misspelt key would otherwise leave its default silently in force."""
+    for key in mapping:
+        if key in known:
+            continue
+        close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+        fix = f"did you mean {close[0]!r}?" if close else f"known keys here: {', '.join(known)}"
+        raise ConfigError(config_path(path), f"{where}.{key}" if where else str(key), "unknown key", fix)
+
+
 def output_problem(path: str | Path, *, directory: bool = False) -> str | None:
     """Why ``path`` could not be written as an output file (or, with ``directory``, filled as an output
     folder), or None. Checked before a run starts, so a run's result is never lost at its end."""
     path = Path(path).expanduser()
+    if inside_package(path):
+        return f"{path} is inside the installed package, whose files are read-only templates"
     if directory:
         if path.exists() and not path.is_dir():
             return f"{path} is a file, not a folder"
@@ -107,6 +139,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     keeps the mode of the one it replaces; a new file gets the mode the umask gives.
     """
     path = Path(path)
+    check_not_package(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         mode = stat.S_IMODE(path.stat().st_mode)

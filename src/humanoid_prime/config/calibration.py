@@ -14,7 +14,7 @@ import numpy as np
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.files import atomic_write_yaml, bundled, config_path, load_yaml
+from humanoid_prime.files import atomic_write_yaml, bundled, check_keys, config_path, load_yaml
 
 CALIBRATION_FILE = "prime_calibration.yaml"
 HEADER = (
@@ -43,6 +43,11 @@ class Calibration:
     def offset_array(self, names: tuple[str, ...]) -> np.ndarray:
         return np.array([self.joints[n].homing_offset for n in names], dtype=np.float64)
 
+    @property
+    def is_identity(self) -> bool:
+        """Every homing offset 0: the template, not a robot's calibration (no calibrated robot reads 0 on all)."""
+        return all(c.homing_offset == 0.0 for c in self.joints.values())
+
     def with_joint(self, name: str, value: JointCalibration) -> Calibration:
         joints = dict(self.joints)
         joints[name] = value
@@ -59,6 +64,7 @@ def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -
     """Load a calibration file for every joint of ``hardware`` and check it names exactly those joints."""
     path = config_path(path) if path is not None else bundled(CALIBRATION_FILE)
     data = load_yaml(path)
+    check_keys(path, "", data, ("joints",))
     joints = data.get("joints")
     if not isinstance(joints, dict):
         raise ConfigError(path, "joints", "missing or not a mapping",
@@ -73,6 +79,7 @@ def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -
         entry = joints.get(name)
         if not isinstance(entry, dict):
             raise ConfigError(path, key, "missing", "add it with direction: 1 and homing_offset: 0.0")
+        check_keys(path, key, entry, ("direction", "homing_offset", "bus", "address"))
         direction = entry.get("direction")
         if isinstance(direction, bool) or direction not in (1, -1):
             raise ConfigError(path, f"{key}.direction", f"must be 1 or -1, got {direction!r}")
@@ -101,6 +108,8 @@ def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> 
     return {"joints": joints}
 
 
-def save_calibration(path: str | Path, calibration: Calibration, hardware: HardwareConfig) -> None:
-    """Write the calibration atomically: the old file stays intact until the new one is complete."""
-    atomic_write_yaml(path, calibration_document(calibration, hardware), header=HEADER)
+def save_calibration(path: str | Path, calibration: Calibration, hardware: HardwareConfig,
+                     comment: str = "") -> None:
+    """Write the calibration atomically: the old file stays intact until the new one is complete. ``comment``
+    (YAML comment lines) follows the standard header."""
+    atomic_write_yaml(path, calibration_document(calibration, hardware), header=HEADER + comment)

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.files import bundled, config_path, load_yaml
+from humanoid_prime.files import bundled, check_keys, config_path, load_yaml
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
 
 CONTROLLERS_FILE = "prime_controllers.yaml"
@@ -23,6 +23,20 @@ CONTROLLER_TYPES = {
 }
 MAX_ACTION_SCALE_RAD = 1.0  # rad per unit action: beyond it every action a policy outputs saturates at a limit
 MAX_BRINGUP_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2): faster frames gain nothing
+MAX_UPDATE_RATE_HZ = MAX_BRINGUP_RATE_HZ  # SYNC0 is the loop period (DESIGN §3), so the same minimum cycle bounds it
+# The parameters each node of the file takes (ROS 2 parameter-file shape: ``node: ros__parameters: {...}``).
+PARAMETERS: dict[str, tuple[str, ...]] = {
+    "controller_manager": ("update_rate", "bringup_rate", *CONTROLLER_TYPES),
+    "mujoco_simulation": ("update_rate", "physics_rate"),
+    JOINT_STATE_BROADCASTER: ("topic",),
+    "zero_torque_controller": ("mode",),
+    "damping_controller": ("mode", "kd"),
+    "standby_controller": ("mode", "kp", "kd", "duration", "default_pose", "poses"),
+    "locomotion_controller": ("mode", "policy", "action_scale", "default_pose", "erob_kp", "erob_kd", "sito_kp",
+                              "sito_kd"),
+    "remote_policy_controller": ("mode", "topic", "timeout", "stale_policy", "stale_kd", "erob_kp", "erob_kd"),
+    "erob_impedance_manager": ("parallel_sdo", "sdo_retries", "torque_efficiency"),  # the last refused below
+}
 
 
 @dataclass(frozen=True)
@@ -112,7 +126,7 @@ class _Reader:
         return params
 
     def number(self, node: str, key: str, *, minimum: float = 0.0, allow_equal: bool = True,
-               default: float | None = None, maximum: float = math.inf) -> float:
+               default: float | None = None, maximum: float = math.inf, why_maximum: str = "") -> float:
         value = self.params(node).get(key, default)
         where = f"{node}.ros__parameters.{key}"
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -121,7 +135,7 @@ class _Reader:
             bound = ">=" if allow_equal else ">"
             raise ConfigError(self.path, where, f"must be {bound} {minimum}, got {value}")
         if value > maximum:
-            raise ConfigError(self.path, where, f"must be <= {maximum:g}, got {value:g}")
+            raise ConfigError(self.path, where, f"must be <= {maximum:g}, got {value:g}", why_maximum)
         return float(value)
 
     def text(self, node: str, key: str, default: str | None = None) -> str:
@@ -135,12 +149,21 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
     """Load the controllers file; pose joint names are checked against ``joints``."""
     path = config_path(path) if path is not None else bundled(CONTROLLERS_FILE)
     r = _Reader(path, load_yaml(path))
+    check_keys(path, "", r.data, tuple(PARAMETERS))
+    for node, known in PARAMETERS.items():
+        block = r.data.get(node)
+        if isinstance(block, dict):
+            check_keys(path, node, block, ("ros__parameters",))
+            params = block.get("ros__parameters")
+            if isinstance(params, dict):
+                check_keys(path, f"{node}.ros__parameters", params, known)
 
     cm = r.params("controller_manager")
     for name, kind in CONTROLLER_TYPES.items():
         if not isinstance(cm.get(name), dict):
             raise ConfigError(path, f"controller_manager.ros__parameters.{name}", "controller not declared",
                               f"add '{name}: {{type: {kind}}}'")
+        check_keys(path, f"controller_manager.ros__parameters.{name}", cm[name], ("type",))
         if cm[name].get("type", kind) != kind:
             raise ConfigError(path, f"controller_manager.ros__parameters.{name}.type",
                               f"{cm[name]['type']!r} is not a controller of this stack", f"use {kind}")
@@ -223,7 +246,8 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
                           f"{sim_update_rate:g} Hz", "physics steps a whole number of times per control tick")
     return ControllersConfig(
         path=path,
-        update_rate=r.number("controller_manager", "update_rate", allow_equal=False),
+        update_rate=r.number("controller_manager", "update_rate", allow_equal=False, maximum=MAX_UPDATE_RATE_HZ,
+                             why_maximum="SYNC0 is the loop period, and the eRob's minimum cycle is 500 us"),
         bringup_rate=r.number("controller_manager", "bringup_rate", allow_equal=False, default=1000.0,
                               maximum=MAX_BRINGUP_RATE_HZ),
         sim_update_rate=sim_update_rate,

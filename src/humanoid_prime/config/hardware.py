@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from humanoid_prime.errors import ConfigError
-from humanoid_prime.files import bundled, config_path, load_yaml
+from humanoid_prime.files import bundled, check_keys, config_path, load_yaml
 
 HARDWARE_FILE = "prime_hardware.yaml"
 CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
@@ -85,9 +85,13 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     """Load and validate a hardware file (default: the bundled one)."""
     path = config_path(path) if path is not None else bundled(HARDWARE_FILE)
     data = load_yaml(path)
+    check_keys(path, "", data, ("buses", "joints", "torque_efficiency"))
     buses = _section(data, path, "buses")
+    check_keys(path, "buses", buses, ("ethercat", "can"))
     ec = _section(buses, path, "buses.ethercat")
     can = _section(buses, path, "buses.can")
+    check_keys(path, "buses.ethercat", ec, ("interface", "master"))
+    check_keys(path, "buses.can", can, ("interface", "channel", "bitrate"))
     ethercat = EthercatBus(
         interface=_str(ec.get("interface"), path, "buses.ethercat.interface"),
         master=_int(ec.get("master", 0), path, "buses.ethercat.master"),
@@ -104,6 +108,7 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         raise ConfigError(path, "buses.can.bitrate", f"must be positive, got {can_bus.bitrate}")
 
     joints = _section(data, path, "joints")
+    check_keys(path, "joints", joints, ("all_joints", "erob_slaves", "mit_joints", "erob_kt", "erob_gear"))
     names = joints.get("all_joints")
     if not isinstance(names, list) or not names:
         raise ConfigError(path, "joints.all_joints", "missing or empty", "list the joints in kinematic order")

@@ -4,6 +4,9 @@ doubles (``doubles.session``: the EtherCAT block on the master double, the wrist
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
+import tempfile
 import uuid
 from collections.abc import Iterator
 
@@ -11,6 +14,25 @@ import pytest
 
 from doubles.session import DoubledRobot
 from humanoid_prime.config.robot import Robot, load_robot
+
+
+def pytest_configure(config) -> None:
+    """Every command a test runs reads the configuration of an empty config folder of the suite's own (the
+    bundled templates), never the folder of the user who runs the suite; tests that need a robot folder make
+    one (``PRIME_CONFIG_DIR`` / ``XDG_CONFIG_HOME`` in their own environment)."""
+    os.environ["XDG_CONFIG_HOME"] = tempfile.mkdtemp(prefix="prime-suite-config-")
+    for name in ("PRIME_CONFIG_DIR", "PRIME_ROBOT"):
+        os.environ.pop(name, None)
+
+
+@pytest.fixture(autouse=True)
+def control_socket(monkeypatch) -> Iterator[None]:
+    """Each test's commands answer on a control socket of their own (their children inherit it): a `prime sim`
+    refuses to start beside another instance on its socket, and this machine may run other suites at once."""
+    folder = tempfile.mkdtemp(prefix="prime-sock-")  # short: a UNIX socket path holds 107 bytes
+    monkeypatch.setenv("PRIME_CONTROL_SOCKET", os.path.join(folder, "control.sock"))
+    yield
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -44,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        # The command reads the robot's configuration: one rule for all of them (`prime config init` makes it).
+        if hasattr(args, "robot") and not getattr(args, "makes_config", False):
+            from humanoid_prime.cli._common import resolve_config
+
+            resolve_config(args)
         return int(args.func(args) or 0)
     except PrimeError as exc:
         print(f"prime {args.command}: {exc}", file=sys.stderr)

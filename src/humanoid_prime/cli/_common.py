@@ -17,16 +17,34 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.socket import default_socket_path
 
+CONFIG_RULE = ("default: the robot's config folder ($PRIME_CONFIG_DIR, else ~/.config/prime, with a --robot "
+               "subfolder), else the bundled template; `prime config show` tells which")
+
 
 def add_config_options(parser: argparse.ArgumentParser, *, calibration: bool = False,
                        controllers: bool = False) -> None:
-    parser.add_argument("--hardware", metavar="FILE", help="hardware file (default: bundled prime_hardware.yaml)")
+    """--robot and the configuration files a command reads; ``main`` resolves them by one rule for every
+    command (``config.location``) before the command runs, so ``args.hardware`` etc. are always paths."""
+    parser.add_argument("--robot", metavar="NAME",
+                        help="the robot's config subfolder, for labs with several Primes (default: $PRIME_ROBOT)")
+    parser.add_argument("--hardware", metavar="FILE", help=f"hardware file ({CONFIG_RULE})")
     if calibration:
-        parser.add_argument("--calibration", metavar="FILE",
-                            help="calibration file (default: bundled prime_calibration.yaml)")
+        parser.add_argument("--calibration", metavar="FILE", help=f"calibration file ({CONFIG_RULE})")
     if controllers:
-        parser.add_argument("--controllers", metavar="FILE",
-                            help="controllers file (default: bundled prime_controllers.yaml)")
+        parser.add_argument("--controllers", metavar="FILE", help=f"controllers file ({CONFIG_RULE})")
+
+
+def resolve_config(args: argparse.Namespace) -> None:
+    """Resolve the configuration files of a command that takes ``--robot`` (``add_config_options``):
+    ``args.config`` holds the three files with where each came from, and ``args.hardware``,
+    ``args.calibration`` and ``args.controllers`` become their paths."""
+    from humanoid_prime.config.location import resolve_all
+
+    files = resolve_all(args.robot, hardware=getattr(args, "hardware", None),
+                        calibration=getattr(args, "calibration", None),
+                        controllers=getattr(args, "controllers", None))
+    args.config = files
+    args.hardware, args.calibration, args.controllers = (str(c.path) for c in files)
 
 
 def add_socket_option(parser: argparse.ArgumentParser) -> None:
@@ -125,11 +143,14 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     return options
 
 
-def add_realtime_options(parser: argparse.ArgumentParser, *, rate_help: str) -> None:
-    """--rate, --cpu and --no-realtime: the loop's rate and how it holds its period on a busy machine."""
+def add_realtime_options(parser: argparse.ArgumentParser, *, rate_help: str | None) -> None:
+    """--rate (unless ``rate_help`` is None), --cpu and --no-realtime: the loop's rate and how it holds its
+    period on a busy machine."""
     from humanoid_prime.config.controllers import MAX_BRINGUP_RATE_HZ
 
-    parser.add_argument("--rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ", help=rate_help)
+    if rate_help is not None:
+        parser.add_argument("--rate", type=real(above=0.0, at_most=MAX_BRINGUP_RATE_HZ), metavar="HZ",
+                            help=rate_help)
     parser.add_argument("--cpu", type=cpu_number, metavar="N",
                         help="pin the control loop to CPU N, with the process's other threads, which share its "
                              "interpreter lock (with --emulate, the emulated robot runs off it)")

@@ -2,8 +2,9 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view,
-# and cyclictest, which the 1 kHz benchmark runs after its loop to measure the machine's own real-time latency.
-TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium rt-tests
+# cyclictest, which the 1 kHz benchmark runs after its loop to measure the machine's own real-time latency, and
+# stress-ng, which loads the cores for the tests that must hold on a busy robot computer.
+TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium rt-tests stress-ng
 BENCH_DEBS := rt-tests
 # The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.
 PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")

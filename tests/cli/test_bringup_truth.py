@@ -13,7 +13,8 @@ from humanoid_prime.runtime.socket import request
 
 
 def bringup(doubled, tmp_path, *extra: str) -> int:
-    return main(["bringup", "--no-live", "--duration", "1.0", "--can-interface", "virtual", "--can-channel",
+    return main(["bringup", "--no-live", "--uncalibrated", "--duration", "1.0", "--can-interface", "virtual",
+                 "--can-channel",
                  doubled.channel, "--socket", str(tmp_path / "sock"), "--summary", str(tmp_path / "summary.json"),
                  *extra])
 

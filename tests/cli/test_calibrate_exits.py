@@ -76,7 +76,7 @@ def test_an_end_after_one_joint_was_swept_changes_that_joint_only(doubled, robot
             "sigterm": lambda stop: os.kill(os.getpid(), signal.SIGTERM),
             "q": lambda stop: stop.set()}
     ending(monkeypatch, ends[end], sweep_elbow=True, doubled=doubled)
-    assert calibrate(tmp_path, good, "--any-order") == 0
+    assert calibrate(tmp_path, good, "--any-order", "--joints", ELBOW) == 0
     after = written(robot, good)
     for joint in robot.names:
         if joint == ELBOW:
@@ -101,7 +101,7 @@ def test_an_exception_in_the_run_leaves_the_file_as_it_was(doubled, robot, good,
 
 def test_the_prior_is_the_file_being_replaced_not_the_bundled_identity(doubled, robot, good, tmp_path, monkeypatch):
     ending(monkeypatch, lambda stop: stop.set(), sweep_elbow=True, doubled=doubled)
-    assert calibrate(tmp_path, good, "--any-order") == 0
+    assert calibrate(tmp_path, good, "--any-order", "--joints", ELBOW) == 0
     after = written(robot, good)
     assert [after.joints[j].direction for j in robot.names] == [-1 if i % 3 == 0 else 1 for i in range(14)]
 
@@ -109,7 +109,38 @@ def test_the_prior_is_the_file_being_replaced_not_the_bundled_identity(doubled, 
 def test_a_new_file_starts_from_the_bundled_calibration(doubled, robot, tmp_path, monkeypatch):
     output = tmp_path / "new" / "prime_calibration.yaml"
     ending(monkeypatch, lambda stop: stop.set(), sweep_elbow=True, doubled=doubled)
-    assert calibrate(tmp_path, output, "--any-order") == 0
+    assert calibrate(tmp_path, output, "--any-order", "--joints", ELBOW) == 0
     after = written(robot, output)
     assert after.joints[ELBOW].homing_offset == pytest.approx(-0.1, abs=1e-4)
     assert after.joints["left_shoulder_pitch"] == JointCalibration(1, 0.0)
+
+
+def test_joints_asked_for_but_not_swept_make_the_run_fail_and_the_file_lists_them(doubled, robot, good, tmp_path,
+                                                                                   monkeypatch, capsys):
+    ending(monkeypatch, lambda stop: stop.set(), sweep_elbow=True, doubled=doubled)
+    assert calibrate(tmp_path, good, "--any-order") == 1  # every eRob joint was asked for; one was swept
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("prime calibrate: NOT complete: 9 of 10 joints not calibrated (")
+    assert "Next: prime calibrate --backends ec --joints left_shoulder_pitch," in err[0]
+    header = [line for line in good.read_text().splitlines() if line.startswith("#")]
+    assert f"# calibrated in this run: {ELBOW}" in header
+    assert any(line.startswith("# asked for but not calibrated: left_shoulder_pitch, ") for line in header)
+    assert written(robot, good).joints["left_shoulder_pitch"].homing_offset == pytest.approx(-0.35)  # prior kept
+
+
+def test_a_probable_flip_fails_the_run_and_names_the_flip_to_run(doubled, robot, tmp_path, monkeypatch, capsys):
+    output = tmp_path / "prime_calibration.yaml"
+
+    def loop(session, stop, on_tick=None):  # the elbow swept upper stop first although lower was asked for
+        for q in (-1.2, 0.0 - 0.1, -2.356 - 0.1):
+            doubled.master.position_counts[3] = round(q * COUNTS_PER_RAD)
+            for _ in range(3):
+                session.manager.tick()
+        stop.set()
+        run_loop(session, stop, on_tick)
+
+    monkeypatch.setattr(calibrate_cli, "run_loop", loop)
+    assert calibrate(tmp_path, output, "--joints", ELBOW) == 1
+    err = capsys.readouterr().err
+    assert f"Next: prime calibration flip {ELBOW} --calibration {output}" in err
+    assert "# PROBABLE DIRECTION FLIP" in output.read_text()

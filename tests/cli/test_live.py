@@ -156,3 +156,15 @@ def test_each_bringup_stage_is_told_as_it_completes():
     plan.on_stage = told.append
     plan.stage("virtual prime", plan.began)
     assert told == ["virtual prime"] and plan.stages[-1][0] == "virtual prime"
+
+
+def test_live_table_names_each_configuration_file_with_its_sha256(started):
+    from humanoid_prime.config.location import resolve_all
+
+    _, manager = started
+    manager.configuration = resolve_all().as_dict()
+    console = Console(file=io.StringIO(), width=250)
+    console.print(LiveTable(manager, console=console).render())
+    text = console.file.getvalue()
+    for kind, entry in manager.configuration.items():
+        assert f"{kind:<11} {entry['path']}  sha256 {entry['sha256'][:12]}" in text

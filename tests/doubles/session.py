@@ -59,7 +59,9 @@ class DoubledRobot:
         self.master.statusword[position] = SWITCH_ON_DISABLED
 
     def options(self, **fields: object) -> BringupOptions:
-        return BringupOptions(can_interface="virtual", can_channel=self.channel, **fields)
+        """Options of a run on the doubles: the robot as on real hardware, its calibration the identity template,
+        so the modes that move joints are allowed as ``--uncalibrated`` does (unless ``uncalibrated`` says)."""
+        return BringupOptions(can_interface="virtual", can_channel=self.channel, **{"uncalibrated": True, **fields})
 
     def open(self, **fields: object) -> Session:
         """A session on the doubles, torn down with the test; with ``control_socket`` it claims that socket

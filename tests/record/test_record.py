@@ -57,6 +57,18 @@ def test_a_recorded_simulation_reads_back_with_every_topic(tmp_path):
     assert "durability: 1" in channels["/control_mode"].metadata["offered_qos_profiles"]  # latched
     assert "durability: 2" in channels["/prime/joint_states"].metadata["offered_qos_profiles"]
     assert {c.compression for c in info.chunk_indexes} == {"zstd"}
+    # Which configuration the run used: in the file's metadata, and in /safety_status as rosbags reads it.
+    with open(path, "rb") as f:
+        metadata = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert metadata["prime_hardware"]["path"] == summary["config"]["hardware"]["path"]
+    assert metadata["prime_controllers"]["sha256"] == summary["config"]["controllers"]["sha256"]
+    with AnyReader([path]) as reader:
+        statuses = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                    if c.topic == "/safety_status"]
+    configuration = next(s for s in statuses[0].status if s.name == "prime/configuration")
+    values = {v.key: v.value for v in configuration.values}
+    assert values["controllers_sha256"] == summary["config"]["controllers"]["sha256"]
+    assert values["hardware"] == summary["config"]["hardware"]["path"]
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

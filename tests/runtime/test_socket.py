@@ -25,18 +25,45 @@ class RecordingSdo:
         self.objects[(position, index, sub_index)] = data
 
 
+def recorder(requested: list[Mode]):
+    """A switch handler that records the modes asked for and reports each as requested."""
+    def switch(mode: Mode, wait: float) -> dict:
+        requested.append(mode)
+        return {"mode": mode.value, "outcome": "requested"}
+    return switch
+
+
 @pytest.fixture
 def server(tmp_path):
     requested: list[Mode] = []
     sdo = RecordingSdo()
-    with ControlServer(requested.append, tmp_path / "control.sock", sdo=sdo) as srv:
+    with ControlServer(recorder(requested), tmp_path / "control.sock", sdo=sdo) as srv:
         yield srv, requested, sdo
 
 
 def test_mode_request_is_handed_to_the_manager(server):
     srv, requested, _ = server
-    assert send_mode_request(Mode.STANDBY, srv.path) == "STANDBY"
+    assert send_mode_request(Mode.STANDBY, srv.path)["mode"] == "STANDBY"
     assert requested == [Mode.STANDBY]
+
+
+def test_the_wait_goes_to_the_switch_handler_and_its_outcome_comes_back(tmp_path):
+    asked = []
+
+    def switch(mode, wait):
+        asked.append((mode, wait))
+        return {"mode": mode.value, "outcome": "fell_back", "reason": "fell back to DAMPING: standby failed"}
+
+    with ControlServer(switch, tmp_path / "c.sock") as srv:
+        answer = send_mode_request(Mode.STANDBY, srv.path, wait=3.0)
+        assert main(["switch", "STANDBY", "--socket", str(srv.path), "--timeout", "2"]) == 1
+    assert asked == [(Mode.STANDBY, 3.0), (Mode.STANDBY, 2.0)]
+    assert answer["outcome"] == "fell_back" and "standby failed" in answer["reason"]
+
+
+def test_a_wait_beyond_the_limit_is_refused(tmp_path):
+    with ControlServer(recorder([]), tmp_path / "c.sock") as srv, pytest.raises(PrimeError, match="wait must be"):
+        send_mode_request(Mode.STANDBY, srv.path, wait=1e9)
 
 
 def test_controller_names_are_accepted(server):
@@ -95,7 +122,7 @@ def test_sdo_abort_comes_back_as_one_error(server):
 
 
 def test_sdo_without_a_master_is_refused(tmp_path):
-    with ControlServer(lambda m: None, tmp_path / "c.sock") as srv, \
+    with ControlServer(recorder([]), tmp_path / "c.sock") as srv, \
             pytest.raises(PrimeError, match="no EtherCAT master"):
         SocketSdoClient(srv.path).sdo_read(0, 0x2382, 1)
 
@@ -106,14 +133,32 @@ def test_second_server_on_a_live_socket_is_refused(server):
         ControlServer(None, srv.path).start()
 
 
-def test_stale_socket_file_is_replaced(tmp_path):
+def test_stale_socket_is_replaced(tmp_path):
+    import socket
+
     path = tmp_path / "control.sock"
-    path.write_text("")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as dead:  # a socket no process listens on any more
+        dead.bind(str(path))
     requested: list[Mode] = []
-    with ControlServer(requested.append, path):
+    with ControlServer(recorder(requested), path):
         send_mode_request(Mode.REMOTE, path)
     assert requested == [Mode.REMOTE]
     assert not path.exists()
+
+
+def test_a_file_that_is_not_a_socket_is_never_replaced(tmp_path):
+    path = tmp_path / "keep.txt"
+    path.write_text("the operator's notes\n")
+    with pytest.raises(PrimeError, match="not a socket"):
+        ControlServer(recorder([]), path).start()
+    assert path.read_text() == "the operator's notes\n"
+
+
+def test_a_folder_or_an_overlong_path_is_refused_before_anything_starts(tmp_path):
+    with pytest.raises(PrimeError, match="is a folder"):
+        ControlServer(recorder([]), tmp_path).start()
+    with pytest.raises(PrimeError, match="too long"):
+        ControlServer(recorder([]), tmp_path / ("x" * 120) / "c.sock").start()
 
 
 def test_state_answers_the_latest_joints_mode_and_flags(tmp_path):

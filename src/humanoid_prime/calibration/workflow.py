@@ -89,9 +89,10 @@ def merge_phases(results: Sequence[CalibrationResult]) -> CalibrationResult:
                              list(rows.values()), last.robot)
 
 
-def write(path: str | Path, result: CalibrationResult, robot: Robot) -> None:
-    """Atomic: a reader (or an interrupted run) sees the previous file or the complete new one."""
-    save_calibration(path, result.calibration, robot.hardware)
+def write(path: str | Path, result: CalibrationResult, robot: Robot, comment: str = "") -> None:
+    """Atomic: a reader (or an interrupted run) sees the previous file or the complete new one. ``comment``
+    (YAML comment lines) records the run in the file's header."""
+    save_calibration(path, result.calibration, robot.hardware, comment=comment)
 
 
 def plot_sweeps(path: str | Path, result: CalibrationResult, robot: Robot) -> None:

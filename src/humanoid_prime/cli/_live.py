@@ -23,6 +23,7 @@ from rich.text import Text
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS
+from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
 # As a gamepad would: one key per mode, in the order of the mode ladder.
@@ -50,6 +51,12 @@ def flag_lines(manager: ControllerManager) -> list[Text]:
     return [Text(f"{status.levels.get(key, Level.ERROR).name:<5} {key}: {text}",
                  style="bold red" if status.levels.get(key, Level.ERROR) is Level.ERROR else "yellow")
             for key, text in sorted(status.flags.items(), key=lambda item: -status.levels.get(item[0], Level.ERROR))]
+
+
+def config_lines(manager: ControllerManager) -> list[Text]:
+    """The run's configuration files, path and the start of each sha256, one dim line each."""
+    return [Text(f"{kind:<11} {entry.get('path')}  sha256 {str(entry.get('sha256', ''))[:12]}", style="dim")
+            for kind, entry in manager.configuration.items()]
 
 
 def loop_line(manager: ControllerManager) -> str:
@@ -94,7 +101,7 @@ class LiveTable:
         header = Text.assemble(("mode ", "bold"), (mode, "bold cyan"))
         if self.status is not None:
             header.append(f"   {self.status()}")
-        parts: list[Any] = [header, Text(loop_line(manager)), *flag_lines(manager), table]
+        parts: list[Any] = [header, *config_lines(manager), Text(loop_line(manager)), *flag_lines(manager), table]
         if self.keys or self.reset_key:
             note = f"   [{self.note}]" if self.note else ""
             parts.append(Text(f"keys: {key_help(self.keys, self.reset_key)}{note}", style="dim"))
@@ -204,7 +211,8 @@ class ModeKeys:
         if key in QUIT_KEYS:
             self.on_quit()
         elif key in MODE_KEYS:
-            self.on_mode(MODE_KEYS[key])
+            with contextlib.suppress(PrimeError):  # a refused mode is flagged on /safety_status, shown above
+                self.on_mode(MODE_KEYS[key])
         elif key in RESET_KEYS and self.on_reset is not None:
             self.on_reset()
         elif key in self.extra:

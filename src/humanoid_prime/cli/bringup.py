@@ -71,6 +71,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                       "2000, the eRob's minimum 500 us cycle); SYNC0 and the bring-up loop follow "
                                       "it, and the Sito wrists while their frames fit the CAN bus (every tick up "
                                       "to about 300 Hz, every 4th at 1 kHz)")
+    p.add_argument("--uncalibrated", action="store_true",
+                   help="allow STANDBY, LOCOMOTION and REMOTE although the calibration is the identity template "
+                        "(refused on the robot otherwise: a pose on wrong offsets drives an arm somewhere nobody "
+                        "expects)")
     p.add_argument("--sequential-sdo", action="store_true",
                    help="write the eRob gains one slave after another (the slow baseline) instead of in parallel")
     p.add_argument("--mode", metavar="MODE", help="switch to MODE once up")
@@ -109,6 +113,9 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
     initial = _modes(args.mode, "--mode")
     if len(initial) > 1:
         raise PrimeError("--mode takes one mode; use --sequence for several")
+    if initial and sequence:
+        raise PrimeError("--mode (stay in one mode) and --sequence (visit modes, then stop) do not go together; "
+                         "give one of them")
     if args.cpu is not None and not args.realtime:
         raise PrimeError("--cpu pins the real-time control thread; it cannot be combined with --no-realtime")
     if (sequence or initial) and args.backends != "all":
@@ -120,7 +127,7 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
         duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
         erob_config_dir=args.erob_config_dir, control_socket=args.socket, update_rate=args.rate,
-        realtime=args.realtime, cpu=args.cpu)
+        realtime=args.realtime, cpu=args.cpu, uncalibrated=args.uncalibrated, config=args.config.as_dict())
 
 
 def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:
@@ -185,7 +192,10 @@ def run(args: argparse.Namespace) -> int:
                 stack.enter_context(ModeKeys(session.manager.request_mode if full else _refuse, stop.set,
                                              on_reset=session.manager.request_reset))
             stack.enter_context(LiveTable(session.manager, keys=full, reset_key=sys.stdin.isatty()))
-        run_loop(session, stop, report=lambda line: print(line, file=sys.stderr if args.json else sys.stdout))
+        # With --emulate, the plant's true joint angles (rad, joint frame) when the loop ends, beside the measured
+        at_end = (lambda: emulator.__setitem__("joints", virtual.control.call("joints"))) if virtual else None
+        run_loop(session, stop, report=lambda line: print(line, file=sys.stderr if args.json else sys.stdout),
+                 at_end=at_end)
         if load_test is not None:
             load_test.join(timeout=30.0)
     summary = session.summary()

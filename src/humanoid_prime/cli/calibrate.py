@@ -17,7 +17,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from humanoid_prime.calibration.math import MIN_SWEEP_RAD
+from humanoid_prime.calibration.math import MIN_SWEEP_RAD, Status
 from humanoid_prime.calibration.tracker import SweepTracker
 from humanoid_prime.calibration.workflow import (
     VERIFY_TOLERANCE_RAD,
@@ -35,6 +35,7 @@ from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
     add_json_option,
+    add_realtime_options,
     add_record_option,
     add_socket_option,
     add_web_option,
@@ -46,6 +47,7 @@ from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.hardware import load_hardware
+from humanoid_prime.config.location import write_target
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.run import run_loop
@@ -71,25 +73,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "Sito wrists are limp already). Ctrl-C (or q) computes the offsets and writes a complete "
                     "14-joint file atomically, carrying the prior through for joints not swept.")
     p.add_argument("--backends", choices=BACKENDS, default="all", help="which buses to bring up (default all)")
-    p.add_argument("--output", metavar="FILE", type=output_file, default="prime_calibration.yaml",
-                   help="calibration file to write (default ./prime_calibration.yaml)")
+    add_config_options(p, calibration=True, controllers=True)
+    p.add_argument("--output", metavar="FILE", type=output_file,
+                   help="write the result here instead of the robot's calibration file (which stays the prior)")
     p.add_argument("--prior", metavar="FILE",
                    help="calibration carried through for joints not swept, and the source of the directions "
-                        "(default: the bundled prime_calibration.yaml)")
-    add_config_options(p, controllers=True)
+                        "(default: the file being replaced)")
     add_emulation_options(p, "calibrate the virtual Prime (private network namespace)")
     p.add_argument("--scripted", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) a scripted operator sweeps these joints (default: every joint of the "
                         "run) to both stops, then the run ends")
     p.add_argument("--verify", action="store_true",
-                   help="instead of calibrating: bring up with --calibration folded and check that each joint "
-                        "at a stop reads that stop's limit (driven on the emulator, by you on the robot)")
-    p.add_argument("--calibration", metavar="FILE", help="(with --verify) the calibration to check (default --output)")
-    p.add_argument("--joints", metavar="JOINT,...", help="(with --verify) check only these joints")
+                   help="instead of calibrating: bring up with the robot's calibration (or --calibration) folded "
+                        "and check that each joint at a stop reads that stop's limit (driven on the emulator, by "
+                        "you on the robot)")
+    p.add_argument("--joints", metavar="JOINT,...",
+                   help="the joints to calibrate (or with --verify, to check); default: every joint of the run's "
+                        "buses. The run exits non-zero unless each of them was calibrated")
     p.add_argument("--plot", metavar="PNG", type=output_file, help="also draw each joint's sweep against its limits")
     p.add_argument("--any-order", action="store_true",
                    help="the stops were swept in any order: skip the direction check that relies on sweeping "
                         "each joint to its lower stop first")
+    add_realtime_options(p, rate_help=None)
     add_socket_option(p)
     add_record_option(p)
     add_web_option(p)
@@ -111,25 +116,34 @@ PHASE_NAMES = {"ec": "the eRob arms on EtherCAT", "can": "the Sito wrists on CAN
 def run(args: argparse.Namespace) -> int:
     emulator = ring_options(args, **{"--scripted": args.scripted})
     check_web(args)
-    if args.plot and args.verify:
-        raise PrimeError("--plot draws a calibration run's sweeps; it does not go with --verify")
+    if args.cpu is not None and not args.realtime:
+        raise PrimeError("--cpu pins the real-time control thread; it cannot be combined with --no-realtime")
+    if args.verify:
+        for option, value in (("--plot", args.plot), ("--output", args.output), ("--prior", args.prior)):
+            if value is not None:
+                raise PrimeError(f"{option} belongs to a calibration run; --verify checks --calibration and "
+                                 "writes nothing")
+    files = args.config
     hardware = load_hardware(args.hardware)
-    output = Path(args.output)
+    target = Path(args.output) if args.output is not None else write_target(files.calibration, files.folder)
     # The prior is the file being replaced, never identity: a run cannot weaken what it did not sweep.
-    prior_path = args.prior or (output if output.is_file() else None)
-    prior = load_calibration(hardware, prior_path)
-    checked = load_calibration(hardware, args.calibration or args.output) if args.verify else None
+    prior = load_calibration(hardware, args.prior or (target if target.is_file() else args.calibration))
+    checked = load_calibration(hardware, args.calibration) if args.verify else None
     robot = plan_session(BringupOptions(hardware_file=args.hardware, controllers_file=args.controllers,
                                         calibration=checked or prior)).robot  # everything checked before a bus
+    run_joints = _run_joints(robot, args.backends)
     if args.scripted and args.scripted != "all":
-        check_joint_names(robot, _joint_list(args.scripted), _run_joints(robot, args.backends), "--scripted")
+        check_joint_names(robot, _joint_list(args.scripted), run_joints, "--scripted")
+    check_joint_names(robot, _joint_list(args.joints), run_joints, "--joints")
     if args.emulate:
         from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()
     if args.verify:
         return _verify(args, checked, emulator)
-    return _calibrate(args, prior, emulator)
+    asked = tuple(_joint_list(args.joints)) or (
+        tuple(_joint_list(args.scripted)) if args.scripted and args.scripted != "all" else run_joints)
+    return _calibrate(args, prior, target, asked, emulator)
 
 
 def _run_joints(robot: Robot, backends: str) -> tuple[str, ...]:
@@ -144,7 +158,8 @@ def _virtual(args: argparse.Namespace, ring: dict[str, Any], stack: contextlib.E
         return None
     from humanoid_prime.virtual.harness import attach_virtual_prime
 
-    return attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring)
+    return attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring,
+                                avoid_cpu=args.cpu)
 
 
 class _Recording:
@@ -214,9 +229,12 @@ class _Web:
 def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: Any, server: ControlServer,
           stack: contextlib.ExitStack) -> Session:
     """A broadcaster-only session on ``backends`` with ``calibration``, answering on ``server``."""
+    # The loop keeps every drive's output watchdog fed while the arm is swept: on a busy computer it needs the
+    # same real-time scheduling as a bring-up (a 100 ms stall faults every drive with 0xA000).
     options = BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True,
                              emulated=virtual is not None, hardware_file=args.hardware,
-                             controllers_file=args.controllers, control_socket=args.socket)
+                             controllers_file=args.controllers, control_socket=args.socket,
+                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict())
     if virtual is not None:
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
@@ -249,13 +267,13 @@ class _Readout:
         return Group(*flag_lines(self.session.manager), table)
 
 
-def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]) -> int:
+def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked: tuple[str, ...],
+               ring: dict[str, Any]) -> int:
     """Every phase of the procedure in turn, each on its own bus with the previous phase's result as its
     prior; the file is written after each phase that swept something. Enter or n ends a phase and goes on;
-    q, Ctrl-C or SIGTERM ends the run (after writing what the phase swept)."""
-    hardware = load_hardware(args.hardware)
+    q, Ctrl-C or SIGTERM ends the run (after writing what the phase swept). Exit 0 only when every joint
+    asked for was calibrated and no device faulted."""
     console = make_console()
-    output = Path(args.output)
     phases = PHASES[args.backends]
     finish = threading.Event()
     results: list[CalibrationResult] = []
@@ -269,25 +287,89 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any
         for number, backends in enumerate(phases, start=1):
             if finish.is_set():
                 break
-            result, phase_faults = _phase(args, backends, calibration, virtual, server, finish, console,
-                                          f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}", recording,
-                                          web)
-            faults += phase_faults
+            title = f"phase {number} of {len(phases)}: {PHASE_NAMES[backends]}"
+            result, phase_faults = _phase(args, backends, calibration, virtual, server, finish, console, title,
+                                          recording, web)
+            faults += [{"phase": title, **fault} for fault in phase_faults]
             if result.swept:
-                write(output, result, result.robot)
-                calibration = result.calibration
                 results.append(result)
+                write(target, merge_phases(results), result.robot, comment=_file_note(merge_phases(results), asked))
+                calibration = result.calibration
+    errors = [f"{f['phase']}: {f['key']} at {f['since_s']:.2f} s: {f['text']}" for f in faults
+              if f["level"] == "ERROR"]
     if not results:
-        raise PrimeError(f"nothing was swept (no joint moved {MIN_SWEEP_RAD} rad or more); "
-                         f"{output} was not written" + (" and is as it was" if output.exists() else ""))
+        raise PrimeError(f"nothing was swept (no joint moved {MIN_SWEEP_RAD} rad or more); {target} was not "
+                         "written" + (" and is as it was" if target.exists() else "")
+                         + (f"; the run faulted: {errors[0]}" if errors else ""))
     merged = merge_phases(results)
     if args.plot:
         plot_sweeps(args.plot, merged, merged.robot)
+    missing = _not_calibrated(merged, asked)
+    next_command = _next_command(args, merged, missing, target)
     if args.json:
-        print(json.dumps({"output": str(output), **merged.as_dict(), "faults": faults}, indent=2))
+        print(json.dumps({"output": str(target), "ok": not missing and not errors, "asked": list(asked),
+                          "not_calibrated": missing, **merged.as_dict(), "faults": faults, "next": next_command},
+                         indent=2))
     else:
-        _report(console, merged, str(output), hardware.path.name)
+        _report(console, merged, str(target))
+        for line in errors:
+            console.print(Text(f"FAULT {line}", style="bold red"))
+    done = len(asked) - len(missing)
+    if missing or errors:
+        why = [f"{len(missing)} of {len(asked)} joints not calibrated ({', '.join(missing)})"] if missing else []
+        why += [f"{len(errors)} fault(s) during the run ({errors[0]})"] if errors else []
+        print(f"prime calibrate: NOT complete: {'; '.join(why)}; {target} keeps the prior offsets of joints not "
+              f"calibrated. Next: {next_command}", file=sys.stderr)
+        return 1
+    if not args.json:
+        console.print(f"calibrated {done} of {len(asked)} joints. Next: {next_command}")
     return 0
+
+
+def _not_calibrated(result: CalibrationResult, asked: tuple[str, ...]) -> list[str]:
+    """The joints asked for that this run did not calibrate (not swept, too short, or a probable flip)."""
+    status = {r.joint: r.status for r in result.reports}
+    return [joint for joint in asked if status[joint] is not Status.CALIBRATED]
+
+
+def _file_note(result: CalibrationResult, asked: tuple[str, ...]) -> str:
+    """The calibration file's own record of the run: what was calibrated and what kept its prior offset."""
+    by_status: dict[str, list[str]] = {}
+    for r in result.reports:
+        by_status.setdefault(str(r.status), []).append(r.joint)
+    lines = [f"# written by prime calibrate at {time.strftime('%Y-%m-%d %H:%M:%S %z')}"]
+    for status, words in ((Status.CALIBRATED, "calibrated in this run"),
+                          (Status.PROBABLE_FLIP, "PROBABLE DIRECTION FLIP (offset written, run `prime calibration "
+                                                 "flip JOINT`)"),
+                          (Status.SKIPPED, "swept too little, prior offset kept"),
+                          (Status.CARRIED, "not swept, prior offset kept")):
+        joints = by_status.get(str(status), [])
+        if joints:
+            lines.append(f"# {words}: {', '.join(joints)}")
+    missing = _not_calibrated(result, asked)
+    if missing:
+        lines.append(f"# asked for but not calibrated: {', '.join(missing)}")
+    return "\n".join(lines) + "\n"
+
+
+def _config_option(args: argparse.Namespace, target: Path) -> str:
+    """The options by which the next command finds the file this run wrote."""
+    if args.output is not None or args.config.calibration.why == "--calibration":
+        return f" --calibration {target}"
+    return f" --robot {args.robot}" if args.robot else ""
+
+
+def _next_command(args: argparse.Namespace, result: CalibrationResult, missing: list[str], target: Path) -> str:
+    """The exact command an operator runs next: a flip, the joints still to do, or the bring-up."""
+    where = _config_option(args, target)
+    flips = [r.joint for r in result.reports if r.status is Status.PROBABLE_FLIP and r.joint in missing]
+    if flips:
+        return f"prime calibration flip {flips[0]}{where}" + (f" (then {', '.join(flips[1:])})" if flips[1:] else "")
+    if missing:
+        backends = {"ec" if joint in result.robot.hardware.erob_slaves else "can" for joint in missing}
+        option = f" --backends {backends.pop()}" if len(backends) == 1 else ""
+        return f"prime calibrate{option} --joints {','.join(missing)}{where}"
+    return f"prime calibration check{where}, then prime bringup{where}"
 
 
 def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: Any, server: ControlServer,
@@ -346,7 +428,7 @@ def _start_scripted(session: Session, virtual: Any, joints: tuple[str, ...], sto
     return thread
 
 
-def _report(console: Console, result: CalibrationResult, output: str, hardware_name: str) -> None:
+def _report(console: Console, result: CalibrationResult, output: str) -> None:
     console.print(f"wrote {output}")
     for r in result.reports:
         style = {"calibrated": "green", "skipped": "yellow", "probable_flip": "bold red", "carried": "dim"}[r.status]

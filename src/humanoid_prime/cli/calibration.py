@@ -9,6 +9,7 @@ from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mir
 from humanoid_prime.cli._common import add_config_options, add_json_option, output_dir, print_json
 from humanoid_prime.config.calibration import load_calibration, save_calibration
 from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.config.location import write_target
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.ethercat.fold import write_folded_configs
 from humanoid_prime.errors import PrimeError
@@ -26,14 +27,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "the start-up SDOs that arm the bus gains with the controllers file's "
                                           "standby stiffness. Drive faults latch (auto_fault_reset: false).")
     add_config_options(fold, calibration=True, controllers=True)
-    fold.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="folder for the per-slave configs")
+    fold.add_argument("--output", "--out", required=True, metavar="DIR", type=output_dir,
+                      help="folder for the per-slave configs")
     add_json_option(fold)
     fold.set_defaults(func=_fold)
 
     flip = actions.add_parser("flip", help="flip one joint's direction without a re-sweep (rewrites the file)",
                               description="Negate JOINT's direction and recompute its offset from the described "
-                                          "limits (offset + direction*(lower + upper)), then rewrite the "
-                                          "calibration file atomically.")
+                                          "limits (offset + direction*(lower + upper)), then rewrite the robot's "
+                                          "calibration file atomically (the bundled template is never written: "
+                                          "without a calibration of its own the robot gets one in its config "
+                                          "folder).")
     flip.add_argument("joint", metavar="JOINT")
     add_config_options(flip, calibration=True)
     add_json_option(flip)
@@ -43,8 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                description="Load and validate a calibration file, flag offsets beyond half a turn "
                                            "(probable direction flips) and compare the arms' offsets. Exits 1 "
                                            "when a joint is flagged.")
-    check.add_argument("file", nargs="?", metavar="FILE", help="calibration file (default: the bundled one)")
-    add_config_options(check)
+    check.add_argument("file", nargs="?", metavar="FILE",
+                       help="calibration file (default: the robot's, as --calibration)")
+    add_config_options(check, calibration=True)
     add_json_option(check)
     check.set_defaults(func=_check)
 
@@ -53,9 +58,7 @@ def _fold(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     calibration = load_calibration(robot.hardware, args.calibration)
     controllers = load_controllers(robot.names, args.controllers)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise PrimeError(f"--out {out} exists and is not a folder")
+    out = Path(args.output)
     try:
         paths = write_folded_configs(robot, calibration, out, controllers)
     except OSError as exc:
@@ -80,8 +83,9 @@ def _flip(args: argparse.Namespace) -> int:
         raise PrimeError(exc.args[0]) from None
     old = calibration.joints[spec.name]
     new = flip_direction(old, spec.lower, spec.upper)
-    save_calibration(calibration.path, calibration.with_joint(spec.name, new), robot.hardware)
-    result = {"joint": spec.name, "file": str(calibration.path),
+    target = write_target(args.config.calibration, args.config.folder)
+    save_calibration(target, calibration.with_joint(spec.name, new), robot.hardware)
+    result = {"joint": spec.name, "file": str(target), "read": str(calibration.path),
               "old": {"direction": old.direction, "homing_offset": old.homing_offset},
               "new": {"direction": new.direction, "homing_offset": new.homing_offset}}
     if args.json:
@@ -89,13 +93,13 @@ def _flip(args: argparse.Namespace) -> int:
     else:
         print(f"{spec.name}: direction {old.direction:+d} -> {new.direction:+d}, homing_offset "
               f"{old.homing_offset:+.6f} -> {new.homing_offset:+.6f} rad (limits [{spec.lower}, {spec.upper}]); "
-              f"wrote {calibration.path}")
+              f"wrote {target}" + ("" if target == calibration.path else f" (from {calibration.path})"))
     return 0
 
 
 def _check(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
-    calibration = load_calibration(robot.hardware, args.file)
+    calibration = load_calibration(robot.hardware, args.file or args.calibration)
     flags = [{"joint": name, "homing_offset": calibration.joints[name].homing_offset,
               "problem": f"|homing_offset| is over pi ({FLIP_OFFSET_RAD:.4f} rad): probably a direction flip",
               "fix": f"prime calibration flip {name}, or re-sweep with the other direction"}

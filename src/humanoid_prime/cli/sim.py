@@ -38,6 +38,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.socket import ControlServer, default_socket_path
+from humanoid_prime.runtime.switching import mode_switcher
 from humanoid_prime.sim.demo import DEMO_SECONDS, SCHEDULE, START_POSE, Simulation, Step, build_simulation, demo_stream
 from humanoid_prime.virtual.hil import build_hil_simulation
 
@@ -158,7 +159,7 @@ def _sigterm_stops() -> Any:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        mode = Mode.parse(args.mode) if args.mode else None
+        mode = Mode.parse(args.mode) if args.mode is not None else None
     except ValueError as exc:
         raise PrimeError(str(exc)) from None
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
@@ -169,6 +170,17 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
     check_mode_gains(config, robot.hardware)  # a configuration tried in simulation must run on the robot
+    # The control socket is claimed before anything starts: a second instance, or a path that is not free,
+    # stops here with the reason.
+    server = ControlServer(path=args.socket).start()
+    try:
+        return _run(args, robot, config, mode, duration, domain, server)
+    finally:
+        server.close()
+
+
+def _run(args: argparse.Namespace, robot, config, mode: Mode | None, duration: float | None, domain: int | None,
+         server: ControlServer) -> int:
     hil = None
     if args.hil == "can":
         hil = build_hil_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
@@ -176,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         system, manager = build_simulation(robot, config, initial_pose=START_POSE, model_path=args.model)
         start, close = (lambda: manager.start(now=system.sim_time)), manager.shutdown
+    manager.configuration = {kind: entry for kind, entry in args.config.as_dict().items() if kind != "calibration"}
     try:
         # With --dds, REMOTE follows the graph (prime remote, a policy node), not the scripted stream.
         stream = demo_stream(robot, config, manager) if domain is None else None
@@ -242,12 +255,7 @@ def run(args: argparse.Namespace) -> int:
             from humanoid_prime.view.feeds import manager_source
 
             state, _ = manager_source(manager)  # for the run's whole life: no detach
-            server = ControlServer(operator_mode, args.socket, state=state)
-            try:
-                server.start()
-                stack.callback(server.close)
-            except (PrimeError, OSError) as exc:
-                print(f"note: no control socket for 'prime switch' ({exc})", file=out, flush=True)
+            server.attach(switch_mode=mode_switcher(manager, before=sim.take_over), state=state)
             if args.web is not None:
                 from humanoid_prime.view.page import PrimeView
 

@@ -54,6 +54,16 @@ FALLBACK: dict[Mode, Mode | None] = {
 }
 
 
+@dataclass(frozen=True)
+class ModeOutcome:
+    """What became of a mode request, once the tick that applied it has run: the mode asked for, the mode
+    active at the end of that tick, and why they differ (empty when they do not)."""
+
+    requested: Mode
+    active: Mode | None
+    reason: str = ""
+
+
 @dataclass
 class LoopStats:
     """Tick cost (read + update + write, without the wait), the part of it spent in bus I/O (the hardware
@@ -166,6 +176,8 @@ class ControllerManager:
         self.modes_visited: list[str] = []
         self.stages: list[tuple[str, float]] = []
         self.flags = SafetyFlags("controller_manager")
+        # The configuration files of the run (kind -> path, sha256, source), named in every report of it.
+        self.configuration: dict[str, dict[str, Any]] = {}
         self.tick_count = 0
         self.resets = 0  # operator fault resets applied
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
@@ -178,6 +190,11 @@ class ControllerManager:
         self._lock = threading.Lock()
         self._request: Mode | None = None
         self._reset = False
+        self._refused: dict[Mode, str] = {}  # modes this run may not enter, and why
+        self._tickets = 0  # mode requests made; the latest one is the one applied
+        self._applying: tuple[int, Mode] | None = None  # the request applied in this tick, until the tick ends
+        self._outcome: tuple[int, ModeOutcome] | None = None  # the latest applied request and what came of it
+        self._applied = threading.Condition(self._lock)
         self._started = False
         self._closed = False
         self._last_now: float | None = None
@@ -278,15 +295,41 @@ class ControllerManager:
         self._flags_seen = -1
         self._change_seen = -1
 
-    def request_mode(self, mode: Mode | str) -> None:
+    def refuse_modes(self, modes: Sequence[Mode], reason: str) -> None:
+        """From now on, requests for ``modes`` are refused with ``reason`` (e.g. a robot that is not
+        calibrated may not enter a mode that moves a joint)."""
+        with self._lock:
+            self._refused.update({mode: reason for mode in modes})
+
+    def request_mode(self, mode: Mode | str) -> int:
         """Ask for ``mode`` (thread-safe); it is applied at the start of the next tick. The latest request
-        wins. Requesting the active mode re-enters it (Standby restarts from the measured pose)."""
+        wins. Requesting the active mode re-enters it (Standby restarts from the measured pose). Returns the
+        request's ticket for ``wait_mode``; a mode this run refuses raises PrimeError (and is flagged)."""
         mode = mode if isinstance(mode, Mode) else Mode.parse(mode)
         if self.broadcaster_only:
             raise PrimeError("this run has only the joint-state broadcaster (a single-bus or calibration run); "
                              "no mode controller can be switched on")
         with self._lock:
-            self._request = mode
+            refused = self._refused.get(mode)
+            if refused is None:
+                self._request = mode
+                self._tickets += 1
+                return self._tickets
+        self.flags.set_flag("refused", f"{mode.value} refused: {refused}", Level.WARN)
+        raise PrimeError(f"{mode.value} refused: {refused}")
+
+    def wait_mode(self, ticket: int, timeout: float) -> ModeOutcome | None:
+        """Wait until the tick that applied request ``ticket`` (or a later one, which superseded it) has run;
+        what came of it, or None if no tick applied it within ``timeout`` seconds."""
+        with self._applied:
+            if not self._applied.wait_for(lambda: self._outcome is not None and self._outcome[0] >= ticket,
+                                          timeout):
+                return None
+            applied, outcome = self._outcome
+        if applied != ticket:
+            return ModeOutcome(outcome.requested, outcome.active, f"superseded by a later request for "
+                                                                  f"{outcome.requested.value}")
+        return outcome
 
     def request_reset(self) -> list[str]:
         """Ask for the operator's fault reset (thread-safe), applied at the start of the next tick: every
@@ -302,6 +345,8 @@ class ControllerManager:
         with self._lock:
             mode, self._request = self._request, None
             reset, self._reset = self._reset, False
+            if mode is not None:
+                self._applying = (self._tickets, mode)
         if reset:
             self.resources.reset_faults()
             self.resets += 1
@@ -379,6 +424,8 @@ class ControllerManager:
             self._update(now, dt)
         resources.write(now)
         self._publish_safety(now)
+        if self._applying is not None:
+            self._tell_outcome()
         for hook in self._end_of_tick:
             hook()
         self.tick_count += 1
@@ -387,6 +434,19 @@ class ControllerManager:
             io += component.io_s
         fresh, self._fresh_schedule = self._fresh_schedule, False
         self.stats.record(self.clock() - began, math.nan if last is None or fresh else dt, io)
+
+    def _tell_outcome(self) -> None:
+        """The request applied in this tick has had its first update: tell ``wait_mode`` what became of it."""
+        ticket, requested = self._applying
+        self._applying = None
+        active = self.active_mode
+        reason = ""
+        if active is not requested:
+            fallback = self.fallbacks[-1]["reason"] if self.fallbacks else "no mode controller is active"
+            reason = f"fell back to {active.value if active is not None else 'a limp command'}: {fallback}"
+        with self._applied:
+            self._outcome = (ticket, ModeOutcome(requested, active, reason))
+            self._applied.notify_all()
 
     def _broadcast(self, now: float, dt: float) -> None:
         broadcaster = self._broadcaster

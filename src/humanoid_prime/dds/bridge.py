@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -66,9 +66,11 @@ class TopicCounts:
         return result
 
 
-def diagnostics(status: SafetyStatus, sources: Sequence[str], epoch_offset: float) -> msg.DiagnosticArray:
+def diagnostics(status: SafetyStatus, sources: Sequence[str], epoch_offset: float,
+                configuration: Mapping[str, Mapping[str, Any]] | None = None) -> msg.DiagnosticArray:
     """One DiagnosticStatus per flag source (``prime/<source>``), OK when it has no flag, else its worst level,
-    the flags' texts as the message and each flag as a key/value."""
+    the flags' texts as the message and each flag as a key/value; then ``prime/configuration``, the run's
+    configuration files (path and sha256 of each kind), when it has them."""
     grouped: dict[str, list[tuple[str, str, Level]]] = {source: [] for source in sources}
     for key, text in status.flags.items():
         source, _, rest = key.partition("/")
@@ -79,6 +81,12 @@ def diagnostics(status: SafetyStatus, sources: Sequence[str], epoch_offset: floa
         statuses.append(msg.DiagnosticStatus(
             level=level, name=f"prime/{source}", message="; ".join(text for _, text, _ in flags) or "ok",
             hardware_id=HARDWARE_ID, values=[msg.KeyValue(key=key, value=text) for key, text, _ in flags]))
+    if configuration:
+        values = [msg.KeyValue(key=f"{kind}{suffix}", value=str(entry.get(field, "")))
+                  for kind, entry in configuration.items() for suffix, field in (("", "path"), ("_sha256", "sha256"))]
+        statuses.append(msg.DiagnosticStatus(
+            level=msg.DiagnosticStatus.OK, name="prime/configuration", hardware_id=HARDWARE_ID,
+            message="; ".join(f"{kind} {entry.get('path')}" for kind, entry in configuration.items()), values=values))
     return msg.DiagnosticArray(header=msg.Header(stamp=msg.stamp(status.stamp + epoch_offset)), status=statuses)
 
 
@@ -163,7 +171,7 @@ class DdsBridge(SafetyFlags):
         self.counts[CONTROL_MODE].samples += 1
 
     def on_safety(self, message: SafetyStatus) -> None:
-        self._write(self._safety, diagnostics(message, self.sources, self.epoch_offset))
+        self._write(self._safety, diagnostics(message, self.sources, self.epoch_offset, self.manager.configuration))
         self.counts[SAFETY_STATUS].samples += 1
 
     def on_remote(self, message: MitCommandMessage) -> None:  # the bridge takes no remote tap

@@ -94,6 +94,9 @@ class Recorder(SafetyFlags):
                 (CONTROL_MODE, "std_msgs/msg/String", LATCHED_QOS),
                 (SAFETY_STATUS, "diagnostic_msgs/msg/DiagnosticArray", LATCHED_QOS)):
             self._channel(topic, ros_type, qos)
+        self.configuration = manager.configuration
+        for kind, entry in self.configuration.items():  # which files the run used, read back by `prime plot`
+            self._writer.add_metadata(f"prime_{kind}", {key: str(value) for key, value in entry.items()})
         self._last_stamp = 0.0  # the loop time of the latest tick recorded (the log time of what arrives between)
         self._closed = False
         self.tap: TickTap | None = None
@@ -161,7 +164,8 @@ class Recorder(SafetyFlags):
         self._add(CONTROL_MODE, msg.String(data=message.mode), self._log_ns(message.stamp))
 
     def on_safety(self, message: SafetyStatus) -> None:
-        self._add(SAFETY_STATUS, diagnostics(message, self.sources, self.epoch_offset), self._log_ns(message.stamp))
+        self._add(SAFETY_STATUS, diagnostics(message, self.sources, self.epoch_offset, self.configuration),
+                  self._log_ns(message.stamp))
 
     def on_remote(self, message: MitCommand) -> None:
         self._channel(self.remote_topic, "prime_msgs/msg/MitCommand", VOLATILE_QOS)

@@ -34,10 +34,12 @@ class ModeSequence:
 
 def run_loop(session: Session, stop: threading.Event,
              on_tick: Callable[[ControllerManager], None] | None = None,
-             report: Callable[[str], None] | None = None) -> None:
+             report: Callable[[str], None] | None = None, at_end: Callable[[], None] | None = None) -> None:
     """The control-rate loop until ``stop``, the duration, or the end of the mode sequence plus one dwell.
     With ``options.realtime`` this thread becomes the real-time control thread for the loop and the gate reset
-    after it (``runtime/realtime.py``; ``report`` is told what it could and could not take)."""
+    after it (``runtime/realtime.py``; ``report`` is told what it could and could not take). When the loop
+    ends, before anything is torn down (the drives still hold the mode's last command), the session keeps
+    the last measured joint angles and ``at_end`` runs."""
     options = session.options
     if options.mode is not None:
         session.manager.request_mode(options.mode)
@@ -71,6 +73,9 @@ def run_loop(session: Session, stop: threading.Event,
             report(realtime.line())
     try:
         session.manager.run(stop=stop, on_tick=tick, between_ticks=between_ticks)
+        session.keep_final_position()
+        if at_end is not None:
+            at_end()
         if session.impedance is not None:
             session.impedance.wait_idle(5.0)
             close_impedance_while_ticking(session, between_ticks)

@@ -47,8 +47,10 @@ from humanoid_prime.runtime.impedance import ImpedanceManager
 from humanoid_prime.runtime.realtime import lock_memory, tighten_switch_interval
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
 from humanoid_prime.runtime.socket import ControlServer
+from humanoid_prime.runtime.switching import mode_switcher
 
 BACKENDS = tuple(BACKEND_BLOCKS)
+MOVING_MODES = (Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE)  # modes whose commands drive joints to targets
 
 
 @dataclass
@@ -76,6 +78,8 @@ class BringupOptions:
     update_rate: float | None = None  # Hz of the control loop (default: prime_controllers.yaml)
     realtime: bool = False  # the loop thread takes real-time scheduling, locked memory, a frozen GC
     cpu: int | None = None  # (with realtime) pin the loop thread to this CPU
+    uncalibrated: bool = False  # on the robot, allow the modes that move joints with an identity calibration
+    config: dict[str, Any] | None = None  # the configuration files used (path, sha256, source), for the reports
 
 
 @dataclass
@@ -94,6 +98,7 @@ class Plan:
     stages: list[tuple[str, float]] = field(default_factory=list)
     control: ControlServer | None = None  # the run's control socket, claimed before any bus
     memory_refused: str | None = None  # (with options.realtime) why memory could not be locked; None: locked
+    refused: str | None = None  # why the modes that move joints are refused in this run (None: they are not)
     on_stage: Callable[[str], None] | None = None  # told each bring-up stage as it completes (a live status)
 
     def stage(self, name: str, since: float) -> float:
@@ -146,9 +151,23 @@ def plan_session(options: BringupOptions) -> Plan:
     plan = Plan(options, robot, config, calibration, update_rate=update_rate,
                 bringup_rate=options.bringup_rate or default_bringup_rate(config.bringup_rate, update_rate),
                 parallel_sdo=config.impedance.parallel_sdo if options.parallel_sdo is None else options.parallel_sdo,
-                broadcaster_only=broadcaster_only, began=began)
+                broadcaster_only=broadcaster_only, began=began, refused=uncalibrated_refusal(options, calibration))
+    asked = [mode for mode in (options.mode, *options.sequence) if mode in MOVING_MODES]
+    if plan.refused is not None and asked and not broadcaster_only:
+        raise PrimeError(f"{asked[0].value} refused: {plan.refused}")
     plan.stage("configuration", began)
     return plan
+
+
+def uncalibrated_refusal(options: BringupOptions, calibration: Calibration) -> str | None:
+    """Why a run on the real robot may not enter a mode that moves a joint: its calibration is the identity
+    template, so STANDBY's pose would drive each arm to where wrong offsets put it. None: no reason."""
+    if options.emulated or options.uncalibrated or not calibration.is_identity:
+        return None
+    where = f" ({calibration.path})" if calibration.path is not None else ""
+    return (f"the calibration{where} is the identity template (every homing_offset 0), so a target pose would "
+            "drive the arms somewhere nobody expects; calibrate this robot (prime calibrate), or pass "
+            "--uncalibrated if the offsets really are 0")
 
 
 @dataclass
@@ -181,6 +200,7 @@ class Session:
     gate_reset_failures: list[str] = field(default_factory=list)
     end: dict[str, Any] = field(default_factory=dict)  # what held when the run ended (capture_end)
     reports: dict[str, Any] = field(default_factory=dict)  # further sections of the summary (e.g. load_test)
+    final_position: dict[str, float | None] = field(default_factory=dict)  # keep_final_position
     _open: dict[str, FaultRecord] = field(default_factory=dict)
 
     @property
@@ -216,6 +236,13 @@ class Session:
         for key in [key for key in self._open if key not in status.flags]:
             self._open.pop(key).until_s = now
 
+    def keep_final_position(self) -> None:
+        """The joint angles of the control loop's last tick (rad, joint frame; None: unknown), kept for the
+        summary before the teardown moves anything."""
+        self.final_position = {name: (float(q) if math.isfinite(q) else None)
+                               for name, q in zip(self.robot.names, self.manager.resources.state.position,
+                                                  strict=True)}
+
     def record_fault(self, key: str, text: str, level: Level = Level.ERROR) -> None:
         """A problem that is no flag of a component (a tool of the run failed, a teardown step did not take)."""
         self.faults.append(FaultRecord(key, text, level, time.monotonic() - self.plan.began, None))
@@ -223,7 +250,7 @@ class Session:
     def capture_end(self) -> None:
         """What holds as the run ends, read fresh from the buses before they close: slaves in OP, drives
         enabled or faulted, wrists heard from."""
-        end: dict[str, Any] = {}
+        end: dict[str, Any] = {"position": self.final_position}
         ethercat = self.ethercat
         if ethercat is not None and ethercat.master is not None:
             master = ethercat.master
@@ -276,6 +303,7 @@ class Session:
             "problems": problems,
             "backends": self.options.backends,
             "emulate": self.options.emulated,
+            "config": self.manager.configuration,
             "update_rate": self.manager.update_rate,
             "bringup_seconds": self.bringup_seconds,
             "stages": [{"name": name, "seconds": seconds} for name, seconds in self.stages],
@@ -313,6 +341,9 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     manager = ControllerManager(robot, components, plan.config, update_rate=plan.update_rate,
                                 broadcaster_only=plan.broadcaster_only)
     stack.callback(manager.shutdown)
+    manager.configuration = dict(options.config or {})
+    if plan.refused is not None:
+        manager.refuse_modes(MOVING_MODES, plan.refused)
     session = Session(plan, manager, ethercat=by_block.get(ETHERCAT_BLOCK), sito=by_block.get(SITO_BLOCK))
     stack.callback(session.capture_end)  # before the buses close, after everything entered later
     manager.topics.subscribe(SAFETY_STATUS, session.note, latched=True)
@@ -346,7 +377,7 @@ def serve(session: Session, server: ControlServer) -> None:
     """Answer on ``server`` for ``session``: mode requests (full runs), the operator's fault reset, SDO through
     this process's EtherCAT master, and in broadcaster-only runs the limp marker of ``prime limp``."""
     manager = session.manager
-    request = None if manager.broadcaster_only else manager.request_mode
+    switch = None if manager.broadcaster_only else mode_switcher(manager, session.impedance)
     sdo = session.ethercat.master if session.ethercat is not None else None
     joint_limp = on_close = None
     if manager.broadcaster_only and session.ethercat is not None:
@@ -371,5 +402,5 @@ def serve(session: Session, server: ControlServer) -> None:
                                      "limp when the run ended; its gate was reset to 0", Level.WARN)
 
     snapshot = Snapshot(manager.topics, session.robot.names, manager.config.joint_states_topic)
-    server.attach(request_mode=request, sdo=sdo, joint_limp=joint_limp, on_close=on_close,
+    server.attach(switch_mode=switch, sdo=sdo, joint_limp=joint_limp, on_close=on_close,
                   reset=manager.request_reset, state=snapshot.as_dict)

@@ -4,7 +4,8 @@ A second terminal uses it to switch modes (``prime switch MODE``) and, when the 
 EtherCAT master, to reach the drives' mailboxes (``prime limp``, ``prime ec sdo``): with SOEM the
 master lives inside that process, so SDO from another process goes through here.
 
-One JSON request per connection, one JSON answer: ``{"op": "mode", "mode": "STANDBY"}``, ``{"op": "reset"}``
+One JSON request per connection, one JSON answer: ``{"op": "mode", "mode": "STANDBY", "wait": 5.0}`` (answered
+once the switch has an outcome, or at once without ``wait``), ``{"op": "reset"}``
 (the operator's fault reset; answers the faults that were latched),
 ``{"op": "sdo_read", "position": 3, "index": 9090, "sub_index": 1}``,
 ``{"op": "sdo_write", ..., "data": "1e000000"}``; answers carry ``"ok": true`` or ``"error"``.
@@ -16,6 +17,7 @@ import contextlib
 import json
 import os
 import socket
+import stat
 import tempfile
 import threading
 from collections.abc import Callable
@@ -27,6 +29,9 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
 SOCKET_ENV = "PRIME_CONTROL_SOCKET"
+MAX_SOCKET_PATH_BYTES = 107  # sun_path holds 108 bytes on Linux, the last a NUL
+MAX_WAIT_S = 60.0  # the longest a mode request waits for its outcome
+SwitchMode = Callable[[Mode, float], dict[str, Any]]  # (mode, seconds to wait for its outcome) -> the outcome
 
 
 def default_socket_path() -> Path:
@@ -39,38 +44,39 @@ def default_socket_path() -> Path:
 
 
 class ControlServer:
-    """Serves mode requests (handed to ``request_mode``) and, if given an ``sdo`` client, SDO requests.
+    """Serves mode requests (handed to ``switch_mode``) and, if given an ``sdo`` client, SDO requests.
 
     A run claims its socket first, before it touches a bus (a second instance stops there), and attaches
     what it serves once it is up; until then, and after ``detach``, requests are answered "not ready".
     """
 
-    def __init__(self, request_mode: Callable[[Mode], None] | None = None, path: str | Path | None = None, *,
+    def __init__(self, switch_mode: SwitchMode | None = None, path: str | Path | None = None, *,
                  sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None,
                  on_close: Callable[[], None] | None = None,
                  reset: Callable[[], list[str]] | None = None,
                  state: Callable[[], dict[str, Any]] | None = None) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
         self.ready = False
-        self.request_mode: Callable[[Mode], None] | None = None
+        self.switch_mode: SwitchMode | None = None
         self.reset: Callable[[], list[str]] | None = None
         self.sdo: SdoClient | None = None
         self.joint_limp: Callable[[int, bool], str] | None = None
         self.on_close: Callable[[], None] | None = None  # runs once no request can arrive any more
         self.state: Callable[[], dict[str, Any]] | None = None  # the run's latest joints, mode and flags
-        if any(h is not None for h in (request_mode, sdo, joint_limp, on_close, reset, state)):
-            self.attach(request_mode=request_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close, reset=reset,
+        if any(h is not None for h in (switch_mode, sdo, joint_limp, on_close, reset, state)):
+            self.attach(switch_mode=switch_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close, reset=reset,
                         state=state)
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
     def start(self) -> ControlServer:
+        check_socket_path(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         if self.path.exists():
             if _answers(self.path):
                 raise PrimeError(f"another prime instance already listens on {self.path}")
-            self.path.unlink()
+            self.path.unlink()  # a socket left by a run that is gone (check_socket_path: nothing else)
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         sock.bind(str(self.path))
         sock.listen(8)
@@ -80,12 +86,12 @@ class ControlServer:
         self._thread.start()
         return self
 
-    def attach(self, *, request_mode: Callable[[Mode], None] | None = None, sdo: SdoClient | None = None,
+    def attach(self, *, switch_mode: SwitchMode | None = None, sdo: SdoClient | None = None,
                joint_limp: Callable[[int, bool], str] | None = None,
                on_close: Callable[[], None] | None = None, reset: Callable[[], list[str]] | None = None,
                state: Callable[[], dict[str, Any]] | None = None) -> None:
         """Start answering with these handlers (the run is up)."""
-        self.request_mode, self.sdo, self.joint_limp, self.on_close = request_mode, sdo, joint_limp, on_close
+        self.switch_mode, self.sdo, self.joint_limp, self.on_close = switch_mode, sdo, joint_limp, on_close
         self.reset = reset
         self.state = state
         self.ready = True
@@ -93,7 +99,7 @@ class ControlServer:
     def detach(self) -> None:
         """Stop answering for the run (it is tearing down) and run its ``on_close`` once."""
         self.ready = False
-        self.request_mode = self.sdo = self.joint_limp = self.reset = self.state = None
+        self.switch_mode = self.sdo = self.joint_limp = self.reset = self.state = None
         if self.on_close is not None:
             on_close, self.on_close = self.on_close, None
             on_close()
@@ -130,11 +136,13 @@ class ControlServer:
             if not self.ready:
                 return {"ok": False, "error": "this prime instance is starting up or shutting down; try again"}
             if op == "mode":
-                if self.request_mode is None:
+                switch = self.switch_mode
+                if switch is None:
                     return {"ok": False, "error": "this prime instance runs no mode controllers"}
-                mode = Mode.parse(str(request["mode"]))
-                self.request_mode(mode)
-                return {"ok": True, "mode": mode.value}
+                wait = float(request.get("wait", 0.0))
+                if not 0.0 <= wait <= MAX_WAIT_S:
+                    raise ValueError(f"wait must be 0..{MAX_WAIT_S:g} s, got {wait:g}")
+                return {"ok": True, **switch(Mode.parse(str(request["mode"])), wait)}
             if op == "state":
                 if self.state is None:
                     return {"ok": False, "error": "this prime instance publishes no state"}
@@ -182,6 +190,19 @@ class ControlServer:
         self.close()
 
 
+def check_socket_path(path: Path) -> None:
+    """A control socket path is a free path or a socket (a stale one is replaced): anything else there is somebody's
+    file and is never removed; and it must fit a UNIX socket address."""
+    if len(os.fsencode(path)) > MAX_SOCKET_PATH_BYTES:
+        raise PrimeError(f"control socket path {path} is too long for a UNIX socket ({len(os.fsencode(path))} bytes, "
+                         f"at most {MAX_SOCKET_PATH_BYTES}); give a shorter --socket")
+    if path.is_dir():
+        raise PrimeError(f"control socket path {path} is a folder; give a file path for the socket (--socket)")
+    if path.exists() and not stat.S_ISSOCK(path.stat().st_mode):
+        raise PrimeError(f"control socket path {path} exists and is not a socket; refusing to replace it "
+                         "(give another --socket)")
+
+
 def _recv_line(conn: socket.socket) -> str:
     chunks = []
     while True:
@@ -224,9 +245,10 @@ def _answers(path: Path) -> bool:
         return False
 
 
-def send_mode_request(mode: Mode, path: str | Path | None = None) -> str:
-    """Ask the running instance to switch to ``mode``; returns the mode it accepted."""
-    return str(request(path, {"op": "mode", "mode": mode.value})["mode"])
+def send_mode_request(mode: Mode, path: str | Path | None = None, wait: float = 0.0) -> dict[str, Any]:
+    """Ask the running instance to switch to ``mode`` and, with ``wait`` seconds, for what became of it
+    (``runtime.switching``); a refused mode raises PrimeError."""
+    return request(path, {"op": "mode", "mode": mode.value, "wait": wait}, timeout=wait + 5.0)
 
 
 def request_state(path: str | Path | None = None, timeout: float = 2.0) -> dict[str, Any]:

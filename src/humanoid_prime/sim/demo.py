@@ -206,4 +206,5 @@ class Simulation:
             "physics_rate": system.physics_rate,
             "stages": [{"stage": name, "seconds": round(seconds, 6)} for name, seconds in manager.stages],
             "stopped_by": self.stopped_by,
+            "config": manager.configuration,
         }

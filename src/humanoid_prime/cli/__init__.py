@@ -9,8 +9,10 @@ import argparse
 import importlib
 import os
 import pkgutil
+import signal
 import sys
-from typing import NoReturn
+import threading
+from typing import Any, NoReturn
 
 from humanoid_prime import __version__
 from humanoid_prime.errors import PrimeError
@@ -38,12 +40,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if getattr(args, "func", None) is None:
-        parser.print_help()
-        return 2
+    interrupted = threading.Event()  # a Ctrl-C came, even if what it broke off says otherwise (an import)
+    previous = _watch_interrupts(interrupted)
+    name = "prime"
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if getattr(args, "func", None) is None:
+            parser.print_help()
+            return 2
+        name = f"prime {args.command}"
         # The command reads the robot's configuration: one rule for all of them (`prime config init` makes it).
         if hasattr(args, "robot") and not getattr(args, "makes_config", False):
             from humanoid_prime.cli._common import resolve_config
@@ -51,25 +57,48 @@ def main(argv: list[str] | None = None) -> int:
             resolve_config(args)
         return int(args.func(args) or 0)
     except PrimeError as exc:
-        print(f"prime {args.command}: {exc}", file=sys.stderr)
+        print(f"{name}: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"prime {args.command}: interrupted", file=sys.stderr)
+        print(f"{name}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         # The reader (e.g. `| head`) went away; silence the flush at exit as well.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:  # the system refused (a device gone, a permission): say what, where it was known
+        if interrupted.is_set():
+            print(f"{name}: interrupted", file=sys.stderr)
+            return 130
         where = f" ({exc.filename})" if exc.filename else ""
-        print(f"prime {args.command}: {exc.strerror or exc}{where}", file=sys.stderr)
+        print(f"{name}: {exc.strerror or exc}{where}", file=sys.stderr)
         return 1
     except Exception as exc:  # a bug of ours still ends in one line; PRIME_DEBUG=1 shows the traceback
+        if interrupted.is_set():  # e.g. a library's import broken off by Ctrl-C ("initialization failed")
+            print(f"{name}: interrupted", file=sys.stderr)
+            return 130
         if os.environ.get("PRIME_DEBUG"):
             raise
-        print(f"prime {args.command}: internal error, {type(exc).__name__}: {exc} (PRIME_DEBUG=1 shows where; "
+        print(f"{name}: internal error, {type(exc).__name__}: {exc} (PRIME_DEBUG=1 shows where; "
               "please report it)", file=sys.stderr)
         return 70
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _watch_interrupts(interrupted: threading.Event) -> Any:
+    """Ctrl-C raises KeyboardInterrupt as usual, and is remembered; returns the handler it replaced (None off the
+    main thread, where signals cannot be handled, and where SIGINT is not Python's default, e.g. ignored)."""
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return None
+
+    def handler(signum: int, frame: Any) -> None:
+        interrupted.set()
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGINT, handler)
 
 
 if __name__ == "__main__":

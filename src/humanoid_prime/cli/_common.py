@@ -208,6 +208,19 @@ SECONDS = real(above=0.0)  # a duration that must pass
 SECONDS_OR_ZERO = real(at_least=0.0)
 
 
+def add_duration_option(parser: argparse.ArgumentParser, help_text: str, *, default: float | None = None,
+                        zero: bool = False) -> None:
+    """``--duration S`` (``--seconds``, its old spelling, still works for one release)."""
+    kind = SECONDS_OR_ZERO if zero else SECONDS
+    parser.add_argument("--duration", type=kind, default=default, metavar="S", help=help_text)
+    add_hidden_alias(parser, "--seconds", "duration", type=kind)
+
+
+def add_hidden_alias(parser: argparse.ArgumentParser, option: str, dest: str, **kwargs: Any) -> None:
+    """An old spelling of an option, kept working for one release and left out of --help."""
+    parser.add_argument(option, dest=dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **kwargs)
+
+
 def output_file(text: str) -> Path:
     """argparse type of an output file: refused at once if it could not be written at the end of the run."""
     problem = output_problem(text)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
-from humanoid_prime.cli._common import add_config_options, add_json_option, output_dir, print_json
+from humanoid_prime.cli._common import add_config_options, add_hidden_alias, add_json_option, output_dir, print_json
 from humanoid_prime.config.calibration import load_calibration, save_calibration
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.location import write_target
@@ -27,8 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "the start-up SDOs that arm the bus gains with the controllers file's "
                                           "standby stiffness. Drive faults latch (auto_fault_reset: false).")
     add_config_options(fold, calibration=True, controllers=True)
-    fold.add_argument("--output", "--out", required=True, metavar="DIR", type=output_dir,
-                      help="folder for the per-slave configs")
+    fold.add_argument("--output", metavar="DIR", type=output_dir, help="folder for the per-slave configs")
+    add_hidden_alias(fold, "--out", "output", type=output_dir)
     add_json_option(fold)
     fold.set_defaults(func=_fold)
 
@@ -55,6 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _fold(args: argparse.Namespace) -> int:
+    if args.output is None:
+        raise PrimeError("give --output DIR, the folder for the per-slave configs")
     robot = load_robot(args.hardware)
     calibration = load_calibration(robot.hardware, args.calibration)
     controllers = load_controllers(robot.names, args.controllers)

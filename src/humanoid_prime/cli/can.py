@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 import time
 from collections import Counter
 
 import can
 
-from humanoid_prime.cli._common import SECONDS, add_config_options, add_json_option, print_json, whole
+from humanoid_prime.cli._common import add_config_options, add_duration_option, add_json_option, print_json, whole
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
@@ -124,10 +125,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     m = actions.add_parser("monitor", help="decode live Sito traffic",
                            description="Print every frame on the bus, Sito frames decoded (raw motor frame, "
-                                       "no calibration). Read-only. Stops after --count frames, --seconds, "
+                                       "no calibration). Read-only. Stops after --count frames, --duration, "
                                        "or Ctrl-C.")
     bus_options(m)
-    m.add_argument("--seconds", type=SECONDS, help="stop after this long")
+    add_duration_option(m, "stop after this long")
     m.add_argument("--count", type=whole(at_least=1), help="stop after this many frames")
     m.set_defaults(func=_monitor)
 
@@ -135,7 +136,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                            description="Listen and list the Sito ids heard. Read-only unless --probe, which "
                                        "enables feedback with zero gains (limp) and disables again.")
     bus_options(d)
-    d.add_argument("--seconds", type=SECONDS, default=1.0, help="how long to listen (default 1 s)")
+    add_duration_option(d, "how long to listen (default 1 s)", default=1.0)
     d.add_argument("--probe", action="store_true",
                    help="enable feedback (zero gains) on the probed ids, listen, then disable them")
     d.add_argument("--ids", type=_ids, help="ids to probe, e.g. 22,23,38-39 (default: joints.mit_joints)")
@@ -146,10 +147,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                            description="Emulated Sito motors for every joints.mit_joints entry, each on a "
                                        "link with inertia, gravity and friction, running the MIT law at 1 kHz. "
                                        "Use a virtual interface, e.g. --interface udp_multicast --channel "
-                                       "239.74.163.2, or a vcan channel; never the robot's bus. Stops after --seconds "
+                                       "239.74.163.2, or a vcan channel; never the robot's bus. Stops after --duration "
                                        "or Ctrl-C.")
     bus_options(e)
-    e.add_argument("--seconds", type=SECONDS, help="stop after this long")
+    add_duration_option(e, "stop after this long")
     e.set_defaults(func=_emulate)
 
 
@@ -171,7 +172,7 @@ def _emulate(args: argparse.Namespace) -> int:
     emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
     ids = ", ".join(str(i) for i in emulator.motors)
     print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface})", flush=True)
-    deadline = time.monotonic() + args.seconds if args.seconds else float("inf")
+    deadline = time.monotonic() + args.duration if args.duration else float("inf")
     emulator.start()
     try:
         while time.monotonic() < deadline:
@@ -194,11 +195,15 @@ def _monitor(args: argparse.Namespace) -> int:
     hardware, bus, model = _open(args)
     joints = _joint_names(hardware)
     start = time.monotonic()
-    deadline = start + args.seconds if args.seconds else float("inf")
+    deadline = start + args.duration if args.duration else float("inf")
     seen = 0
     try:
         while time.monotonic() < deadline and (args.count is None or seen < args.count):
-            msg = bus.recv(min(0.1, max(0.0, deadline - time.monotonic())))
+            try:
+                msg = bus.recv(min(0.1, max(0.0, deadline - time.monotonic())))
+            except can.CanOperationError as exc:  # a datagram that is no CAN frame (udp_multicast): shown, not fatal
+                print(f"{time.monotonic() - start:10.4f}  not a CAN frame: {exc}", flush=True)
+                continue
             if msg is None:
                 continue
             seen += 1
@@ -221,9 +226,12 @@ def _discover(args: argparse.Namespace) -> int:
                           Command(0, 0, 0)):
                 ident, data = pack_frame(can_id, frame)
                 bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
-        deadline = time.monotonic() + args.seconds
+        deadline = time.monotonic() + args.duration
         while (left := deadline - time.monotonic()) > 0:
-            msg = bus.recv(min(left, 0.1))
+            try:
+                msg = bus.recv(min(left, 0.1))
+            except can.CanOperationError:  # a datagram that is no CAN frame (udp_multicast): not a wrist
+                continue
             if msg is None or msg.is_error_frame or not msg.is_extended_id:
                 continue
             split = split_arbitration_id(msg.arbitration_id)
@@ -231,7 +239,7 @@ def _discover(args: argparse.Namespace) -> int:
                 heard.setdefault(split[0], Counter())[FrameType(split[1]).name.lower()] += 1
     except can.CanError as exc:
         raise PrimeError(f"CAN error on {args.channel or hardware.can.channel}: {exc}; check that the interface "
-                         "is up and the wrists are powered") from None
+                         "is up") from None
     finally:
         for can_id in probed:
             ident, data = pack_frame(can_id, Disable())
@@ -259,4 +267,7 @@ def _discover(args: argparse.Namespace) -> int:
         if not heard and not probed:
             print("no Sito feedback heard; a Sito streams only after enable, so run with --probe to enable "
                   "feedback briefly (zero gains, limp)")
-    return 1 if probed and missing else 0
+    if missing:
+        print(f"prime can discover: {len(missing)} of {len(probed or joints)} wrists not heard "
+              f"({', '.join(str(i) for i in missing)})", file=sys.stderr)
+    return 1 if missing else 0

@@ -10,8 +10,8 @@ from types import FrameType
 
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.cli._common import (
-    SECONDS_OR_ZERO,
     add_config_options,
+    add_duration_option,
     add_json_option,
     add_socket_option,
     print_json,
@@ -40,8 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=("socket", "igh"), default="socket",
                    help="socket: through the running prime process (default); igh: the `ethercat` tool")
     add_socket_option(p)
-    p.add_argument("--seconds", type=SECONDS_OR_ZERO, metavar="S",
-                   help="stay limp for S seconds instead of waiting for Enter (scripted sweeps)")
+    add_duration_option(p, "stay limp for S seconds instead of waiting for Enter (scripted sweeps)", zero=True)
     add_json_option(p)
     p.set_defaults(func=run)
 
@@ -91,8 +90,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{joint} (ring {args.ring_position}) is damped-limp: read back gate={back.gate} "
                       f"Kp(pos_reg)={back.registers.pos_reg} vel_reg={back.registers.vel_reg} "
                       f"(kd ~ {kd:.2f} Nm*s/rad nominal)", flush=True)
-            if args.seconds is not None:
-                time.sleep(max(0.0, args.seconds))
+            if args.duration is not None:
+                time.sleep(max(0.0, args.duration))
             else:
                 print("Sweep it firmly to both mechanical stops, return near neutral, then press Enter "
                       "to re-hold (Ctrl-C also restores).", flush=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from humanoid_prime.cli._common import output_file
+from humanoid_prime.cli._common import add_config_options, output_file
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,21 +18,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("joints", nargs="*", metavar="JOINT", help="joints to draw (default: all 14)")
     p.add_argument("--output", "-o", metavar="FILE.png", type=output_file,
                    help="the picture (default: FILE.png beside the recording)")
+    add_config_options(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from humanoid_prime.config.hardware import load_hardware
     from humanoid_prime.errors import PrimeError
     from humanoid_prime.record.plot import plot_recording
     from humanoid_prime.record.read import read_recording
 
-    recording = read_recording(args.recording)
+    output = args.output or Path(args.recording).with_suffix(".png")
+    if output.absolute().resolve() == Path(args.recording).absolute().resolve():
+        raise PrimeError(f"--output {output} is the recording itself; name another file for the picture")
+    recording = read_recording(args.recording, load_hardware(args.hardware).all_joints)
     joints = list(args.joints) or list(recording.names)
     for joint in joints:
         recording.index(joint)  # an unknown joint is one line, before anything is drawn
-    output = args.output or Path(args.recording).with_suffix(".png")
     if args.output is None and not output.parent.is_dir():
         raise PrimeError(f"cannot write {output}: no such folder")
     plot_recording(recording, joints, output)

@@ -136,6 +136,9 @@ def _format_line(summary: dict[str, Any]) -> str:
     return (f"visited {_visits(summary['modes_visited'])} | {summary['ticks']} ticks, "
             f"{summary['sim_seconds']:.2f} s simulated in {summary['wall_seconds']:.2f} s"
             f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks"
+            + (f" | recorded {summary['record']['messages'].get('/prime/joint_states', 0)} ticks, "
+               f"{summary['record']['dropped_ticks']} DROPPED" if summary.get("record", {}).get("dropped_ticks")
+               else "")
             + (f" | CAN {summary['can']['host_frames_sent']} frames sent, {summary['can']['host_frames_received']} "
                "received" if "can" in summary else ""))
 
@@ -241,7 +244,9 @@ def _run(args: argparse.Namespace, robot, config, mode: Mode | None, duration: f
             if args.record is not None:
                 from humanoid_prime.record.mcap import Recorder
 
-                recorder = Recorder(args.record, manager)  # stamps in simulated time, like the DDS topics
+                # Stamps in simulated time, like the DDS topics; --fast has no deadline, so the loop waits for the
+                # writer instead of dropping a tick.
+                recorder = Recorder(args.record, manager, wait=args.fast)
                 stack.callback(recorder.close)
             if domain is not None:
                 from humanoid_prime.dds.bridge import bridge_manager

@@ -18,7 +18,6 @@ from humanoid_prime.cli._common import (
     whole,
 )
 from humanoid_prime.config.robot import load_robot
-from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.signals import stop_on_signals
 
 
@@ -66,10 +65,13 @@ def run_view(args: argparse.Namespace) -> int:
         source = DdsSource(robot, domain)
         state, request_mode, where = source, source.request_mode, "the ROS 2 graph"
     else:
+        from humanoid_prime.runtime.socket import default_socket_path, request
         from humanoid_prime.view.feeds import socket_source
 
+        path = args.socket or default_socket_path()
+        request(path, {"op": "ping"}, timeout=2.0)  # nothing answers: one line now, not a page that never fills
         state, request_mode = socket_source(args.socket)
-        where = "the control socket"
+        where = f"the instance on {path}"
     try:
         with stop_on_signals(stop):
             view = PrimeView(robot, port=args.port, request_mode=request_mode, source=state)
@@ -88,10 +90,8 @@ def run_replay(args: argparse.Namespace) -> int:
     from humanoid_prime.record.read import read_recording
     from humanoid_prime.view.page import PrimeView
 
-    recording = read_recording(args.recording)
     robot = load_robot(args.hardware, use_sim=True)
-    if recording.names != robot.names:
-        raise PrimeError(f"{args.recording}: its joints are not this robot's ({', '.join(recording.names)})")
+    recording = read_recording(args.recording, robot.names)
     stop = threading.Event()
     with stop_on_signals(stop):
         view = PrimeView(robot, port=args.port, title=f"Prime replay: {args.recording}")

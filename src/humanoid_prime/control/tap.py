@@ -5,7 +5,8 @@ written), the mode and the safety status as they change, and the remote commands
 may delay the tick. The tap copies each tick's joint state into a slot of a fixed ring (and, at the end of the
 tick, after ``write()``, the command), then hands the slot to its consumer's thread, which runs while the loop
 waits for its next period. When every slot is taken (the consumer fell behind) the tick's sample is dropped and
-counted; the tick goes on.
+counted; the tick goes on. A tap made with ``wait`` (a run with no real-time deadline, such as a simulation as
+fast as it goes) waits for a free slot instead, so nothing is dropped.
 """
 
 from __future__ import annotations
@@ -48,8 +49,10 @@ class TickTap:
 
     def __init__(self, manager: ControllerManager, consumer: Consumer, *, name: str, commands: bool = False,
                  remote: bool = False, on_drop: Callable[[int], None] | None = None, slots: int = SLOTS,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
+                 clock: Callable[[], float] = time.perf_counter, wait: bool = False) -> None:
         self.manager = manager
+        self.wait = wait
+        self._freed = threading.Event()  # the consumer took a slot's sample (for ``wait``)
         self.consumer = consumer
         self.commands = commands
         self.clock = clock
@@ -85,6 +88,9 @@ class TickTap:
 
     def _on_joint_states(self, message: JointState) -> None:
         head = self._head
+        while self.wait and head - self._tail >= self.slots and self._thread.is_alive():
+            self._freed.wait(0.1)
+            self._freed.clear()
         if head - self._tail >= self.slots:
             self.dropped += 1
             self._slot = None
@@ -135,6 +141,7 @@ class TickTap:
                     consumer.on_tick(TickSample(float(self._stamps[item]), self._ring[item],
                                                 float(self._queued_at[item])))
                     self._tail += 1
+                    self._freed.set()
                 elif isinstance(item, ControlMode):
                     consumer.on_mode(item)
                 elif isinstance(item, SafetyStatus):
@@ -144,6 +151,7 @@ class TickTap:
             except Exception as exc:  # counted and kept; the loop and the tap go on
                 if isinstance(item, int):
                     self._tail += 1
+                    self._freed.set()
                 self.errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
 

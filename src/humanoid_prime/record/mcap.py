@@ -68,9 +68,11 @@ class Recorder(SafetyFlags):
     """Records ``manager``'s run to ``path`` (see the module docstring); a flag source (``record``) when a
     write fails. ``close`` finishes the file; ``summary`` says what went in."""
 
-    def __init__(self, path: str | Path, manager: ControllerManager, *, epoch_offset: float = 0.0) -> None:
+    def __init__(self, path: str | Path, manager: ControllerManager, *, epoch_offset: float = 0.0,
+                 wait: bool = False) -> None:
         super().__init__("record")
         self.path = Path(path)
+        self.wait = wait  # the loop waits for the writer rather than drop a tick (no real-time deadline)
         self.names = list(manager.robot.names)
         self.epoch_offset = epoch_offset
         self.counts: dict[str, int] = {}
@@ -81,6 +83,7 @@ class Recorder(SafetyFlags):
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 -- closed by close()
         except OSError as exc:
             raise PrimeError(f"cannot record to {self.path}: {exc.strerror}") from None
@@ -107,7 +110,8 @@ class Recorder(SafetyFlags):
         self.detach()
         self.sources = [*manager.flag_source_names, self.name]
         manager.add_flag_source(self)
-        self.tap = TickTap(manager, self, name="recorder", commands=True, remote=True, on_drop=self._on_drop)
+        self.tap = TickTap(manager, self, name="recorder", commands=True, remote=True, on_drop=self._on_drop,
+                           wait=self.wait)
 
     def detach(self) -> None:
         """Stop taking ticks; what is queued is recorded first."""

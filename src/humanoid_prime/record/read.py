@@ -45,8 +45,10 @@ class Recording:
             return c[:, 2] + c[:, 3] * (c[:, 0] - self.position[:n]) + c[:, 4] * (c[:, 1] - self.velocity[:n])
 
 
-def read_recording(path: str | Path) -> Recording:
-    """The joint states, commands and modes of a Prime recording; one clear error when it is not one."""
+def read_recording(path: str | Path, joints: tuple[str, ...] | None = None) -> Recording:
+    """The joint states, commands and modes of a Prime recording; one clear error when it is not one, when a
+    message's arrays do not match its joints or the first message's, or (with ``joints``, the robot's) when it
+    records other joints."""
     path = Path(path)
     states: list[msg.JointState] = []
     commands: list[msg.MitCommand] = []
@@ -72,7 +74,20 @@ def read_recording(path: str | Path) -> Recording:
     if not states:
         raise PrimeError(f"{path}: no {JOINT_STATES} messages in it (is it a Prime recording?)")
     names = tuple(states[0].name)
+    if not names:
+        raise PrimeError(f"{path}: its joint states name no joints (is it a Prime recording?)")
+    if joints is not None and names != joints:
+        raise PrimeError(f"{path}: it records the joints {', '.join(names)}, not this robot's "
+                         f"({', '.join(joints)}); give the recording of a Prime, or its --hardware file")
     t0 = state_times[0]
+    for what, samples, times, fields in ((JOINT_STATES, states, state_times, STATE_NAMES),
+                                         (COMMAND_TOPIC, commands, command_times, COMMAND_NAMES)):
+        for k, sample in enumerate(samples):
+            sizes = {len(getattr(sample, f)) for f in fields}
+            if tuple(sample.name) != names or sizes != {len(names)}:
+                raise PrimeError(f"{path}: {what} message {k} (at {(times[k] - t0) * 1e-9:.3f} s) has "
+                                 f"{len(sample.name)} joint names and arrays of {sorted(sizes)} values, where the "
+                                 f"recording's joints are {len(names)}: not a recording prime can read")
 
     def rows(samples, fields):
         return np.array([[getattr(s, f) for f in fields] for s in samples], dtype=np.float64)

@@ -225,7 +225,8 @@ def request(path: str | Path | None, payload: dict[str, Any], timeout: float = 5
             sock.sendall(json.dumps(payload).encode() + b"\n")
             text = _recv_line(sock)
     except (FileNotFoundError, ConnectionRefusedError):
-        raise PrimeError(f"no running prime instance listens on {path}") from None
+        raise PrimeError(f"no running prime instance listens on {path} (start prime sim or prime bringup, or give "
+                         "the --socket it answers on)") from None
     except OSError as exc:
         raise PrimeError(f"could not reach {path}: {exc.strerror or exc}") from None
     try:

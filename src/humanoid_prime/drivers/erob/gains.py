@@ -60,10 +60,9 @@ def _check_model(kt: float, gear: float, efficiency: float) -> None:
 
 
 def _register(name: str, exact: float, why: str) -> int:
-    value = math.floor(exact + 0.5)
-    if value > REGISTER_MAX:
+    if not exact + 0.5 < REGISTER_MAX + 1:  # also an infinite ratio: compared before any rounding
         raise ValueError(f"{name} {exact:.1f} does not fit the u16 register (max {REGISTER_MAX}); {why}")
-    return value
+    return math.floor(exact + 0.5)
 
 
 def gains_to_registers(kp: float, kd: float, *, kt: float = DEFAULT_KT_NM_PER_MA, gear: float = DEFAULT_GEAR,

@@ -22,7 +22,8 @@ CONTROLLER_TYPES = {
     "remote_policy_controller": "prime_controllers/RemotePolicyController",
 }
 MAX_ACTION_SCALE_RAD = 1.0  # rad per unit action: beyond it every action a policy outputs saturates at a limit
-MAX_BRINGUP_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2): faster frames gain nothing
+MAX_UPDATE_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2), and SYNC0 is the loop period
+MAX_BRINGUP_RATE_HZ = MAX_UPDATE_RATE_HZ  # faster bring-up frames than the drives' cycle gain nothing
 
 
 @dataclass(frozen=True)
@@ -223,7 +224,7 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
                           f"{sim_update_rate:g} Hz", "physics steps a whole number of times per control tick")
     return ControllersConfig(
         path=path,
-        update_rate=r.number("controller_manager", "update_rate", allow_equal=False),
+        update_rate=r.number("controller_manager", "update_rate", allow_equal=False, maximum=MAX_UPDATE_RATE_HZ),
         bringup_rate=r.number("controller_manager", "bringup_rate", allow_equal=False, default=1000.0,
                               maximum=MAX_BRINGUP_RATE_HZ),
         sim_update_rate=sim_update_rate,

@@ -15,6 +15,7 @@ CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
 # What an eRob joint without its own joints.erob_kt / joints.erob_gear entry has (DESIGN §2).
 DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
 DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
+FAMILIES = ("erob", "sito")
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,16 @@ class CanBus:
 
 
 @dataclass(frozen=True)
+class CommandLimits:
+    """The most a joint of one family takes from any command: stiffness (Nm/rad), damping (Nm*s/rad) and
+    |velocity| (rad/s)."""
+
+    stiffness: float
+    damping: float
+    velocity: float
+
+
+@dataclass(frozen=True)
 class HardwareConfig:
     path: Path
     ethercat: EthercatBus
@@ -41,6 +52,7 @@ class HardwareConfig:
     erob_kt: dict[str, float]
     erob_gear: dict[str, float]
     torque_efficiency: float
+    command_limits: dict[str, CommandLimits]  # per family
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -181,6 +193,14 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     if efficiency > 1.0:
         raise ConfigError(path, "torque_efficiency", f"{efficiency} is above 1", "use realised/nominal, 0 < e <= 1")
 
+    limits = _section(data, path, "command_limits")
+    command_limits = {}
+    for family in FAMILIES:
+        section = _section(limits, path, f"command_limits.{family}")
+        command_limits[family] = CommandLimits(**{
+            name: _positive_float(section.get(name), path, f"command_limits.{family}.{name}")
+            for name in ("stiffness", "damping", "velocity")})
+
     return HardwareConfig(
         path=path,
         ethercat=ethercat,
@@ -191,4 +211,5 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         erob_kt=per_erob("erob_kt", DEFAULT_KT_NM_PER_MA),
         erob_gear=per_erob("erob_gear", DEFAULT_GEAR),
         torque_efficiency=efficiency,
+        command_limits=command_limits,
     )

@@ -332,13 +332,14 @@ class SitoSystem(HardwareComponent):
             for i in np.flatnonzero(tick.late != tick.rx_raised):
                 self._motor_flag(bool(tick.late[i]), "rx_timeout", i, Level.ERROR)
             np.copyto(tick.rx_raised, tick.late)
-        self._flag(rx.last_invalid_stamp >= limit, *self._bus_flags["invalid_frame"], Level.WARN)
+        self._flag(rx.last_invalid_stamp >= limit, "invalid_frame", Level.WARN)
         if rx.bus_off:
-            self.set_flag(*self._bus_flags["bus_off"])
+            self._flag(True, "bus_off", Level.ERROR)
         down = rx.down_error or self._tx_down_error
-        key, text = self._bus_flags["interface_down"]
-        if down and key not in self.flags:
-            self.set_flag(key, text.format(down=down))
+        if down:
+            key, text = self._bus_flags["interface_down"]
+            if key not in self.flags:
+                self.set_flag(key, text.format(down=down))
 
     def write(self, now: float, command: CommandArrays) -> None:
         if self._ticks_to_send:  # between bus cycles (control faster than the bus carries, module docstring)
@@ -369,7 +370,7 @@ class SitoSystem(HardwareComponent):
 
         if failed != self._tx_failed:
             self._tx_failed = failed
-            self._flag(failed and not self._tx_down_error, *self._bus_flags["tx_overrun"], Level.WARN)
+            self._flag(failed and not self._tx_down_error, "tx_overrun", Level.WARN)
         if problems_changed:
             for row, i in zip(*np.nonzero(tick.problems != tick.problems_raised), strict=True):
                 problem = "invalid_command" if row == INVALID else f"{COMMAND_NAMES[row]}_clamped"
@@ -387,7 +388,9 @@ class SitoSystem(HardwareComponent):
         self.frames_sent += 1
         return True
 
-    def _flag(self, raised: bool, key: str, text: str, level: Level) -> None:
+    def _flag(self, raised: bool, problem: str, level: Level) -> None:
+        """Raise or clear the transport flag ``<channel>/<problem>``."""
+        key, text = self._bus_flags[problem]
         if raised:
             self.set_flag(key, text, level)
         else:

@@ -355,6 +355,15 @@ def test_a_limp_arm_beyond_its_limits_stays_in_zero_torque_and_damping_with_targ
     assert manager.fallbacks == []
 
 
+def test_a_limp_wrist_beyond_its_limit_keeps_remote_damping_with_its_target_on_the_limit(manager, robot, plant):
+    wrist = robot.index("left_wrist_roll")
+    plant.position[wrist] = 0.9  # beyond 0.698: REMOTE's stale damping targets the live position of every joint
+    enter_remote(manager, robot)
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.REMOTE and manager.fallbacks == []
+    assert plant.last[0][wrist] == 0.698 and plant.last[3][wrist] == 0.0
+
+
 # ---- REMOTE refuses a bad command at the door ----------------------------------------------------
 
 @pytest.mark.parametrize(("rows", "reason"), [

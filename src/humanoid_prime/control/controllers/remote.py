@@ -54,11 +54,12 @@ class RemotePolicyController(Controller):
     def on_configure(self, robot: Robot, topics: TopicBus) -> None:
         self.names = robot.names
         self._erob = np.array([j.family == "erob" for j in robot.joints])
+        self._sito = ~self._erob
         # Stale-damp gains; their eRob entries are also the fixed mode gains applied to every message.
         self._damp_kp, self._damp_kd = gain_rows(robot, (self.erob_kp, self.erob_kd), (0.0, self.stale_kd))
         self._lock = threading.Lock()
         self._inbox = np.zeros((5, robot.n))
-        self._bounds = CommandBounds(robot)
+        self._bounds = CommandBounds(robot)  # the manager's bounds; a check of its own, used under the lock
         self._take = Inbox(self._inbox, self._bounds.check).take
         self._current = np.zeros((5, robot.n))
         self._fresh = False
@@ -132,6 +133,8 @@ class RemotePolicyController(Controller):
                 self.clear_flag("stale")
         if stale and (self.stale_policy == "damp" or not self._has_command):
             np.copyto(command.position, state.position)
+            # a limp wrist measured beyond a limit gets its target on the limit (every target must be within)
+            np.clip(command.position, self._bounds.lower, self._bounds.upper, out=command.position, where=self._sito)
             command.data[1:3] = 0.0
             np.copyto(command.stiffness, self._damp_kp)
             np.copyto(command.damping, self._damp_kd)

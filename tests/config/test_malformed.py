@@ -106,6 +106,11 @@ HARDWARE_CASES = [
      "joints.erob_gear.left_elbow_pitch", "positive finite number"),
     ("efficiency zero", lambda d: d.update(torque_efficiency=0.0), "torque_efficiency", "positive finite number"),
     ("efficiency above one", lambda d: d.update(torque_efficiency=1.4), "torque_efficiency", "above 1"),
+    ("no command limits", lambda d: drop(d, "command_limits"), "command_limits", "missing or not a mapping"),
+    ("no Sito command limits", lambda d: drop(d["command_limits"], "sito"), "command_limits.sito",
+     "missing or not a mapping"),
+    ("negative stiffness maximum", lambda d: d["command_limits"]["erob"].update(stiffness=-1.0),
+     "command_limits.erob.stiffness", "positive finite number"),
 ]
 
 
@@ -207,6 +212,8 @@ CONTROLLER_CASES = [
      "must be > 0"),
     ("update rate zero", lambda d: _params(d, "controller_manager").update(update_rate=0),
      "controller_manager.ros__parameters.update_rate", "must be > 0"),
+    ("update rate beyond the eRob cycle", lambda d: _params(d, "controller_manager").update(update_rate=5000),
+     "controller_manager.ros__parameters.update_rate", "must be <= 2000, got 5000"),
     ("damping kd text", lambda d: _params(d, "damping_controller").update(kd="six"),
      "damping_controller.ros__parameters.kd", "expected a finite number"),
     ("policy not a string", lambda d: _params(d, "locomotion_controller").update(policy=3),

@@ -39,3 +39,21 @@ def test_a_standby_pose_outside_the_limits_is_refused(robot, config):
     with pytest.raises(ConfigError, match=r"poses.reach.left_elbow_pitch: left_elbow_pitch at 0.5 rad is outside "
                                           r"its limits \[-2.356, 0.0\]"):
         build_controllers(robot, bad)
+
+
+@pytest.mark.parametrize(("edit", "key", "problem"), [
+    (lambda c: replace(c, locomotion=replace(c.locomotion, sito_kp=120.0)), "locomotion_controller.ros__parameters"
+     ".sito_kp", "120 is beyond the sito stiffness maximum of 100 (command_limits.sito.stiffness in "),
+    (lambda c: replace(c, damping_kd=12.0), "damping_controller.ros__parameters.kd",
+     "12 is beyond the sito damping maximum of 10"),
+    (lambda c: replace(c, remote=replace(c.remote, erob_kd=60.0)), "remote_policy_controller.ros__parameters.erob_kd",
+     "60 is beyond the erob damping maximum of 50"),
+])
+def test_a_mode_gain_beyond_its_familys_maximum_is_refused_at_load(robot, config, edit, key, problem):
+    with pytest.raises(ConfigError) as caught:
+        build_controllers(robot, edit(config))
+    assert caught.value.key == key and problem in caught.value.problem
+
+
+def test_an_erob_gain_may_exceed_the_sito_maximum(robot, config):
+    build_controllers(robot, replace(config, remote=replace(config.remote, erob_kp=300.0)))

@@ -7,7 +7,6 @@ import pytest
 
 from doubles.control import Plant, constant_policy, with_policy
 from humanoid_prime.control.controllers.standby import min_jerk
-from humanoid_prime.control.interfaces import COMMAND_NAMES
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.policy import Policy
 from humanoid_prime.control.topics import REMOTE_COMMAND, SAFETY_STATUS, MitCommand
@@ -103,16 +102,17 @@ def test_damping_holds_the_captured_position_with_zero_stiffness(manager, plant)
 def test_damping_takes_a_per_joint_kd(robot, config, clock):
     plant = Plant("plant", robot.names)
     with ControllerManager(robot, [plant], config, clock=clock) as manager:
-        manager.controllers["damping_controller"].kd = np.arange(14.0)
+        manager.controllers["damping_controller"].kd = np.arange(14.0) / 2
         manager.start()
         enter(manager, Mode.DAMPING)
-        assert plant.last[4].tolist() == list(np.arange(14.0))
+        assert plant.last[4].tolist() == list(np.arange(14.0) / 2)
 
 
 # ---- STANDBY -------------------------------------------------------------------------------------
 
 def test_standby_entered_from_a_moving_arm_starts_at_the_measured_pose(robot, config, clock):
     plant = Plant("plant", robot.names, inertia=0.05)
+    plant.position[:] = (robot.lower + robot.upper) / 2
     plant.velocity[:] = 0.8  # swinging when the mode is requested
     with ControllerManager(robot, [plant], config, update_rate=100.0, clock=clock) as manager:
         manager.start()
@@ -120,6 +120,7 @@ def test_standby_entered_from_a_moving_arm_starts_at_the_measured_pose(robot, co
             manager.tick(k * 0.01)
         measured = plant.position.copy()
         enter(manager, Mode.STANDBY, 0.05)
+        assert manager.active_mode is Mode.STANDBY
         np.testing.assert_array_equal(plant.last[0], measured)
         assert plant.last[1].tolist() == [0.0] * 14  # no velocity step either
 
@@ -254,36 +255,6 @@ def test_remote_rejects_a_message_of_the_wrong_length(manager, robot, names, row
     assert remote.rejected == 1 and remote.last_rejection == problem
 
 
-def test_remote_compiled_acceptance_agrees_with_the_worded_check(manager, robot):
-    """Every message is judged twice over: the compiled check must accept exactly what the worded check accepts,
-    take the rows it accepts into the inbox and leave the inbox as it was when it refuses."""
-    remote = manager.controllers["remote_policy_controller"]
-    rng = np.random.default_rng(7)
-    sito = robot.indices("sito")
-    judged = {True: 0, False: 0}
-    for _ in range(400):
-        rows = {"position": rng.uniform(robot.lower - 0.02, robot.upper + 0.02),
-                "velocity": rng.normal(0.0, 1.0, robot.n),
-                "effort": rng.uniform(-1.05, 1.05) * robot.effort_limit,
-                "stiffness": np.where(rng.random(robot.n) < 0.5, 0.0, rng.uniform(-0.2, 30.0, robot.n)),
-                "damping": rng.uniform(-0.05, 3.0, robot.n)}
-        keep = rng.random(5) < 0.8  # most rows made sound, so that single faults are common
-        for sound, key in zip(keep, list(rows), strict=True):
-            if sound:
-                rows[key] = {"position": (robot.lower + robot.upper) / 2, "effort": np.zeros(robot.n)}.get(
-                    key, np.abs(rows[key]))
-        if rng.random() < 0.05:
-            rows["damping"][sito[0]] = np.nan
-        m = message(robot, **rows)
-        before = remote._inbox.copy()
-        accepted = remote._take(*(getattr(m, name) for name in COMMAND_NAMES))
-        assert accepted == (remote._check(m) == ""), remote._check(m)
-        expected = np.array([getattr(m, name) for name in COMMAND_NAMES]) if accepted else before
-        np.testing.assert_array_equal(remote._inbox, expected)
-        judged[accepted] += 1
-    assert min(judged.values()) > 50  # both verdicts were exercised
-
-
 @pytest.mark.parametrize(("rows", "accepted"), [
     ({"position": [0.0] * 14, "stiffness": [5] * 14}, True),  # lists, integers
     ({"position": np.zeros(14, dtype=np.float32)}, True),
@@ -294,13 +265,11 @@ def test_remote_compiled_acceptance_agrees_with_the_worded_check(manager, robot)
     ({"effort": [[0.0, 1.0]] * 14}, False),
     ({"velocity": None}, False),
 ])
-def test_remote_judges_rows_of_any_kind_as_the_worded_check_does(manager, robot, rows, accepted):
+def test_remote_takes_rows_of_any_kind_that_are_one_number_per_joint(manager, robot, rows, accepted):
     remote = manager.controllers["remote_policy_controller"]
     m = replace(message(robot), **rows)  # as given, not made arrays
-    assert remote._take(*(getattr(m, name) for name in COMMAND_NAMES)) is accepted
-    assert (remote._check(m) == "") is accepted
     manager.topics.publish(REMOTE_COMMAND, m)
-    assert (remote.accepted, remote.rejected) == ((1, 0) if accepted else (0, 1))
+    assert (remote.accepted, remote.rejected) == ((1, 0) if accepted else (0, 1)), remote.last_rejection
 
 
 def test_remote_falls_back_to_a_damped_hold_after_100_ms_of_silence(manager, plant, robot, erob, sito):

@@ -184,7 +184,7 @@ def test_modes_visited_lists_every_activation_in_order(manager):
 
 def test_a_nan_from_a_controller_reaches_damping_within_one_tick(robot, config, clock, tmp_path):
     plant = Plant("plant", robot.names)
-    plant.position[:] = 0.1 * np.sin(np.arange(14))
+    plant.position[:] = 0.1 * np.sin(np.arange(14)) - 0.15  # within every joint's limits
     nan_policy = constant_policy(tmp_path / "nan.onnx", robot, np.nan)
     with ControllerManager(robot, [plant], with_policy(config, nan_policy), clock=clock) as manager:
         manager.start()
@@ -287,54 +287,81 @@ def test_a_non_finite_command_falls_back_to_damping(manager, robot, plant):
     standby_producing(manager, position=np.full(14, np.nan))
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
-    assert "non-finite position" in manager.fallbacks[-1]["reason"]
+    assert "standby_controller: position of left_shoulder_pitch is nan" in manager.fallbacks[-1]["reason"]
     assert np.all(np.isfinite(plant.last))
 
 
 # ---- the output check ----------------------------------------------------------------------------
 
 @pytest.mark.parametrize(("row", "value", "reason"), [
-    ("damping", -0.1, "negative damping (-0.1) for left_wrist_roll"),
-    ("stiffness", -1.0, "negative stiffness (-1) for left_wrist_roll"),
-    ("effort", 4.9, "effort of 4.9 Nm for left_wrist_roll, beyond its limit of 4.8 Nm"),
-    ("effort", -4.9, "effort of -4.9 Nm for left_wrist_roll, beyond its limit of 4.8 Nm"),
+    ("damping", -0.1, "damping of left_wrist_roll is negative (-0.1)"),
+    ("stiffness", -1.0, "stiffness of left_wrist_roll is negative (-1)"),
+    ("effort", 4.9, "effort of left_wrist_roll is 4.9 Nm, beyond its limit of 4.8 Nm"),
+    ("effort", -4.9, "effort of left_wrist_roll is -4.9 Nm, beyond its limit of 4.8 Nm"),
+    ("velocity", -3.2, "velocity of left_wrist_roll is -3.2 rad/s, beyond its limit of 3.14 rad/s (the Sito maximum, "
+                       "command_limits.sito.velocity in prime_hardware.yaml)"),
+    ("stiffness", 100.5, "stiffness of left_wrist_roll is 100.5 Nm/rad, beyond its limit of 100 Nm/rad (the Sito "
+                         "maximum, command_limits.sito.stiffness in prime_hardware.yaml)"),
+    ("damping", 1e9, "damping of left_wrist_roll is 1e+09 Nm*s/rad, beyond its limit of 10 Nm*s/rad"),
 ])
 def test_an_unsafe_command_is_rejected(manager, robot, row, value, reason):
     standby_producing(manager, **{row: np.where(np.arange(14) == robot.index("left_wrist_roll"), value, 0.0)})
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
-    assert reason in manager.fallbacks[-1]["reason"]
+    assert manager.fallbacks[-1]["reason"].startswith(f"standby_controller: {reason}")
 
 
-def test_a_stiff_target_beyond_a_limit_by_more_than_the_margin_is_rejected(manager, robot):
+def test_a_gain_is_held_to_the_maximum_of_its_joints_family(manager, robot):
+    stiffness = np.zeros(14)
+    stiffness[robot.index("left_elbow_pitch")] = 400.0  # within the eRob maximum (500), beyond the Sito one (100)
+    standby_producing(manager, stiffness=stiffness)
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.STANDBY, manager.fallbacks
+
+
+@pytest.mark.parametrize("stiffness", [5.0, 0.0])
+def test_a_target_beyond_a_limit_by_more_than_the_margin_is_rejected_with_or_without_stiffness(manager, robot,
+                                                                                                stiffness):
     position = np.zeros(14)
     position[robot.index("left_wrist_pitch")] = 0.785 + 0.006
-    standby_producing(manager, position=position, stiffness=np.full(14, 5.0))
+    standby_producing(manager, position=position, stiffness=np.full(14, stiffness))
     manager.tick(0.01)
     assert manager.active_mode is Mode.DAMPING
-    assert "position target of 0.791 rad for left_wrist_pitch, outside its limits [-0.785, 0.785]" in \
+    assert "position target of left_wrist_pitch is 0.791 rad, outside its limits [-0.785, 0.785]" in \
         manager.fallbacks[-1]["reason"]
 
 
-def test_a_stiff_target_within_the_margin_is_clipped_onto_the_limit(manager, robot, plant):
+@pytest.mark.parametrize("stiffness", [5.0, 0.0])
+def test_a_target_within_the_margin_is_clipped_onto_the_limit(manager, robot, plant, stiffness):
     enter_remote(manager, robot)
     position = np.zeros(14)
     position[robot.index("left_wrist_pitch")] = 0.785 + 0.004
     manager.topics.publish("/remote_policy_controller/command",
-                           remote_command(robot, position=position, stiffness=np.full(14, 5.0)))
+                           remote_command(robot, position=position, stiffness=np.full(14, stiffness)))
     manager.tick(0.01)
     assert manager.active_mode is Mode.REMOTE
     assert plant.last[0][robot.index("left_wrist_pitch")] == 0.785
 
 
-def test_a_target_without_stiffness_is_not_limit_checked(manager, robot, plant):
-    enter_remote(manager, robot)
-    position = np.zeros(14)
-    position[robot.index("left_wrist_pitch")] = 2.0
-    manager.topics.publish("/remote_policy_controller/command", remote_command(robot, position=position))
+def test_a_limp_arm_beyond_its_limits_stays_in_zero_torque_and_damping_with_targets_on_the_limits(manager, robot,
+                                                                                                 plant):
+    elbow = robot.index("left_elbow_pitch")
+    plant.position[elbow] = 0.3  # measured beyond its upper limit (0): a calibration that is off, a hard stop
+    manager.tick(0.0)
+    assert manager.active_mode is Mode.ZERO_TORQUE and plant.last[0][elbow] == 0.0
+    manager.request_mode(Mode.DAMPING)
     manager.tick(0.01)
-    assert manager.active_mode is Mode.REMOTE
-    assert plant.last[0][robot.index("left_wrist_pitch")] == 2.0
+    assert manager.active_mode is Mode.DAMPING and plant.last[0][elbow] == 0.0
+    assert manager.fallbacks == []
+
+
+def test_a_limp_wrist_beyond_its_limit_keeps_remote_damping_with_its_target_on_the_limit(manager, robot, plant):
+    wrist = robot.index("left_wrist_roll")
+    plant.position[wrist] = 0.9  # beyond 0.698: REMOTE's stale damping targets the live position of every joint
+    enter_remote(manager, robot)
+    manager.tick(0.01)
+    assert manager.active_mode is Mode.REMOTE and manager.fallbacks == []
+    assert plant.last[0][wrist] == 0.698 and plant.last[3][wrist] == 0.0
 
 
 # ---- REMOTE refuses a bad command at the door ----------------------------------------------------
@@ -345,6 +372,9 @@ def test_a_target_without_stiffness_is_not_limit_checked(manager, robot, plant):
     ({"stiffness": -np.ones(14)}, "stiffness of left_shoulder_pitch is negative (-1)"),
     ({"effort": np.full(14, 500.0)}, "effort of left_shoulder_pitch is 500 Nm, beyond its limit of"),
     ({"position": np.full(14, 9.0), "stiffness": np.ones(14)}, "position target of left_shoulder_pitch is 9 rad"),
+    ({"position": np.full(14, 1e308)}, "position target of left_shoulder_pitch is 1e+308 rad"),
+    ({"velocity": np.full(14, 1e6)}, "velocity of left_shoulder_pitch is 1e+06 rad/s, beyond its limit of 6.28"),
+    ({"stiffness": np.full(14, 1e9)}, "stiffness of left_shoulder_pitch is 1e+09 Nm/rad, beyond its limit of 500"),
     ({"velocity": np.zeros(13)}, "velocity has shape (13,), expected (14,)"),
     ({"effort": ["a"] * 14}, "effort is not a list of numbers"),
 ])

@@ -22,8 +22,8 @@ CONTROLLER_TYPES = {
     "remote_policy_controller": "prime_controllers/RemotePolicyController",
 }
 MAX_ACTION_SCALE_RAD = 1.0  # rad per unit action: beyond it every action a policy outputs saturates at a limit
-MAX_BRINGUP_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2): faster frames gain nothing
-MAX_UPDATE_RATE_HZ = MAX_BRINGUP_RATE_HZ  # SYNC0 is the loop period (DESIGN §3), so the same minimum cycle bounds it
+MAX_UPDATE_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2), and SYNC0 is the loop period
+MAX_BRINGUP_RATE_HZ = MAX_UPDATE_RATE_HZ  # faster bring-up frames than the drives' cycle gain nothing
 # The parameters each node of the file takes (ROS 2 parameter-file shape: ``node: ros__parameters: {...}``).
 PARAMETERS: dict[str, tuple[str, ...]] = {
     "controller_manager": ("update_rate", "bringup_rate", *CONTROLLER_TYPES),

@@ -15,6 +15,7 @@ CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
 # What an eRob joint without its own joints.erob_kt / joints.erob_gear entry has (DESIGN §2).
 DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
 DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
+FAMILIES = ("erob", "sito")
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,16 @@ class CanBus:
 
 
 @dataclass(frozen=True)
+class CommandLimits:
+    """The most a joint of one family takes from any command: stiffness (Nm/rad), damping (Nm*s/rad) and
+    |velocity| (rad/s)."""
+
+    stiffness: float
+    damping: float
+    velocity: float
+
+
+@dataclass(frozen=True)
 class HardwareConfig:
     path: Path
     ethercat: EthercatBus
@@ -41,6 +52,7 @@ class HardwareConfig:
     erob_kt: dict[str, float]
     erob_gear: dict[str, float]
     torque_efficiency: float
+    command_limits: dict[str, CommandLimits]  # per family
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -81,11 +93,37 @@ def _str(value: Any, path: Path, key: str) -> str:
     return value
 
 
+LIMIT_NAMES = ("stiffness", "damping", "velocity")
+
+
+def _command_limits(data: dict[str, Any], path: Path) -> dict[str, CommandLimits]:
+    """``command_limits`` per family; a value the file leaves out is the bundled template's (a robot's file
+    written before the section existed still loads, with the product's limits)."""
+    limits = data.get("command_limits", {})
+    if not isinstance(limits, dict):
+        raise ConfigError(path, "command_limits", "expected a mapping family -> limits")
+    check_keys(path, "command_limits", limits, FAMILIES)
+    defaults = None if path == bundled(HARDWARE_FILE) else load_yaml(bundled(HARDWARE_FILE))["command_limits"]
+    result = {}
+    for family in FAMILIES:
+        key = f"command_limits.{family}"
+        section = limits.get(family, {})
+        if not isinstance(section, dict):
+            raise ConfigError(path, key, "expected a mapping of stiffness, damping, velocity")
+        check_keys(path, key, section, LIMIT_NAMES)
+        if defaults is None and set(section) != set(LIMIT_NAMES):
+            raise ConfigError(path, key, "the template must give stiffness, damping and velocity")
+        result[family] = CommandLimits(**{
+            name: _positive_float(section[name] if name in section else defaults[family][name], path,
+                                  f"{key}.{name}") for name in LIMIT_NAMES})
+    return result
+
+
 def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     """Load and validate a hardware file (default: the bundled one)."""
     path = config_path(path) if path is not None else bundled(HARDWARE_FILE)
     data = load_yaml(path)
-    check_keys(path, "", data, ("buses", "joints", "torque_efficiency"))
+    check_keys(path, "", data, ("buses", "joints", "torque_efficiency", "command_limits"))
     buses = _section(data, path, "buses")
     check_keys(path, "buses", buses, ("ethercat", "can"))
     ec = _section(buses, path, "buses.ethercat")
@@ -186,6 +224,8 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     if efficiency > 1.0:
         raise ConfigError(path, "torque_efficiency", f"{efficiency} is above 1", "use realised/nominal, 0 < e <= 1")
 
+    command_limits = _command_limits(data, path)
+
     return HardwareConfig(
         path=path,
         ethercat=ethercat,
@@ -196,4 +236,5 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         erob_kt=per_erob("erob_kt", DEFAULT_KT_NM_PER_MA),
         erob_gear=per_erob("erob_gear", DEFAULT_GEAR),
         torque_efficiency=efficiency,
+        command_limits=command_limits,
     )

@@ -1,9 +1,9 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, initializedcheck=False, cdivision=True
 """The per-tick work around the controllers, compiled:
 
-- ``OutputCheck``: the manager's copy of the last command into the proposal, the output check with its clip,
-  and the copy of the checked proposal back into the command. The kernel only decides; the manager words the
-  problem from ``row`` and ``col``.
+- ``CommandCheck``: the bounds every command meets before it reaches a bus (control/bounds.py has the rules in
+  words), applied by ``OutputCheck`` to the manager's proposal every tick and by ``Inbox`` to each REMOTE message
+  as it arrives. The kernel only decides; ``CommandBounds.refusal`` words the problem from ``row`` and ``col``.
 - ``Copy``, ``FollowMeasured``, ``Blend``: the joint-state broadcaster's copy and the commands of the three
   built-in modes (DAMPING, ZERO_TORQUE, STANDBY), which are also the fallback chain.
 
@@ -16,51 +16,45 @@ from libc.string cimport memcpy
 
 import numpy as np
 
-# What check() found; the manager has the words for each.
+# What a check found; CommandBounds.refusal has the words for each.
 OK = 0
 NON_FINITE = 1  # at (row, col), the first in row-major order
 NEGATIVE_GAIN = 2  # stiffness (row 3) or damping (row 4): the most negative of that row, first if tied
-EFFORT = 3  # the first joint whose |effort| is beyond its limit
-BELOW = 4  # the first stiff joint whose target is further than the margin below its lower limit
+BEYOND = 3  # |velocity|, |effort|, stiffness, damping (rows 1 to 4, in that order): the first beyond its maximum
+BELOW = 4  # the first joint whose target is further than the margin below its lower limit
 ABOVE = 5  # likewise above the upper limit
+SHAPE = 6  # Inbox.take only: row ``row`` is not one number per joint
 
 
-cdef class OutputCheck:
-    """Bound to the manager's proposal and command arrays (5 x n, C order) and the joints' limits."""
+cdef class CommandCheck:
+    """The joints' bounds: position limits with a margin, and a maximum per joint for |velocity|, |effort|,
+    stiffness and damping (``maximum``, 4 x n, rows 1 to 4 of a command). ``row`` and ``col`` say where the last
+    check found its problem."""
 
-    cdef double[:, ::1] proposal, command
-    cdef const double[::1] lower, upper, effort_limit
+    cdef const double[::1] lower, upper
+    cdef const double[:, ::1] maximum
     cdef double margin
-    cdef Py_ssize_t n
-    cdef readonly Py_ssize_t row, col
+    cdef readonly Py_ssize_t n, row, col
 
-    def __init__(self, double[:, ::1] proposal not None, double[:, ::1] command not None,
-                 const double[::1] lower not None, const double[::1] upper not None,
-                 const double[::1] effort_limit not None, double margin):
-        cdef Py_ssize_t n = proposal.shape[1]
-        if proposal.shape[0] != 5 or command.shape[0] != 5 or command.shape[1] != n:
-            raise ValueError(f"proposal and command must both be 5 x {n}")
-        if lower.shape[0] != n or upper.shape[0] != n or effort_limit.shape[0] != n:
-            raise ValueError(f"the limits must have {n} joints")
-        self.proposal, self.command = proposal, command
-        self.lower, self.upper, self.effort_limit = lower, upper, effort_limit
-        self.margin = margin
+    def __init__(self, const double[::1] lower not None, const double[::1] upper not None,
+                 const double[:, ::1] maximum not None, double margin):
+        cdef Py_ssize_t n = lower.shape[0]
+        if upper.shape[0] != n or maximum.shape[0] != 4 or maximum.shape[1] != n:
+            raise ValueError(f"the limits must have {n} joints and the maxima 4 rows of {n}")
+        self.lower, self.upper, self.maximum, self.margin = lower, upper, maximum, margin
         self.n = n
         self.row = self.col = -1
 
-    def propose(self):
-        """The proposal starts as the last command (a controller that skips a row leaves it as it was)."""
-        memcpy(&self.proposal[0, 0], &self.command[0, 0], 5 * self.n * sizeof(double))
+    def check(self, double[:, ::1] data not None):
+        """Check ``data`` (5 x n), clipping a target within the margin of a limit onto it in place; OK or what
+        was found, with ``row`` and ``col`` saying where."""
+        if data.shape[0] != 5 or data.shape[1] != self.n:
+            raise ValueError(f"a command is 5 x {self.n}")
+        return self._check(data)
 
-    def commit(self):
-        memcpy(&self.command[0, 0], &self.proposal[0, 0], 5 * self.n * sizeof(double))
-
-    def check(self):
-        """The manager's output check on the proposal; a target within the margin of a limit is clipped onto
-        it in place. Returns OK or what was found, with ``row`` and ``col`` saying where."""
-        cdef double[:, ::1] data = self.proposal
+    cdef int _check(self, double[:, ::1] data):
         cdef Py_ssize_t n = self.n, r, j, worst
-        cdef double value, target
+        cdef double value
         if n == 0:
             return OK
         for r in range(5):
@@ -74,27 +68,87 @@ cdef class OutputCheck:
                     worst = j
             if data[r, worst] < 0.0:
                 return self._found(NEGATIVE_GAIN, r, worst)
+        for r in range(1, 5):
+            for j in range(n):
+                value = data[r, j]
+                if (value if value >= 0.0 else -value) > self.maximum[r - 1, j]:
+                    return self._found(BEYOND, r, j)
         for j in range(n):
-            value = data[2, j]
-            if (value if value >= 0.0 else -value) > self.effort_limit[j]:
-                return self._found(EFFORT, 2, j)
-        for j in range(n):
-            if data[3, j] > 0.0 and data[0, j] < self.lower[j] - self.margin:
+            if data[0, j] < self.lower[j] - self.margin:
                 return self._found(BELOW, 0, j)
         for j in range(n):
-            if data[3, j] > 0.0 and data[0, j] > self.upper[j] + self.margin:
+            if data[0, j] > self.upper[j] + self.margin:
                 return self._found(ABOVE, 0, j)
         for j in range(n):
-            if data[3, j] > 0.0:
-                target = data[0, j]
-                data[0, j] = self.lower[j] if target < self.lower[j] else self.upper[j] if target > self.upper[j] \
-                    else target
+            value = data[0, j]
+            data[0, j] = self.lower[j] if value < self.lower[j] else self.upper[j] if value > self.upper[j] else value
         self.row = self.col = -1
         return OK
 
     cdef int _found(self, int kind, Py_ssize_t row, Py_ssize_t col):
         self.row, self.col = row, col
         return kind
+
+
+cdef class OutputCheck:
+    """The manager's per-tick handling of its proposal and command arrays (5 x n, C order): the proposal starts
+    as the last command, is checked against ``bounds`` and is committed into the command."""
+
+    cdef double[:, ::1] proposal, command
+    cdef CommandCheck bounds
+
+    def __init__(self, double[:, ::1] proposal not None, double[:, ::1] command not None,
+                 CommandCheck bounds not None):
+        cdef Py_ssize_t n = bounds.n
+        if proposal.shape[0] != 5 or proposal.shape[1] != n or command.shape[0] != 5 or command.shape[1] != n:
+            raise ValueError(f"proposal and command must both be 5 x {n}")
+        self.proposal, self.command, self.bounds = proposal, command, bounds
+
+    def propose(self):
+        """The proposal starts as the last command (a controller that skips a row leaves it as it was)."""
+        memcpy(&self.proposal[0, 0], &self.command[0, 0], 5 * self.bounds.n * sizeof(double))
+
+    def commit(self):
+        memcpy(&self.command[0, 0], &self.proposal[0, 0], 5 * self.bounds.n * sizeof(double))
+
+    def check(self):
+        """The bounds' check on the proposal (``CommandCheck.check``)."""
+        return self.bounds._check(self.proposal)
+
+
+cdef class Inbox:
+    """REMOTE's door, ``take(position, velocity, effort, stiffness, damping)``: the five rows of a message, of
+    any kind (lists, arrays of any dtype), checked against ``bounds`` and copied into the bound inbox (5 x n)
+    when they pass; the inbox is untouched otherwise. Returns OK or what was found (SHAPE: a row that is not n
+    numbers). A command arrives every tick, from the publisher's thread (DDS's on the robot): as NumPy calls
+    the same checks were about 15 us a message."""
+
+    cdef double[:, ::1] inbox, staged
+    cdef CommandCheck bounds
+
+    def __init__(self, double[:, ::1] inbox not None, CommandCheck bounds not None):
+        if inbox.shape[0] != 5 or inbox.shape[1] != bounds.n:
+            raise ValueError(f"the inbox must be 5 x {bounds.n}")
+        self.inbox, self.bounds = inbox, bounds
+        self.staged = np.zeros((5, bounds.n))
+
+    def take(self, position, velocity, effort, stiffness, damping):
+        cdef const double[::1] values
+        cdef Py_ssize_t r, n = self.bounds.n
+        cdef int found
+        for r, row in enumerate((position, velocity, effort, stiffness, damping)):
+            try:
+                values = _row(row)
+            except (TypeError, ValueError, BufferError):
+                return self.bounds._found(SHAPE, r, -1)
+            if values.shape[0] != n:
+                return self.bounds._found(SHAPE, r, -1)
+            if n:
+                memcpy(&self.staged[r, 0], &values[0], n * sizeof(double))
+        found = self.bounds._check(self.staged)
+        if found == OK and n:
+            memcpy(&self.inbox[0, 0], &self.staged[0, 0], 5 * n * sizeof(double))
+        return found
 
 
 cdef class Copy:
@@ -122,28 +176,37 @@ cdef class Copy:
 
 cdef class FollowMeasured:
     """ZERO_TORQUE's command, ``run(position, command)``: the position target follows the measured position
-    where that is finite (elsewhere it keeps the last target), and the other four rows are zero. Bound like
-    ``Copy``."""
+    where that is finite (elsewhere it keeps the last target), within the joint limits ``[lower, upper]`` (a
+    limp joint's target exerts no torque, and a measurement beyond a limit is no target to send), and the other
+    four rows are zero. Bound like ``Copy``."""
 
     cdef object _position, _command
-    cdef const double[::1] position
+    cdef const double[::1] position, lower, upper
     cdef double[:, ::1] command
+
+    def __init__(self, const double[::1] lower not None, const double[::1] upper not None):
+        if lower.shape[0] != upper.shape[0]:
+            raise ValueError("lower and upper limits differ in length")
+        self.lower, self.upper = lower, upper
 
     def run(self, position, command):
         if position is not self._position or command is not self._command:
             self._bind(position, command)
         cdef Py_ssize_t j, n = self.command.shape[1]
         cdef double[:, ::1] out = self.command
+        cdef double value
         for j in range(n):
-            if isfinite(self.position[j]):
-                out[0, j] = self.position[j]
+            value = self.position[j]
+            if isfinite(value):
+                out[0, j] = self.lower[j] if value < self.lower[j] else self.upper[j] if value > self.upper[j] \
+                    else value
             out[1, j] = out[2, j] = out[3, j] = out[4, j] = 0.0
 
     cdef _bind(self, position, command):
         cdef const double[::1] p = position
         cdef double[:, ::1] c = command
-        if c.shape[0] != 5 or p.shape[0] != c.shape[1]:
-            raise ValueError(f"need a 5 x {p.shape[0]} command for {p.shape[0]} positions")
+        if c.shape[0] != 5 or p.shape[0] != c.shape[1] or p.shape[0] != self.lower.shape[0]:
+            raise ValueError(f"need a 5 x {self.lower.shape[0]} command and as many positions")
         self.position, self.command = p, c
         self._position, self._command = position, command
 
@@ -175,64 +238,6 @@ cdef class Blend:
             raise ValueError(f"need a 5 x {s.shape[0]} command for {s.shape[0]} joints")
         self.start, self.delta, self.command = s, d, c
         self._start, self._delta, self._command = start, delta, command
-
-
-cdef class CommandCheck:
-    """REMOTE's check of an incoming command, ``take(position, velocity, effort, stiffness, damping)``: True after
-    copying the five rows into the bound inbox (5 x n) when every value is finite, no stiffness or damping is
-    negative, no effort is beyond its joint's limit and no stiff target lies outside ``[lower, upper]`` (stiff:
-    ``fixed_kp`` > 0 on the joints ``fixed`` marks, the message's stiffness elsewhere); False, the inbox
-    untouched, when any check fails or a row is not n numbers. A command arrives every tick, from the publisher's
-    thread (DDS's on the robot): as NumPy calls the same checks were about 15 us a message."""
-
-    cdef double[:, ::1] inbox
-    cdef const double[::1] lower, upper, effort_limit, fixed_kp
-    cdef const unsigned char[::1] fixed
-    cdef Py_ssize_t n
-
-    def __init__(self, double[:, ::1] inbox not None, const double[::1] lower not None,
-                 const double[::1] upper not None, const double[::1] effort_limit not None,
-                 const unsigned char[::1] fixed not None, const double[::1] fixed_kp not None):
-        cdef Py_ssize_t n = inbox.shape[1]
-        if inbox.shape[0] != 5:
-            raise ValueError(f"the inbox must be 5 x {n}")
-        if (lower.shape[0] != n or upper.shape[0] != n or effort_limit.shape[0] != n or fixed.shape[0] != n
-                or fixed_kp.shape[0] != n):
-            raise ValueError(f"the limits must have {n} joints")
-        self.inbox = inbox
-        self.lower, self.upper, self.effort_limit = lower, upper, effort_limit
-        self.fixed, self.fixed_kp = fixed, fixed_kp
-        self.n = n
-
-    def take(self, position, velocity, effort, stiffness, damping):
-        cdef const double[::1] p, v, e, s, d
-        cdef Py_ssize_t j, n = self.n
-        cdef double kp
-        try:
-            p = _row(position)
-            v = _row(velocity)
-            e = _row(effort)
-            s = _row(stiffness)
-            d = _row(damping)
-        except (TypeError, ValueError, BufferError):
-            return False
-        if p.shape[0] != n or v.shape[0] != n or e.shape[0] != n or s.shape[0] != n or d.shape[0] != n:
-            return False
-        for j in range(n):
-            if not (isfinite(p[j]) and isfinite(v[j]) and isfinite(e[j]) and isfinite(s[j]) and isfinite(d[j])):
-                return False
-            if s[j] < 0.0 or d[j] < 0.0 or (e[j] if e[j] >= 0.0 else -e[j]) > self.effort_limit[j]:
-                return False
-            kp = self.fixed_kp[j] if self.fixed[j] else s[j]
-            if kp > 0.0 and (p[j] < self.lower[j] or p[j] > self.upper[j]):
-                return False
-        if n:
-            memcpy(&self.inbox[0, 0], &p[0], n * sizeof(double))
-            memcpy(&self.inbox[1, 0], &v[0], n * sizeof(double))
-            memcpy(&self.inbox[2, 0], &e[0], n * sizeof(double))
-            memcpy(&self.inbox[3, 0], &s[0], n * sizeof(double))
-            memcpy(&self.inbox[4, 0], &d[0], n * sizeof(double))
-        return True
 
 
 cdef const double[::1] _row(values):

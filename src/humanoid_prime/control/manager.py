@@ -12,11 +12,9 @@
 - Telemetry: ``/control_mode`` on start and every switch; ``/safety_status`` (latched) whenever any
   component's, controller's or the manager's flags change.
 
-Output check (every tick): all five rows finite; stiffness and damping >= 0; |effort| <= the joint's
-effort limit; where stiffness > 0, the position target within the joint limits. A target up to
-``POSITION_MARGIN`` beyond a limit is clipped onto it; further out the command is rejected, because a
-target outside the limits is a fault of the controller, not something to correct silently. Where
-stiffness is 0 the target exerts no torque and is passed through unchecked.
+Output check (every tick): the command bounds of control/bounds.py, the same for every source. A target up to
+``POSITION_MARGIN`` beyond a limit is clipped onto it; further out, as for any other bound, the command is
+rejected, because a command out of bounds is a fault of the controller, not something to correct silently.
 """
 
 from __future__ import annotations
@@ -32,12 +30,13 @@ import numpy as np
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.control._tick import EFFORT, NEGATIVE_GAIN, NON_FINITE, OK, OutputCheck
+from humanoid_prime.control._tick import OK, OutputCheck
+from humanoid_prime.control.bounds import CommandBounds
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
-from humanoid_prime.control.interfaces import COMMAND_NAMES, POSITION_MARGIN, CommandArrays
+from humanoid_prime.control.interfaces import CommandArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
@@ -200,14 +199,10 @@ class ControllerManager:
         self._last_now: float | None = None
         self._fresh_schedule = False  # the next tick starts a run's schedule: no period to measure before it
         # The per-tick command handling and output check, compiled (control/_tick), bound to the proposal,
-        # the command and the limits.
-        self._names = robot.names
+        # the command and the bounds.
+        self.bounds = CommandBounds(robot)
         self._proposal = CommandArrays(robot.n)
-        self._lower = np.ascontiguousarray(robot.lower, dtype=np.float64)
-        self._upper = np.ascontiguousarray(robot.upper, dtype=np.float64)
-        self._effort_limit = np.ascontiguousarray(robot.effort_limit, dtype=np.float64)
-        self._output = OutputCheck(self._proposal.data, self.resources.command.data, self._lower, self._upper,
-                                   self._effort_limit, POSITION_MARGIN)
+        self._output = OutputCheck(self._proposal.data, self.resources.command.data, self.bounds.check)
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
@@ -480,27 +475,11 @@ class ControllerManager:
             controller.update(now, dt, self.resources.state, self._proposal)
         except Exception as exc:
             return f"{controller.name}: {_describe(exc)}"
-        problem = self._check()
-        return None if problem is None else f"{controller.name} {problem}"
-
-    def _check(self) -> str | None:
-        """The output check (module docstring) on the proposal, which clips targets within the margin in place;
-        what it found, in words."""
-        output = self._output
-        found = output.check()
+        found = self._output.check()  # the output check (module docstring), clipping within the margin in place
         if found == OK:
             return None
-        row, col = output.row, output.col
-        value, name = self._proposal.data[row, col], self._names[col]
-        if found == NON_FINITE:
-            return f"produced a non-finite {COMMAND_NAMES[row]} ({value}) for {name}"
-        if found == NEGATIVE_GAIN:
-            return f"produced a negative {COMMAND_NAMES[row]} ({value:.6g}) for {name}"
-        if found == EFFORT:
-            return (f"produced an effort of {value:.6g} Nm for {name}, beyond its limit of "
-                    f"{self._effort_limit[col]:g} Nm")
-        return (f"produced a position target of {value:.6g} rad for {name}, outside "
-                f"its limits [{self._lower[col]:g}, {self._upper[col]:g}]")
+        row, col = self.bounds.check.row, self.bounds.check.col
+        return f"{controller.name}: {self.bounds.refusal(found, row, col, self._proposal.data[row, col])}"
 
     def _publish_safety(self, now: float) -> None:
         change = SafetyFlags.last_change

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from doubles.sito import PERIOD, SITO_IDS, wait_until
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
+from humanoid_prime.config.hardware import CommandLimits
 from humanoid_prime.control.hardware import Lifecycle
 from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD, FrameType, position_to_counts
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.drivers.sito.system import SitoSystem
+from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.virtual.plant import InertiaPlant
 
 ONE_COUNT = 1.0 / COUNTS_PER_RAD
@@ -408,3 +411,14 @@ def test_above_what_the_bus_carries_commands_go_out_every_nth_tick_and_feedback_
     rig.sniffed()
     rig.tick()
     assert sum(1 for ident, _ in rig.host_frames() if ident & 0xFF == FrameType.COMMAND) == 4
+
+
+# --- the hardware file's limits against the wire ---------------------------------------------------------------
+
+def test_a_velocity_limit_the_int16_field_cannot_carry_is_refused_naming_the_key(robot):
+    limits = {**robot.hardware.command_limits, "sito": CommandLimits(stiffness=100.0, damping=10.0, velocity=3.5)}
+    fast = replace(robot, hardware=replace(robot.hardware, command_limits=limits))
+    with pytest.raises(ConfigError) as caught:
+        SitoSystem(fast, identity_calibration(fast.hardware), update_rate=50.0, bus=object())
+    assert caught.value.key == "command_limits.sito.velocity"
+    assert "3.5 rad/s is beyond what the Sito wire carries (3.1415 rad/s)" in caught.value.problem

@@ -18,7 +18,7 @@ from humanoid_prime.files import bundled
 
 __all__ = [
     "DampingController", "JointStateBroadcaster", "LocomotionController", "RemotePolicyController",
-    "StandbyController", "ZeroTorqueController", "build_controllers", "resolve_policy",
+    "StandbyController", "ZeroTorqueController", "build_controllers", "check_gains", "resolve_policy",
 ]
 
 
@@ -37,8 +37,35 @@ def resolve_policy(config: ControllersConfig) -> Path:
     return path
 
 
+def check_gains(robot: Robot, config: ControllersConfig) -> None:
+    """Every gain the controllers file sets is within the hardware file's maximum for the family it reaches
+    (``command_limits``), so a mode cannot be configured to command what every tick of it would be refused."""
+    both = ("erob", "sito")
+    params = [("damping_controller", "kd", config.damping_kd, both),
+              ("standby_controller", "kp", config.standby.kp, both),
+              ("standby_controller", "kd", config.standby.kd, both),
+              ("locomotion_controller", "erob_kp", config.locomotion.erob_kp, ("erob",)),
+              ("locomotion_controller", "erob_kd", config.locomotion.erob_kd, ("erob",)),
+              ("locomotion_controller", "sito_kp", config.locomotion.sito_kp, ("sito",)),
+              ("locomotion_controller", "sito_kd", config.locomotion.sito_kd, ("sito",)),
+              ("remote_policy_controller", "erob_kp", config.remote.erob_kp, ("erob",)),
+              ("remote_policy_controller", "erob_kd", config.remote.erob_kd, ("erob",)),
+              ("remote_policy_controller", "stale_kd", config.remote.stale_kd, ("sito",))]
+    present = {j.family for j in robot.joints}
+    for node, name, value, families in params:
+        interface = "stiffness" if name.endswith("kp") else "damping"
+        for family in (f for f in families if f in present):
+            limit = getattr(robot.hardware.command_limits[family], interface)
+            if value > limit:
+                raise ConfigError(config.path, f"{node}.ros__parameters.{name}",
+                                  f"{value:g} is beyond the {family} {interface} maximum of {limit:g} "
+                                  f"(command_limits.{family}.{interface} in {robot.hardware.path})",
+                                  f"use at most {limit:g}, or raise the maximum in the hardware file")
+
+
 def build_controllers(robot: Robot, config: ControllersConfig) -> dict[str, Controller]:
     """The broadcaster and the five mode controllers, in staged-start order."""
+    check_gains(robot, config)
     poses = {}
     for name, values in config.standby.poses.items():
         key = f"standby_controller.ros__parameters.poses.{name}"

@@ -1,5 +1,6 @@
 """DAMPING: the compliant fail-safe. Zero stiffness, per-joint damping (default 6 Nm*s/rad),
-position target held at the pose captured on entry."""
+position target held at the pose captured on entry (within the joint limits: with zero stiffness the target
+exerts no torque, and every target must be within them)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ class DampingController(Controller):
         if not np.all(np.isfinite(kd)) or np.any(kd < 0):
             raise ValueError(f"{self.name}: kd must be finite and >= 0 per joint, got {kd.tolist()}")
         self.names = robot.names
+        self._lower, self._upper = robot.lower, robot.upper
         # The whole command, written at activation: the captured pose, no velocity, effort or stiffness, kd.
         self._command = np.zeros((5, robot.n))
         self._command[4] = kd
@@ -33,6 +35,7 @@ class DampingController(Controller):
 
     def on_activate(self, state: StateArrays, now: float) -> None:
         capture_position(self.names, state, self.captured, "cannot capture the pose: ")
+        np.clip(self.captured, self._lower, self._upper, out=self.captured)
 
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
         self._copy.run(command.data, self._command)

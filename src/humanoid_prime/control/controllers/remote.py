@@ -7,10 +7,11 @@ import threading
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.control._tick import CommandCheck
+from humanoid_prime.control._tick import OK, SHAPE, Inbox
+from humanoid_prime.control.bounds import CommandBounds
 from humanoid_prime.control.controller import Controller, gain_rows
 from humanoid_prime.control.flags import Level
-from humanoid_prime.control.interfaces import COMMAND_NAMES, POSITION_MARGIN, CommandArrays, StateArrays
+from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays, StateArrays
 from humanoid_prime.control.topics import REMOTE_COMMAND, MitCommand, TopicBus
 from humanoid_prime.modes import Mode
 
@@ -19,10 +20,9 @@ class RemotePolicyController(Controller):
     """Applies the latest accepted ``MitCommand`` every tick.
 
     A message is rejected (counted in ``rejected``, flagged while REMOTE is active) unless ``joint_names`` is
-    exactly the canonical joint list, every array has one finite value per joint, no stiffness or damping is
-    negative, no effort exceeds its joint's limit and no stiff target (stiffness > 0; on eRob joints the mode's)
-    lies beyond its joint's limits by more than the output check's margin. A rejected message changes nothing:
-    the last accepted command (or the stale policy) goes on. Messages come from any thread (in-process, DDS).
+    exactly the canonical joint list, every array has one value per joint and the five rows are within the
+    command bounds (control/bounds.py, the manager's own). A rejected message changes nothing: the last accepted
+    command (or the stale policy) goes on. Messages come from any thread (in-process, DDS).
 
     The eRob entries of the incoming stiffness and damping are replaced by the mode's fixed eRob gains
     (``erob_kp``, ``erob_kd``): eRob impedance is written once per mode over SDO, so only the Sito wrists take
@@ -53,17 +53,14 @@ class RemotePolicyController(Controller):
 
     def on_configure(self, robot: Robot, topics: TopicBus) -> None:
         self.names = robot.names
-        self._lower = robot.lower - POSITION_MARGIN
-        self._upper = robot.upper + POSITION_MARGIN
-        self._effort_limit = robot.effort_limit
         self._erob = np.array([j.family == "erob" for j in robot.joints])
+        self._sito = ~self._erob
         # Stale-damp gains; their eRob entries are also the fixed mode gains applied to every message.
         self._damp_kp, self._damp_kd = gain_rows(robot, (self.erob_kp, self.erob_kd), (0.0, self.stale_kd))
         self._lock = threading.Lock()
         self._inbox = np.zeros((5, robot.n))
-        # _check's rules with no words built, compiled: a message arrives every tick.
-        self._take = CommandCheck(self._inbox, self._lower, self._upper, self._effort_limit,
-                                  self._erob.astype(np.uint8), self._damp_kp).take
+        self._bounds = CommandBounds(robot)  # the manager's bounds; a check of its own, used under the lock
+        self._take = Inbox(self._inbox, self._bounds.check).take
         self._current = np.zeros((5, robot.n))
         self._fresh = False
         self._has_command = False
@@ -73,53 +70,33 @@ class RemotePolicyController(Controller):
         topics.subscribe(self.topic, self._on_message)
 
     def _on_message(self, message: MitCommand) -> None:
+        rows = [getattr(message, name) for name in COMMAND_NAMES]
+        names = tuple(message.joint_names)
         with self._lock:
-            if tuple(message.joint_names) == self.names and self._take(
-                    message.position, message.velocity, message.effort, message.stiffness, message.damping):
+            found = self._take(*rows) if names == self.names else None
+            if found == OK:
                 self._fresh = True
                 self.accepted += 1
                 return
-        problem = self._check(message) or "refused by the command check"  # the two checks agree (tested)
-        with self._lock:
             self.rejected += 1
-            self.last_rejection = problem
+            self.last_rejection = self._refusal(names, rows, found)
 
-    def _check(self, message: MitCommand) -> str:
-        names = tuple(message.joint_names)
-        if names != self.names:
+    def _refusal(self, names: tuple[str, ...], rows: list[object], found: int | None) -> str:
+        """Why a message was refused: its joint names (``found`` None), the shape of a row, or the bound it
+        broke (where ``Inbox.take`` left ``row`` and ``col``)."""
+        if found is None:
             if len(names) != len(self.names):
                 return f"{len(names)} joint names, expected {len(self.names)} in canonical order"
             i = next(i for i, (got, want) in enumerate(zip(names, self.names, strict=True)) if got != want)
             return f"joint {i} is {names[i]!r}, expected {self.names[i]!r} (canonical order)"
-        rows = {}
-        for interface in COMMAND_NAMES:
+        row, col = self._bounds.check.row, self._bounds.check.col
+        if found == SHAPE:
             try:
-                values = np.asarray(getattr(message, interface), dtype=np.float64)
+                values = np.asarray(rows[row], dtype=np.float64)
             except (TypeError, ValueError) as exc:
-                return f"{interface} is not a list of numbers ({exc})"
-            if values.shape != (len(self.names),):
-                return f"{interface} has shape {values.shape}, expected ({len(self.names)},)"
-            bad = np.flatnonzero(~np.isfinite(values))
-            if bad.size:
-                return f"{interface} of {self.names[bad[0]]} is {values[bad[0]]}"
-            rows[interface] = values
-        for interface in ("stiffness", "damping"):
-            bad = np.flatnonzero(rows[interface] < 0.0)
-            if bad.size:
-                return f"{interface} of {self.names[bad[0]]} is negative ({rows[interface][bad[0]]:g})"
-        bad = np.flatnonzero(np.abs(rows["effort"]) > self._effort_limit)
-        if bad.size:
-            j = bad[0]
-            return (f"effort of {self.names[j]} is {rows['effort'][j]:g} Nm, beyond its limit of "
-                    f"{self._effort_limit[j]:g} Nm")
-        position = rows["position"]
-        stiff = np.where(self._erob, self._damp_kp, rows["stiffness"]) > 0.0  # eRob: the mode's stiffness applies
-        bad = np.flatnonzero(((position < self._lower) | (position > self._upper)) & stiff)
-        if bad.size:
-            j = bad[0]
-            return (f"position target of {self.names[j]} is {position[j]:g} rad, outside its limits "
-                    f"[{self._lower[j] + POSITION_MARGIN:g}, {self._upper[j] - POSITION_MARGIN:g}]")
-        return ""
+                return f"{COMMAND_NAMES[row]} is not a list of numbers ({exc})"
+            return f"{COMMAND_NAMES[row]} has shape {values.shape}, expected ({len(self.names)},)"
+        return self._bounds.refusal(found, row, col, float(np.asarray(rows[row], dtype=np.float64)[col]))
 
     def on_activate(self, state: StateArrays, now: float) -> None:
         with self._lock:
@@ -156,6 +133,8 @@ class RemotePolicyController(Controller):
                 self.clear_flag("stale")
         if stale and (self.stale_policy == "damp" or not self._has_command):
             np.copyto(command.position, state.position)
+            # a limp wrist measured beyond a limit gets its target on the limit (every target must be within)
+            np.clip(command.position, self._bounds.lower, self._bounds.upper, out=command.position, where=self._sito)
             command.data[1:3] = 0.0
             np.copyto(command.stiffness, self._damp_kp)
             np.copyto(command.damping, self._damp_kd)

@@ -1,85 +1,114 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, initializedcheck=False, cdivision=True
 """The Sito component's per-tick conversions, compiled: one call turns the latest feedback into joint state,
-one call turns the MIT command into the wire's big-endian payloads. As for the eRob (drivers/ethercat/_tick),
-the tick's cost had been Python's and NumPy's per-call overhead on four-element arrays.
+one call turns the MIT command into the wire's payloads. As for the eRob (drivers/ethercat/_tick), the tick's
+cost had been Python's and NumPy's per-call overhead on four-element arrays.
 
-Every array is the component's own, bound once; the frames themselves are sent by the component."""
+The wire format is protocol.py's and is not restated here: the packer is built from its payload layout (a dtype
+of big-endian fields) and its table of which field carries each command interface, with the scales the component
+derives from protocol's model constants and the calibration. The frames themselves are sent by the component."""
 
-from libc.limits cimport INT_MAX, INT_MIN, SHRT_MAX, SHRT_MIN
-from libc.math cimport isfinite, isnan, rint
-from libc.string cimport memcpy
+from libc.math cimport fabs, isfinite, isnan, rint
+from libc.string cimport memcmp, memcpy
 
+import numpy as np
 
-cdef inline double _clamp(double value, double low, double high) noexcept nogil:
-    return low if value < low else high if value > high else value
-
-
-cdef inline void _put16(unsigned char* at, double value) noexcept nogil:
-    cdef unsigned short word = <unsigned short><short>value
-    at[0], at[1] = word >> 8, word & 0xFF
+cdef enum:
+    _INVALID = 5
+INVALID = _INVALID  # the row of ``problems`` that says a motor's command was not usable; rows 0 to 4: that interface clamped
 
 
-cdef inline void _put32(unsigned char* at, unsigned int word) noexcept nogil:
-    at[0], at[1], at[2], at[3] = word >> 24, (word >> 16) & 0xFF, (word >> 8) & 0xFF, word & 0xFF
+cdef struct Field:
+    Py_ssize_t offset  # byte of the motor's payloads
+    int size  # bytes, big-endian: 2 or 4
+    bint real  # an IEEE 754 single, not a two's complement integer
+    double low, high  # what the field carries
 
 
-cdef inline void _put_float(unsigned char* at, double value) noexcept nogil:
-    cdef float single = <float>value
+cdef Field _field(payloads, str payload, str name) except *:
+    """Where ``payload``'s field ``name`` lies in a motor's payloads, and what it carries."""
+    cdef Field field
+    outer, base = payloads.fields[payload][:2]
+    kind, offset = outer.fields[name][:2]
+    if kind.byteorder != ">" or (kind.kind, kind.itemsize) not in (("i", 2), ("i", 4), ("f", 4)):
+        raise ValueError(f"{payload}.{name} is {kind.str}: the packer writes big-endian int16, int32 and float32")
+    limits = np.finfo(kind) if kind.kind == "f" else np.iinfo(kind)
+    field.offset, field.size, field.real = base + offset, kind.itemsize, kind.kind == "f"
+    field.low, field.high = float(limits.min), float(limits.max)
+    return field
+
+
+cdef inline void _put(unsigned char* at, Field field, double value) noexcept nogil:
+    cdef float single
     cdef unsigned int word
-    memcpy(&word, &single, 4)
-    _put32(at, word)
+    cdef int byte
+    if field.real:
+        single = <float>value
+        memcpy(&word, &single, 4)
+    elif field.size == 4:
+        word = <unsigned int><int>value
+    else:
+        word = <unsigned short><short>value
+    for byte in range(field.size):
+        at[field.offset + byte] = (word >> (8 * (field.size - 1 - byte))) & 0xFF
 
 
 cdef class SitoTick:
-    """Bound to one SitoSystem's arrays (motor order ``k``; ``index[k]`` is the joint in the robot's arrays).
-    Booleans are passed as uint8 views of the component's bool arrays. The payloads are protocol.COMMAND
-    (current mA, velocity counts/s, position counts) and protocol.GAINS (kp, kd as float32), big-endian."""
+    """Bound to one SitoSystem's feedback arrays (motor order ``k``; ``index[k]`` is the joint in the robot's
+    arrays). ``to_wire`` (5 x n) is wire units per joint-frame unit of each command interface (direction and
+    protocol scale), ``wire_bias`` (n) the position offset in counts; the state is read with their inverse.
 
+    It owns, as NumPy arrays: ``payloads`` (n motors' ``payload_dtype``), ``late`` and ``rx_raised`` (n),
+    ``problems`` and ``problems_raised`` (6 x n: rows 0 to 4 an interface sent clamped, row ``INVALID`` a command
+    not usable) and ``gains_due`` (n)."""
+
+    cdef Field fields[5]
+    cdef Py_ssize_t gains_offset, gains_size, n
     cdef const Py_ssize_t[::1] index
-    cdef const double[:, ::1] to_wire, wire_bias, from_wire, raw, stamp
-    cdef const double[::1] state_bias
-    cdef unsigned char[::1] late, rx_raised, gains_due
-    cdef unsigned char[:, ::1] problems, problems_raised, command_rows, gains_rows
-    cdef const unsigned long long[::1] gains_word
-    cdef const unsigned long long[::1] gains_sent
-    cdef const double[::1] gains_stamp
-    cdef double kp_divisor, kd_divisor
-    cdef Py_ssize_t n
+    cdef const double[:, ::1] to_wire, raw, stamp
+    cdef const double[::1] wire_bias
+    cdef double[:, ::1] from_wire
+    cdef unsigned char[:, ::1] wire, gains_sent
+    cdef unsigned char[::1] late_, rx_raised_, gains_due_
+    cdef unsigned char[:, ::1] problems_, problems_raised_
+    cdef double[::1] gains_stamp
+    cdef readonly object payloads, late, rx_raised, problems, problems_raised, gains_due
 
     def __init__(self, const Py_ssize_t[::1] index not None, const double[:, ::1] to_wire not None,
-                 const double[:, ::1] wire_bias not None, const double[:, ::1] from_wire not None,
-                 const double[::1] state_bias not None, const double[:, ::1] raw not None,
-                 const double[:, ::1] stamp not None, unsigned char[::1] late not None,
-                 unsigned char[::1] rx_raised not None, unsigned char[:, ::1] problems not None,
-                 unsigned char[:, ::1] problems_raised not None, unsigned char[:, ::1] command_rows not None,
-                 unsigned char[:, ::1] gains_rows not None, const unsigned long long[::1] gains_word not None,
-                 const unsigned long long[::1] gains_sent not None, const double[::1] gains_stamp not None,
-                 unsigned char[::1] gains_due not None, double kp_divisor, double kd_divisor):
-        cdef Py_ssize_t n = index.shape[0]
-        for name, rows, columns, want_rows, want_columns in (
-                ("to_wire", to_wire.shape[0], to_wire.shape[1], 3, n),
-                ("wire_bias", wire_bias.shape[0], wire_bias.shape[1], 3, n),
-                ("from_wire", from_wire.shape[0], from_wire.shape[1], 3, n),
-                ("raw", raw.shape[0], raw.shape[1], 3, n), ("stamp", stamp.shape[0], stamp.shape[1], 2, n),
-                ("problems", problems.shape[0], problems.shape[1], 3, n),
-                ("problems_raised", problems_raised.shape[0], problems_raised.shape[1], 3, n),
-                ("command_rows", command_rows.shape[0], command_rows.shape[1], n, 8),
-                ("gains_rows", gains_rows.shape[0], gains_rows.shape[1], n, 8)):
-            if rows != want_rows or columns != want_columns:
-                raise ValueError(f"{name} is {rows}x{columns}, expected {want_rows}x{want_columns}")
-        for name, length in (("state_bias", state_bias.shape[0]), ("late", late.shape[0]),
-                             ("rx_raised", rx_raised.shape[0]), ("gains_word", gains_word.shape[0]),
-                             ("gains_sent", gains_sent.shape[0]), ("gains_stamp", gains_stamp.shape[0]),
-                             ("gains_due", gains_due.shape[0])):
-            if length != n:
-                raise ValueError(f"{name} has {length} entries for {n} motors")
-        self.index, self.to_wire, self.wire_bias, self.from_wire = index, to_wire, wire_bias, from_wire
-        self.state_bias, self.raw, self.stamp, self.late, self.rx_raised = state_bias, raw, stamp, late, rx_raised
-        self.problems, self.problems_raised = problems, problems_raised
-        self.command_rows, self.gains_rows, self.gains_word = command_rows, gains_rows, gains_word
-        self.gains_sent, self.gains_stamp, self.gains_due = gains_sent, gains_stamp, gains_due
-        self.kp_divisor, self.kd_divisor = kp_divisor, kd_divisor
+                 const double[::1] wire_bias not None, const double[:, ::1] raw not None,
+                 const double[:, ::1] stamp not None, payload_dtype, tuple mit_fields):
+        cdef Py_ssize_t n = index.shape[0], r
+        for name, rows, columns, want in (("to_wire", to_wire.shape[0], to_wire.shape[1], 5),
+                                          ("raw", raw.shape[0], raw.shape[1], 3),
+                                          ("stamp", stamp.shape[0], stamp.shape[1], 2)):
+            if rows != want or columns != n:
+                raise ValueError(f"{name} is {rows}x{columns}, expected {want}x{n}")
+        if wire_bias.shape[0] != n:
+            raise ValueError(f"wire_bias has {wire_bias.shape[0]} entries for {n} motors")
+        if len(mit_fields) != 5 or mit_fields[3][0] != mit_fields[4][0]:
+            raise ValueError("mit_fields names the field of each of the five command interfaces, both gains in "
+                             "one payload")
+        for r in range(5):
+            payload, name = mit_fields[r]
+            self.fields[r] = _field(payload_dtype, payload, name)
+        gains, self.gains_offset = payload_dtype.fields[mit_fields[3][0]][:2]  # the payload the gains travel in
+        self.gains_size = gains.itemsize
+        self.index, self.to_wire, self.wire_bias, self.raw, self.stamp = index, to_wire, wire_bias, raw, stamp
+        self.from_wire = 1.0 / np.asarray(to_wire)[:3]
         self.n = n
+        self.payloads = np.zeros(n, dtype=payload_dtype)
+        self.wire = self.payloads.view(np.uint8).reshape(n, payload_dtype.itemsize)
+        self.gains_sent = np.zeros((n, self.gains_size), dtype=np.uint8)
+        self.gains_stamp = np.zeros(n)
+        self.late, self.rx_raised, self.gains_due = (np.zeros(n, dtype=bool) for _ in range(3))
+        self.problems, self.problems_raised = np.zeros((6, n), dtype=bool), np.zeros((6, n), dtype=bool)
+        self.late_, self.rx_raised_, self.gains_due_ = (a.view(np.uint8) for a in (self.late, self.rx_raised,
+                                                                                   self.gains_due))
+        self.problems_, self.problems_raised_ = self.problems.view(np.uint8), self.problems_raised.view(np.uint8)
+
+    def gains_sent_at(self, Py_ssize_t k, double now):
+        """Motor ``k``'s gains payload went out at ``now``: it is due again when it changes or goes stale."""
+        memcpy(&self.gains_sent[k, 0], &self.wire[k, self.gains_offset], self.gains_size)
+        self.gains_stamp[k] = now
 
     def read(self, double[:, ::1] state not None, double limit):
         """The latest feedback (``raw``: output position counts, velocity counts/s, phase current mA) into
@@ -91,54 +120,59 @@ cdef class SitoTick:
         cdef bint changed = False
         for k in range(self.n):
             j = self.index[k]
-            state[0, j] = self.raw[0, k] * self.from_wire[0, k] - self.state_bias[k]
+            state[0, j] = (self.raw[0, k] - self.wire_bias[k]) * self.from_wire[0, k]
             state[1, j] = self.raw[1, k] * self.from_wire[1, k]
             state[2, j] = self.raw[2, k] * self.from_wire[2, k]
             oldest = self.stamp[0, k] if self.stamp[0, k] < self.stamp[1, k] else self.stamp[1, k]
-            self.late[k] = oldest < limit
-            changed |= self.late[k] != self.rx_raised[k]
+            self.late_[k] = oldest < limit
+            changed |= self.late_[k] != self.rx_raised_[k]
         return changed
 
     def write(self, const double[:, ::1] command not None, double due_before):
         """The MIT command (rows position, velocity, effort, stiffness, damping; robot order) into the payloads.
 
-        A motor whose command is not usable (a value not finite, a negative gain) goes limp: zero gains, zero
-        effort. That is flagged as an invalid command unless it is "no command" (NaN position, everything else
-        zero). Velocity and effort are clamped to their INTEGER16 fields, and flagged where they were. A
-        motor's gains are due when they changed since last sent or were last sent at ``due_before`` or
-        earlier (``gains_due``). Returns whether ``problems`` (rows velocity clamped, effort clamped, invalid
-        command) differs from ``problems_raised``."""
-        cdef Py_ssize_t k, j
-        cdef double position, velocity, effort, kp, kd, wire, clamped
-        cdef bint changed = False
-        cdef unsigned char* row
+        A motor whose command is not usable (a value not finite, a negative gain, a gain its field cannot carry)
+        goes limp: zero gains, zero effort. That is flagged (row ``INVALID``) unless it is "no command" (NaN
+        position, everything else zero). An integer field saturates at its type's range, flagged in the row of
+        its interface. A motor's gains are due when they changed since last sent or were last sent at
+        ``due_before`` or earlier. Returns whether ``problems`` differs from ``problems_raised``."""
+        cdef Py_ssize_t k, j, r
+        cdef double value[5]
+        cdef double wire[5]
+        cdef double clamped
+        cdef bint usable, changed = False
+        cdef unsigned char* at
+        cdef Field field
         for k in range(self.n):
             j = self.index[k]
-            position, velocity, effort = command[0, j], command[1, j], command[2, j]
-            kp, kd = command[3, j], command[4, j]
-            if (isfinite(position) and isfinite(velocity) and isfinite(effort) and isfinite(kp) and isfinite(kd)
-                    and kp >= 0.0 and kd >= 0.0):
-                self.problems[2, k] = False
+            usable = command[3, j] >= 0.0 and command[4, j] >= 0.0
+            for r in range(5):
+                value[r] = command[r, j]
+                usable = usable and isfinite(value[r])
+                wire[r] = value[r] * self.to_wire[r, k]
+            wire[0] += self.wire_bias[k]
+            for r in range(5):
+                if self.fields[r].real and not fabs(wire[r]) <= self.fields[r].high:
+                    usable = False
+            if usable:
+                self.problems_[_INVALID, k] = False
             else:
-                self.problems[2, k] = not (isnan(position) and velocity == 0.0 and effort == 0.0
-                                           and kp == 0.0 and kd == 0.0)
-                position = velocity = effort = kp = kd = 0.0
-            row = &self.command_rows[k, 0]
-            wire = rint(effort * self.to_wire[2, k] + self.wire_bias[2, k])
-            clamped = _clamp(wire, SHRT_MIN, SHRT_MAX)
-            self.problems[1, k] = wire != clamped
-            _put16(row, clamped)
-            wire = rint(velocity * self.to_wire[1, k] + self.wire_bias[1, k])
-            clamped = _clamp(wire, SHRT_MIN, SHRT_MAX)
-            self.problems[0, k] = wire != clamped
-            _put16(row + 2, clamped)
-            wire = rint(position * self.to_wire[0, k] + self.wire_bias[0, k])
-            _put32(row + 4, <unsigned int><int>_clamp(wire, INT_MIN, INT_MAX))
-            row = &self.gains_rows[k, 0]
-            _put_float(row, kp / self.kp_divisor)
-            _put_float(row + 4, kd / self.kd_divisor)
-            self.gains_due[k] = self.gains_word[k] != self.gains_sent[k] or self.gains_stamp[k] <= due_before
-            changed |= (self.problems[0, k] != self.problems_raised[0, k]
-                        or self.problems[1, k] != self.problems_raised[1, k]
-                        or self.problems[2, k] != self.problems_raised[2, k])
+                self.problems_[_INVALID, k] = not (isnan(value[0]) and value[1] == 0.0 and value[2] == 0.0
+                                                  and value[3] == 0.0 and value[4] == 0.0)
+                for r in range(5):
+                    wire[r] = 0.0
+                wire[0] = self.wire_bias[k]
+            at = &self.wire[k, 0]
+            for r in range(5):
+                field = self.fields[r]
+                if not field.real:
+                    wire[r] = rint(wire[r])
+                    clamped = field.low if wire[r] < field.low else field.high if wire[r] > field.high else wire[r]
+                    self.problems_[r, k] = clamped != wire[r]
+                    wire[r] = clamped
+                _put(at, field, wire[r])
+            self.gains_due_[k] = (self.gains_stamp[k] <= due_before
+                                  or memcmp(&self.gains_sent[k, 0], at + self.gains_offset, self.gains_size) != 0)
+            for r in range(6):
+                changed |= self.problems_[r, k] != self.problems_raised_[r, k]
         return changed

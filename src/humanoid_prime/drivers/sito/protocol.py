@@ -25,12 +25,15 @@ DISABLE_PAYLOAD = b"\x55" * DATA_LENGTH
 INT16_MIN, INT16_MAX = -(2**15), 2**15 - 1
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
-# Payload layouts, each once: a struct for single frames and the same layout as a NumPy dtype for the
-# host's per-tick packing of all motors at once.
+# Payload layouts, each once: a NumPy dtype, and from it a struct for single frames. The host's per-tick packer
+# (_tick.SitoTick) is built from HOST_PAYLOADS and MIT_FIELDS: which field carries each MIT command interface.
 COMMAND_DTYPE = np.dtype([("current", ">i2"), ("velocity", ">i2"), ("position", ">i4")])  # mA, counts/s, counts
 GAINS_DTYPE = np.dtype([("kp", ">f4"), ("kd", ">f4")])  # firmware units
 COMMAND = struct.Struct(">" + "".join(COMMAND_DTYPE[f].char for f in COMMAND_DTYPE.names))
 GAINS = struct.Struct(">" + "".join(GAINS_DTYPE[f].char for f in GAINS_DTYPE.names))
+HOST_PAYLOADS = np.dtype([("command", COMMAND_DTYPE), ("gains", GAINS_DTYPE)])  # one motor's, side by side
+MIT_FIELDS = (("command", "position"), ("command", "velocity"), ("command", "current"), ("gains", "kp"),
+              ("gains", "kd"))  # position, velocity, effort, stiffness, damping
 ENABLE = struct.Struct(">BBBB4x")  # mode, feedback-1/2/3 interval ms
 # 0xB1: voltage, pwm, phase current mA, velocity counts/s, as the peer's older Python and C++ drivers read it.
 # Its newest (Rust) driver reads the phase current from bytes 2-3 (our pwm) instead, with no reason given
@@ -131,6 +134,21 @@ def torque_to_current_mA(torque: float, model: SitoModel) -> tuple[int, bool]:
 
 def current_mA_to_torque(current_mA: float, model: SitoModel) -> float:
     return current_mA * model.nm_per_mA
+
+
+def wire_scales(model: SitoModel) -> np.ndarray:
+    """Wire units per SI unit of each MIT command interface, in ``MIT_FIELDS`` order: counts per rad, counts/s per
+    rad/s, mA per Nm, firmware Kp per Nm/rad and firmware Kd per Nm*s/rad (the state's position, velocity and
+    effort use the first three)."""
+    return np.array([COUNTS_PER_RAD, COUNTS_PER_RAD, 1.0 / model.nm_per_mA, 1.0 / model.kp_divisor,
+                     1.0 / model.kd_divisor])
+
+
+def field_range(payload: str, field: str) -> tuple[float, float]:
+    """The smallest and largest value a field of a host payload carries."""
+    kind = HOST_PAYLOADS[payload][field]
+    limits = np.finfo(kind) if kind.kind == "f" else np.iinfo(kind)
+    return float(limits.min), float(limits.max)
 
 
 def kp_to_firmware(kp: float, model: SitoModel) -> float:

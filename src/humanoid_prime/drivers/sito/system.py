@@ -41,29 +41,29 @@ from humanoid_prime.config.description import SITO_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.hardware import HardwareComponent
-from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.drivers.sito._tick import SitoTick
+from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays, StateArrays
+from humanoid_prime.drivers.sito._tick import INVALID, SitoTick
 from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF, bus_cycle, is_interface_down, open_bus
 from humanoid_prime.drivers.sito.protocol import (
-    COMMAND_DTYPE,
-    COUNTS_PER_RAD,
     DATA_LENGTH,
     DISABLE_PAYLOAD,
     ENABLE,
     FEEDBACK1,
     FEEDBACK2,
-    GAINS_DTYPE,
     HOST_FRAME_TYPES,
+    HOST_PAYLOADS,
     ID_PREFIX,
     ID_PREFIX_MASK,
-    INT16_MAX,
+    MIT_FIELDS,
     MODE_MIT,
     UNDECODED_FEEDBACK_TYPES,
     FrameType,
     arbitration_id,
+    field_range,
     sito_model,
+    wire_scales,
 )
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.errors import ConfigError, PrimeError
 
 _HOST_TYPES = frozenset(int(t) for t in HOST_FRAME_TYPES)
 _FEEDBACK1 = int(FrameType.FEEDBACK1)
@@ -71,6 +71,7 @@ _FEEDBACK2 = int(FrameType.FEEDBACK2)
 _UNDECODED = frozenset(int(t) for t in UNDECODED_FEEDBACK_TYPES)
 _LIFECYCLE_SEND_TIMEOUT_S = 0.02  # gains, enable, disable may wait for queue space; per-tick frames never do
 _NOTIFIER_POLL_S = 0.05  # how long stop() can wait for the receive thread
+_UNITS = ("rad", "rad/s", "Nm", "Nm/rad", "Nm*s/rad")  # of each command interface
 
 
 class _FeedbackReceiver(can.Listener):
@@ -180,95 +181,39 @@ class SitoSystem(HardwareComponent):
                              f"{self.feedback_ms} ms feedback interval at {update_rate} Hz")
         if not gain_refresh_s > 0:
             raise PrimeError(f"{SITO_BLOCK}: gain_refresh_s must be positive, got {gain_refresh_s}")
+        self._scales = wire_scales(self.model)
+        _check_command_limits(robot, self._scales)
         self.channel = channel or robot.hardware.can.channel
         self.rx_timeout_s = rx_timeout_ms / 1000.0
         self.gain_refresh_s = gain_refresh_s
-        self._interface = interface
-        self._bus = bus
-        self._owns_bus = bus is None
-        self._clock = clock
+        self._interface, self._bus, self._owns_bus, self._clock = interface, bus, bus is None, clock
         self._notifier: can.Notifier | None = None
         self._rx = _FeedbackReceiver(self.can_ids, clock)
-        self.frames_sent = 0
-        self.send_failures = 0
-
-        n = len(joints)
-        direction = calibration.direction_array(joints)
-        self._direction = direction
-        self._offset = calibration.offset_array(joints)
-        # joint frame -> wire: rows position counts, velocity counts/s, ff current mA
-        self._to_wire = np.stack([direction * COUNTS_PER_RAD, direction * COUNTS_PER_RAD,
-                                  direction / self.model.nm_per_mA])
-        self._wire_bias = np.stack([self._offset * COUNTS_PER_RAD, np.zeros(n), np.zeros(n)])
-        # wire -> joint frame: rows position, velocity, effort (position also subtracts direction * offset)
-        self._from_wire = np.stack([direction / COUNTS_PER_RAD, direction / COUNTS_PER_RAD,
-                                    direction * self.model.nm_per_mA])
-        self._state_bias = direction * self._offset
-
-        # Hot-path buffers.
-        self._late = np.zeros(n, dtype=bool)
+        self.frames_sent = self.send_failures = 0
         self._ticks_to_send = 0  # ticks until the next bus cycle's commands (0: this one)
         self._listening_since: float | None = None  # clock() of the first read since activation
-        self._command_payload = np.zeros(n, dtype=COMMAND_DTYPE)
-        self._gains_payload = np.zeros(n, dtype=GAINS_DTYPE)
-        self._gains_word = self._gains_payload.view(np.uint64)  # one word per motor: compare gains bitwise
-        self._gains_sent = np.zeros(n, dtype=np.uint64)
-        self._gains_stamp = np.zeros(n)
-        self._gains_due = np.zeros(n, dtype=bool)
-        command_rows = self._command_payload.view(np.uint8).reshape(n, DATA_LENGTH)
-        gains_rows = self._gains_payload.view(np.uint8).reshape(n, DATA_LENGTH)
-        self._command_bytes = [memoryview(command_rows[i]) for i in range(n)]
-        self._gains_bytes = [memoryview(gains_rows[i]) for i in range(n)]
-        self._command_msgs = [self._message(i, FrameType.COMMAND, bytes(DATA_LENGTH)) for i in range(n)]
-        self._gains_msgs = [self._message(i, FrameType.GAINS, bytes(DATA_LENGTH)) for i in range(n)]
-        enable = ENABLE.pack(MODE_MIT, self.feedback_ms, self.feedback_ms, 0)
-        self._enable_msgs = [self._message(i, FrameType.ENABLE, enable) for i in range(n)]
-        self._disable_msgs = [self._message(i, FrameType.DISABLE, DISABLE_PAYLOAD) for i in range(n)]
-        # Per-motor command problems, rows: velocity clamped, effort clamped, invalid command.
-        self._problems = np.zeros((3, n), dtype=bool)
-        self._problems_raised = np.zeros((3, n), dtype=bool)
-        self._rx_raised = np.zeros(n, dtype=bool)
-        # the compiled read and write (``_tick.pyx``), bound to the arrays above
-        u8 = np.uint8
-        self._tick = SitoTick(self.indices, self._to_wire, self._wire_bias, self._from_wire, self._state_bias,
-                              self._rx.raw, self._rx.stamp, self._late.view(u8), self._rx_raised.view(u8),
-                              self._problems.view(u8), self._problems_raised.view(u8), command_rows, gains_rows,
-                              self._gains_word, self._gains_sent, self._gains_stamp, self._gains_due.view(u8),
-                              self.model.kp_divisor, self.model.kd_divisor)
+        self._tx_down_error, self._tx_failed = "", False
 
-        # Flags: keys and texts built once; per tick only the raised/cleared state is compared.
-        ch = self.channel
-        who = [f"{j} (CAN id {i})" for j, i in zip(joints, self.can_ids, strict=True)]
-        self._rx_keys = [f"{ch}/rx_timeout/{i}" for i in self.can_ids]
-        self._rx_texts = [f"{w} on {ch}: no feedback for more than {rx_timeout_ms:g} ms; "
-                          "check the motor's power and its CAN cable" for w in who]
-        self._velocity_keys = [f"{ch}/velocity_clamped/{i}" for i in self.can_ids]
-        self._velocity_texts = [f"{w}: commanded velocity beyond the int16 wire range "
-                                f"(±{INT16_MAX / COUNTS_PER_RAD:.2f} rad/s); sent clamped" for w in who]
-        self._effort_keys = [f"{ch}/effort_clamped/{i}" for i in self.can_ids]
-        self._effort_texts = [f"{w}: commanded effort beyond the int16 current range "
-                              f"(±{INT16_MAX * self.model.nm_per_mA:.1f} Nm); sent clamped" for w in who]
-        self._command_keys = [f"{ch}/invalid_command/{i}" for i in self.can_ids]
-        self._command_texts = [f"{w}: non-finite or negative-gain command; sent limp (zero gains and effort)"
-                               for w in who]
-        self._bus_off_key = f"{ch}/bus_off"
-        self._bus_off_text = (f"{ch}: CAN controller is bus-off (too many transmit errors); check wiring and "
-                              "termination, then re-activate the wrists")
-        self._down_key = f"{ch}/interface_down"
-        self._tx_key = f"{ch}/tx_overrun"
-        self._tx_text = (f"{ch}: transmit queue full (ENOBUFS): no node acknowledges our frames; "
-                         "usually the Sito motors' power is off")
-        self._invalid_key = f"{ch}/invalid_frame"
-        self._invalid_text = (f"{ch}: frames that break the Sito protocol (wrong length or unknown type) were "
-                              "dropped; look for a foreign device or a wiring fault")
-        self._problem_flags = ((self._velocity_keys, self._velocity_texts), (self._effort_keys, self._effort_texts),
-                               (self._command_keys, self._command_texts))
-        self._tx_down_error = ""
-        self._tx_failed = False
+        # The compiled read and write (``_tick.pyx``), packing by protocol's layout with protocol's scales, signed
+        # by each joint's direction (gains carry none), the homing offset as a position bias in counts.
+        sign = np.ones((5, len(joints)))
+        sign[:3] = calibration.direction_array(joints)
+        self._tick = SitoTick(self.indices, self._scales[:, None] * sign,
+                              calibration.offset_array(joints) * self._scales[0], self._rx.raw, self._rx.stamp,
+                              HOST_PAYLOADS, MIT_FIELDS)
+        self._command_bytes = _payload_bytes(self._tick.payloads, "command")
+        self._gains_bytes = _payload_bytes(self._tick.payloads, "gains")
+        self._command_msgs = self._messages(FrameType.COMMAND, bytes(DATA_LENGTH))
+        self._gains_msgs = self._messages(FrameType.GAINS, bytes(DATA_LENGTH))
+        enable = ENABLE.pack(MODE_MIT, self.feedback_ms, self.feedback_ms, 0)  # feedback 1 and 2 every bus cycle
+        self._enable_msgs = self._messages(FrameType.ENABLE, enable)
+        self._disable_msgs = self._messages(FrameType.DISABLE, DISABLE_PAYLOAD)
+        self._bus_flags = _bus_flags(self.channel, robot.hardware.can.bitrate)
 
-    def _message(self, slot: int, frame_type: FrameType, data: bytes) -> can.Message:
-        return can.Message(arbitration_id=arbitration_id(self.can_ids[slot], frame_type), is_extended_id=True,
-                           data=bytearray(data))
+    def _messages(self, frame_type: FrameType, data: bytes) -> list[can.Message]:
+        """One frame of ``frame_type`` to each motor, carrying ``data`` until it is overwritten."""
+        return [can.Message(arbitration_id=arbitration_id(can_id, frame_type), is_extended_id=True,
+                            data=bytearray(data)) for can_id in self.can_ids]
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -298,8 +243,8 @@ class SitoSystem(HardwareComponent):
             self._bus = open_bus(self.robot.hardware, interface=self._interface, channel=self.channel)
 
     def on_activate(self) -> None:
-        for key in (self._bus_off_key, self._down_key):
-            self.clear_flag(key)
+        for problem in ("bus_off", "interface_down"):
+            self.clear_flag(self._bus_flags[problem][0])
         self._tx_down_error = ""
         self._listening_since = None
         self._ticks_to_send = 0
@@ -308,12 +253,11 @@ class SitoSystem(HardwareComponent):
         _EXIT_GUARD.add(self)
         try:
             now = self._clock()
-            self._gains_payload[:] = 0  # activation gains are zero: the wrists start limp
-            self._gains_sent[:] = self._gains_word
-            self._gains_stamp[:] = now
+            self._tick.payloads["gains"] = 0  # activation gains are zero: the wrists start limp
             for i in range(len(self.can_ids)):
                 self._gains_msgs[i].data[:] = self._gains_bytes[i]
                 self._send_or_raise(self._gains_msgs[i], i, "gains")
+                self._tick.gains_sent_at(i, now)
             for i in range(len(self.can_ids)):
                 self._send_or_raise(self._enable_msgs[i], i, "enable")
             self._wait_for_feedback()
@@ -376,26 +320,26 @@ class SitoSystem(HardwareComponent):
     # --- per tick --------------------------------------------------------------------------------------
 
     def read(self, now: float, state: StateArrays) -> None:
-        rx = self._rx
+        rx, tick = self._rx, self._tick
         clock_now = self._clock()
         limit = clock_now - self.rx_timeout_s
         since = self._listening_since
         if since is None:
             since = self._listening_since = clock_now
         with rx.lock:  # no wrist is late before the RX timeout has run from the first read (module docstring)
-            rx_changed = self._tick.read(state.data, limit if limit > since else -math.inf)
+            rx_changed = tick.read(state.data, limit if limit > since else -math.inf)
         if rx_changed:
-            for i in np.flatnonzero(self._late != self._rx_raised):
-                self._flag(bool(self._late[i]), self._rx_keys[i], self._rx_texts[i], Level.ERROR)
-            np.copyto(self._rx_raised, self._late)
-        self._flag(rx.last_invalid_stamp >= limit, self._invalid_key, self._invalid_text, Level.WARN)
+            for i in np.flatnonzero(tick.late != tick.rx_raised):
+                self._motor_flag(bool(tick.late[i]), "rx_timeout", i, Level.ERROR)
+            np.copyto(tick.rx_raised, tick.late)
+        self._flag(rx.last_invalid_stamp >= limit, "invalid_frame", Level.WARN)
         if rx.bus_off:
-            self.set_flag(self._bus_off_key, self._bus_off_text)
+            self._flag(True, "bus_off", Level.ERROR)
         down = rx.down_error or self._tx_down_error
-        if down and self._down_key not in self.flags:
-            self.set_flag(self._down_key, f"{self.channel}: CAN interface is down or gone ({down}); bring it up "
-                                          f"(ip link set {self.channel} up type can bitrate "
-                                          f"{self.robot.hardware.can.bitrate}) and re-activate the wrists")
+        if down:
+            key, text = self._bus_flags["interface_down"]
+            if key not in self.flags:
+                self.set_flag(key, text.format(down=down))
 
     def write(self, now: float, command: CommandArrays) -> None:
         if self._ticks_to_send:  # between bus cycles (control faster than the bus carries, module docstring)
@@ -404,18 +348,18 @@ class SitoSystem(HardwareComponent):
             return
         self._ticks_to_send = self.io_every - 1
         clock_now = self._clock()
+        tick = self._tick
         # the payloads, which gains are due, and the command's problems (see SitoTick.write)
-        problems_changed = self._tick.write(command.data, clock_now - self.gain_refresh_s)
+        problems_changed = tick.write(command.data, clock_now - self.gain_refresh_s)
         bus = self._bus
         failed = False
         began = time.perf_counter()  # the sends are this component's bus I/O (``io_s``)
         for i in range(len(self.can_ids)):
-            if self._gains_due[i]:
+            if tick.gains_due[i]:
                 msg = self._gains_msgs[i]
                 msg.data[:] = self._gains_bytes[i]
                 if self._send(bus, msg):
-                    self._gains_sent[i] = self._gains_word[i]
-                    self._gains_stamp[i] = clock_now
+                    tick.gains_sent_at(i, clock_now)
                 else:
                     failed = True
             msg = self._command_msgs[i]
@@ -426,13 +370,12 @@ class SitoSystem(HardwareComponent):
 
         if failed != self._tx_failed:
             self._tx_failed = failed
-            self._flag(failed and not self._tx_down_error, self._tx_key, self._tx_text, Level.WARN)
+            self._flag(failed and not self._tx_down_error, "tx_overrun", Level.WARN)
         if problems_changed:
-            problems = self._problems
-            for row, i in zip(*np.nonzero(problems != self._problems_raised), strict=True):
-                keys, texts = self._problem_flags[row]
-                self._flag(bool(problems[row, i]), keys[i], texts[i], Level.WARN)
-            np.copyto(self._problems_raised, problems)
+            for row, i in zip(*np.nonzero(tick.problems != tick.problems_raised), strict=True):
+                problem = "invalid_command" if row == INVALID else f"{COMMAND_NAMES[row]}_clamped"
+                self._motor_flag(bool(tick.problems[row, i]), problem, i, Level.WARN)
+            np.copyto(tick.problems_raised, tick.problems)
 
     def _send(self, bus: can.BusABC, msg: can.Message) -> bool:
         try:
@@ -445,11 +388,66 @@ class SitoSystem(HardwareComponent):
         self.frames_sent += 1
         return True
 
-    def _flag(self, raised: bool, key: str, text: str, level: Level) -> None:
+    def _flag(self, raised: bool, problem: str, level: Level) -> None:
+        """Raise or clear the transport flag ``<channel>/<problem>``."""
+        key, text = self._bus_flags[problem]
         if raised:
             self.set_flag(key, text, level)
         else:
             self.clear_flag(key)
+
+    def _motor_flag(self, raised: bool, problem: str, slot: int, level: Level) -> None:
+        """Raise or clear ``<channel>/<problem>/<CAN id>``; its words are only needed, and built, when raised."""
+        can_id = self.can_ids[slot]
+        key = f"{self.channel}/{problem}/{can_id}"
+        if not raised:
+            self.clear_flag(key)
+            return
+        who = f"{self.joints[slot]} (CAN id {can_id})"
+        if problem == "rx_timeout":
+            text = (f"{who} on {self.channel}: no feedback for more than {self.rx_timeout_s * 1000:g} ms; check the "
+                    "motor's power and its CAN cable")
+        elif problem == "invalid_command":
+            text = f"{who}: non-finite, negative-gain or unrepresentable command; sent limp (zero gains and effort)"
+        else:
+            row = COMMAND_NAMES.index(problem.removesuffix("_clamped"))
+            payload, field = MIT_FIELDS[row]
+            reach = field_range(payload, field)[1] / self._scales[row]
+            text = (f"{who}: commanded {COMMAND_NAMES[row]} beyond the {HOST_PAYLOADS[payload][field].name} wire "
+                    f"range (±{reach:.3g} {_UNITS[row]}); sent clamped")
+        self.set_flag(key, text, level)
+
+
+def _payload_bytes(payloads: np.ndarray, name: str) -> list[memoryview]:
+    """Each motor's ``name`` payload as bytes: views of what the compiled write fills in place."""
+    return [memoryview(payloads[name][k:k + 1].view(np.uint8)) for k in range(len(payloads))]
+
+
+def _bus_flags(channel: str, bitrate: int) -> dict[str, tuple[str, str]]:
+    """The key and text of each transport flag of ``channel`` (``interface_down``'s text is a format)."""
+    texts = {
+        "bus_off": f"{channel}: CAN controller is bus-off (too many transmit errors); check wiring and termination, "
+                   "then re-activate the wrists",
+        "interface_down": f"{channel}: CAN interface is down or gone ({{down}}); bring it up (ip link set {channel} "
+                          f"up type can bitrate {bitrate}) and re-activate the wrists",
+        "tx_overrun": f"{channel}: transmit queue full (ENOBUFS): no node acknowledges our frames; usually the Sito "
+                      "motors' power is off",
+        "invalid_frame": f"{channel}: frames that break the Sito protocol (wrong length or unknown type) were "
+                         "dropped; look for a foreign device or a wiring fault",
+    }
+    return {problem: (f"{channel}/{problem}", text) for problem, text in texts.items()}
+
+
+def _check_command_limits(robot: Robot, scales: np.ndarray) -> None:
+    """The hardware file's Sito command limits must fit the wire: a velocity its int16 field carries, gains the
+    firmware's float32 fields carry."""
+    limits = robot.hardware.command_limits["sito"]
+    for row, name in ((1, "velocity"), (3, "stiffness"), (4, "damping")):
+        reach = field_range(*MIT_FIELDS[row])[1] / scales[row]
+        if getattr(limits, name) > reach:
+            raise ConfigError(robot.hardware.path, f"command_limits.sito.{name}",
+                              f"{getattr(limits, name):g} {_UNITS[row]} is beyond what the Sito wire carries "
+                              f"({reach:.6g} {_UNITS[row]})", f"use at most {math.floor(reach * 100) / 100:g}")
 
 
 class _ExitGuard:

@@ -106,9 +106,10 @@ HARDWARE_CASES = [
      "joints.erob_gear.left_elbow_pitch", "positive finite number"),
     ("efficiency zero", lambda d: d.update(torque_efficiency=0.0), "torque_efficiency", "positive finite number"),
     ("efficiency above one", lambda d: d.update(torque_efficiency=1.4), "torque_efficiency", "above 1"),
-    ("no command limits", lambda d: drop(d, "command_limits"), "command_limits", "missing or not a mapping"),
-    ("no Sito command limits", lambda d: drop(d["command_limits"], "sito"), "command_limits.sito",
-     "missing or not a mapping"),
+    ("command limits not a mapping", lambda d: d.update(command_limits=[1, 2]), "command_limits",
+     "expected a mapping"),
+    ("a family that is not Prime's", lambda d: d["command_limits"].update(hydraulic={}),
+     "command_limits.hydraulic", "unknown key"),
     ("negative stiffness maximum", lambda d: d["command_limits"]["erob"].update(stiffness=-1.0),
      "command_limits.erob.stiffness", "positive finite number"),
 ]

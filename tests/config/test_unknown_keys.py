@@ -85,3 +85,13 @@ def test_sim_and_bringup_refuse_the_same_update_rate(tmp_path, capsys, command):
     assert main([*command, "--controllers", str(path)]) == 1
     err = capsys.readouterr().err
     assert "controller_manager.ros__parameters.update_rate: must be <= 2000, got 5000" in err
+
+
+def test_a_robots_hardware_file_written_before_command_limits_existed_loads_with_the_templates(tmp_path):
+    def drop_limits(d):
+        del d["command_limits"]["sito"]["damping"]
+        del d["command_limits"]["erob"]
+
+    hardware = load_hardware(written(tmp_path, "prime_hardware.yaml", drop_limits))
+    template = load_hardware()
+    assert hardware.command_limits == template.command_limits

@@ -1,5 +1,5 @@
-"""Prime and a policy sender in separate processes over DDS: ``prime sim --dds`` in one, ``prime remote`` in
-another. The arm follows the wave; when the sender dies, REMOTE goes stale and damps."""
+"""Prime and a policy sender in separate processes over DDS: ``prime sim --dds --dds-control`` in one,
+``prime remote`` in another. The arm follows the wave; when the sender dies, REMOTE goes stale and damps."""
 
 from __future__ import annotations
 
@@ -23,10 +23,10 @@ PRIME = [sys.executable, "-m", "humanoid_prime"]
 
 @pytest.fixture
 def sim(domain, tmp_path):
-    """``prime sim --dds`` in DAMPING until the test ends it with Ctrl-C; yields its summary's path."""
+    """``prime sim --dds --dds-control`` in DAMPING until the test ends it with Ctrl-C; yields its summary's path."""
     summary = tmp_path / "sim.json"
-    process = popen([*PRIME, "sim", "--dds", "--mode", "DAMPING", "--duration", "300", "--summary", str(summary)],
-                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    process = popen([*PRIME, "sim", "--dds", "--dds-control", "--mode", "DAMPING", "--duration", "300", "--summary",
+                     str(summary)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     yield process, summary
     stop(process)
 

@@ -14,6 +14,11 @@ PRIME = [sys.executable, "-m", "humanoid_prime"]
 
 @pytest.mark.parametrize(("args", "env", "says"), [
     (["sim", "--domain", "3"], {}, "prime sim: --domain needs --dds"),
+    (["sim", "--dds-control"], {}, "prime sim: --dds-control needs --dds"),
+    (["bringup", "--namespace", "left"], {}, "prime bringup: --namespace needs --dds"),
+    (["sim", "--dds", "--namespace", "left/9arm"], {}, "--namespace 'left/9arm': '9arm' is not a ROS 2 name"),
+    (["sim", "--dds"], {"ROS_AUTOMATIC_DISCOVERY_RANGE": "MOON"},
+     "prime sim: ROS_AUTOMATIC_DISCOVERY_RANGE='MOON' is not one of SUBNET, LOCALHOST, OFF, SYSTEM_DEFAULT"),
     (["sim", "--dds", "--domain", "999"], {}, "--domain: must be in 0..232, got 999"),
     (["bringup", "--dds", "--domain", "-1"], {}, "--domain"),
     (["sim", "--dds"], {"ROS_DOMAIN_ID": "abc"}, "prime sim: ROS_DOMAIN_ID='abc' is not a domain id"),

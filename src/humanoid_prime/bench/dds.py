@@ -1,11 +1,14 @@
 """DDS and recording on the control loop (DESIGN §6): the simulated Prime in STANDBY, paced at 50 Hz and at 1 kHz, once
-without and once with ``--dds``, and a subscriber in another process measuring how late each joint state
-arrives.
+without ``--dds``, once with only the tick tap (the hand-off to the publisher thread, nothing published: the
+floor of what any publishing adds to the tick) and once with the whole node as ``prime sim --dds`` runs it
+(joint states, /tf, /clock, /diagnostics every tick or second), with a subscriber in another process
+measuring how late each joint state arrives.
 
-Figures: the tick (read + update + write, our CPU) with and without the bridge and the difference of the
-medians (the added tick cost, target <= 30 us); overruns; joint states published per second against the loop
-rate, dropped and late; the latency from the tick to the subscriber (the loop clock is CLOCK_MONOTONIC, shared
-by every process on the machine). The physical floor of the latency is a loopback UDP round trip, tens of us.
+Figures: the tick (read + update + write, our CPU) in each run and the difference of the medians (the added
+tick cost, target <= 30 us, beside the tap's own); overruns; joint states published per second against the
+loop rate, dropped and late; the latency from the tick to the subscriber (the loop clock is CLOCK_MONOTONIC,
+shared by every process on the machine). The physical floor of the latency is a loopback UDP round trip, tens
+of us.
 """
 
 from __future__ import annotations
@@ -29,7 +32,17 @@ BENCH_DOMAIN = 231  # away from the usual ROS 2 domains, so a benchmark does not
 RATES_HZ = (50.0, 1000.0)
 
 
-def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None) -> dict[str, Any]:
+class _Nothing:
+    """A tap consumer that publishes nothing: what handing each tick over costs by itself."""
+
+    def on_tick(self, sample: Any) -> None: ...
+    def on_mode(self, message: Any) -> None: ...
+    def on_safety(self, message: Any) -> None: ...
+    def on_remote(self, message: Any) -> None: ...
+
+
+def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None,
+         tap_only: bool = False) -> dict[str, Any]:
     from humanoid_prime.config.calibration import identity_calibration
     from humanoid_prime.config.description import MUJOCO_BLOCK
     from humanoid_prime.sim.demo import START_POSE
@@ -38,8 +51,8 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
                                  physics_rate=max(rate, config.physics_rate), initial_pose=START_POSE)
     (system,) = build_components((MUJOCO_BLOCK,), settings)
     manager = ControllerManager(robot, [system], config, update_rate=rate, clock=time.monotonic)
-    listener = bridge = recorder = None
-    result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None}
+    listener = bridge = recorder = tap = None
+    result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None, "tap_only": tap_only}
     with manager:
         manager.start()
         manager.request_mode(Mode.STANDBY)
@@ -48,7 +61,8 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
 
             listener = subprocess.Popen([sys.executable, "-m", "humanoid_prime.bench.dds", str(BENCH_DOMAIN)],
                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-            bridge = bridge_manager(manager, domain=BENCH_DOMAIN)  # stamps: the loop clock, CLOCK_MONOTONIC
+            # Stamps in the loop clock (CLOCK_MONOTONIC); /clock on, as in simulation.
+            bridge = bridge_manager(manager, domain=BENCH_DOMAIN, sim_clock=True)
             deadline = time.monotonic() + 30.0
             while not bridge.joint_state_readers() and time.monotonic() < deadline:
                 time.sleep(0.01)
@@ -56,10 +70,16 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
             from humanoid_prime.record.mcap import Recorder
 
             recorder = Recorder(record, manager)
+        if tap_only:
+            from humanoid_prime.control.tap import TickTap
+
+            tap = TickTap(manager, _Nothing(), name="bench-tap")
         began = time.monotonic()
         manager.run(duration=seconds)
         wall = time.monotonic() - began
         stats = manager.stats.summary()
+        if tap is not None:
+            tap.close()
         if bridge is not None:
             bridge.close()
             result["bridge"] = bridge.summary()
@@ -76,20 +96,28 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
     return result
 
 
+def _added(plain: dict[str, Any], run: dict[str, Any]) -> float | None:
+    """What ``run`` adds to the median tick of ``plain``."""
+    if plain["tick_us"]["median"] is None or run["tick_us"]["median"] is None:
+        return None
+    return round(run["tick_us"]["median"] - plain["tick_us"]["median"], 1)
+
+
 def bench_dds(seconds: float = 10.0) -> dict[str, Any]:
     robot = load_robot(use_sim=True)
     config = load_controllers(robot.names)
     results: dict[str, Any] = {"seconds": seconds, "target_added_tick_us": TARGET_DDS_ADDED_TICK_US}
     for rate in RATES_HZ:
         plain = _run(robot, config, rate, seconds, dds=False)
+        tapped = _run(robot, config, rate, seconds, dds=False, tap_only=True)
         bridged = _run(robot, config, rate, seconds, dds=True)
-        added = None
-        if plain["tick_us"]["median"] is not None and bridged["tick_us"]["median"] is not None:
-            added = round(bridged["tick_us"]["median"] - plain["tick_us"]["median"], 1)
-        key = f"{rate:g}_hz"
-        results[key] = {"without": plain, "with": bridged, "added_tick_us_median": added}
+        results[f"{rate:g}_hz"] = {"without": plain, "tap_only": tapped, "with": bridged,
+                                   "added_tick_us_median": _added(plain, bridged),
+                                   "tap_added_tick_us_median": _added(plain, tapped)}
     results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] or 0.0
                                           for rate in RATES_HZ)
+    results["floors"] = {"tap_added_tick_us_median": max(results[f"{rate:g}_hz"]["tap_added_tick_us_median"] or 0.0
+                                                         for rate in RATES_HZ)}
     results["overruns_with_dds"] = sum(results[f"{rate:g}_hz"]["with"]["overruns"] for rate in RATES_HZ)
     return results
 

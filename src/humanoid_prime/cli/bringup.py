@@ -170,7 +170,13 @@ def run(args: argparse.Namespace) -> int:
         if args.record is not None:
             _record(session, args.record, stack, epoch_offset)
         if dds is not None:
-            _bridge(session, dds, stack, report, emulated=options.emulated, epoch_offset=epoch_offset)
+            network: contextlib.AbstractContextManager[bool] = contextlib.nullcontext(True)
+            if options.emulated:  # the node on the host's graph (as root), the robot in its private namespace
+                from humanoid_prime.virtual.harness import host_network
+
+                network = host_network()
+            with network as on_host:
+                _bridge(session, dds, stack, report, private=not on_host, epoch_offset=epoch_offset)
         if args.web is not None:
             _web(session, args.web, stack, report)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
@@ -243,7 +249,7 @@ def _record(session: Session, path: Path, stack: contextlib.ExitStack, epoch_off
     stack.callback(recorder.close)
 
 
-def _bridge(session: Session, dds: DdsOptions, stack: contextlib.ExitStack, report, *, emulated: bool,
+def _bridge(session: Session, dds: DdsOptions, stack: contextlib.ExitStack, report, *, private: bool,
             epoch_offset: float) -> None:
     """Put the run on the ROS 2 graph; the bridge closes before the session's teardown, and its figures go in
     the summary."""
@@ -253,7 +259,8 @@ def _bridge(session: Session, dds: DdsOptions, stack: contextlib.ExitStack, repo
                             epoch_offset=epoch_offset, settings=dds.discovery)
     stack.callback(lambda: session.reports.__setitem__("dds", bridge.summary()))
     stack.callback(bridge.close)
-    where = " (inside the emulation's private network namespace: only processes in it can join)" if emulated else ""
+    where = (" (inside the emulation's private network namespace: only processes in it can join; run as root to "
+             "put the node on this machine's graph)") if private else ""
     report(f"DDS: {dds.describe()}{where}")
 
 

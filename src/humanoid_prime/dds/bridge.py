@@ -45,6 +45,7 @@ from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.domain import Discovery
 from humanoid_prime.dds.node import DdsNode, take
 from humanoid_prime.dds.tf import frames_from_urdf
+from humanoid_prime.dds.tfmessage import TfPacker
 from humanoid_prime.modes import Mode
 
 NODE_NAME = "prime"
@@ -156,7 +157,7 @@ class DdsBridge(SafetyFlags):
         self._tf_static = node.writer(TF_STATIC, msg.TFMessage, latched=True, depth=1)
         self._tf = node.writer(TF, msg.TFMessage, depth=TF_DEPTH)
         self._clock = node.writer(CLOCK, msg.Clock, depth=1) if sim_clock else None
-        self._tf_message = self._tf_template()
+        self._tf_packer = TfPacker(self.frames.parents, self.frames.children)
         self._write(self._description, msg.String(data=manager.robot.description.urdf), ROBOT_DESCRIPTION)
         self._write(self._tf_static, self._static_transforms(), TF_STATIC)
         self._guard = GuardCondition(node.participant)
@@ -184,12 +185,6 @@ class DdsBridge(SafetyFlags):
                                  transform=msg.Transform(msg.Vector3(*map(float, t)), msg.Quaternion(*map(float, r))))
             for parent, child, t, r in zip(f.static_parents, f.static_children, f.static_translations,
                                            f.static_rotations, strict=True)])
-
-    def _tf_template(self) -> msg.TFMessage:
-        """The /tf message, built once; each tick fills in its stamp and numbers."""
-        return msg.TFMessage(transforms=[
-            msg.TransformStamped(header=msg.Header(frame_id=parent), child_frame_id=child)
-            for parent, child in zip(self.frames.parents, self.frames.children, strict=True)])
 
     def joint_state_readers(self) -> int:
         """How many DDS readers of the joint states this bridge is matched with now."""
@@ -222,14 +217,7 @@ class DdsBridge(SafetyFlags):
             counts.late += 1
 
     def _transforms(self, positions: np.ndarray, stamp: msg.Time) -> msg.TFMessage:
-        translations, rotations = self.frames.transforms(positions)
-        for transform, t, r in zip(self._tf_message.transforms, translations.tolist(), rotations.tolist(),
-                                   strict=True):
-            transform.header.stamp = stamp
-            v, q = transform.transform.translation, transform.transform.rotation
-            v.x, v.y, v.z = t
-            q.x, q.y, q.z, q.w = r
-        return self._tf_message
+        return self._tf_packer.fill(*self.frames.transforms(positions), stamp)
 
     def on_mode(self, message: ControlMode) -> None:
         self._write(self._mode, msg.String(data=message.mode), CONTROL_MODE)

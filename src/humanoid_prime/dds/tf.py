@@ -57,16 +57,26 @@ class Frames:
     axes: np.ndarray  # (n, 3), unit
     prismatic: np.ndarray  # (n,) bool
 
+    def __post_init__(self) -> None:
+        # The common case (Prime's description): revolute joints whose origins do not rotate; a few vector
+        # operations then give every transform.
+        object.__setattr__(self, "_turned", not np.allclose(self.origin_rotations, [0.0, 0.0, 0.0, 1.0]))
+        object.__setattr__(self, "_slides", bool(self.prismatic.any()))
+
     def transforms(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Translations (n, 3) and rotations (n, 4) of each actuated joint's child in its parent, at
         ``positions`` (canonical order; NaN, not measured, counts as 0)."""
         q = np.nan_to_num(positions, nan=0.0)
-        half = np.where(self.prismatic, 0.0, q) / 2
-        about_axis = np.concatenate([self.axes * np.sin(half)[:, None], np.cos(half)[:, None]], axis=1)
-        rotations = quaternion_multiply(self.origin_rotations, about_axis)
+        half = (np.where(self.prismatic, 0.0, q) if self._slides else q) * 0.5
+        rotations = np.empty((len(q), 4))
+        np.multiply(self.axes, np.sin(half)[:, None], out=rotations[:, :3])
+        np.cos(half, out=rotations[:, 3])
+        if self._turned:
+            rotations = quaternion_multiply(self.origin_rotations, rotations)
+        if not self._slides:
+            return self.origins, rotations
         slide = np.where(self.prismatic, q, 0.0)[:, None] * self.axes
-        translations = self.origins + rotate(self.origin_rotations, slide)
-        return translations, rotations
+        return self.origins + rotate(self.origin_rotations, slide), rotations
 
     def link_pose(self, link: str, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pose of ``link`` in the root link at ``positions``: translation (3,) and rotation (4,)."""

@@ -23,7 +23,7 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.rate import Rate
-from humanoid_prime.dds.domain import domain_id
+from humanoid_prime.dds.domain import domain_id, node_namespace
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
@@ -42,6 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "it receives. The motion starts at the measured position, moves to the pose over --ramp "
                     "seconds, then holds it (--amplitude 0) or waves the --wave joints about it.")
     add_domain_option(p, with_dds=False)
+    p.add_argument("--namespace", metavar="NAME", help="the ROS 2 namespace of the Prime to drive (default: none)")
     p.add_argument("--pose", metavar="NAME", help="standby pose to hold or wave about (default: the default pose)")
     p.add_argument("--wave", metavar="JOINT,...", default=DEFAULT_WAVE,
                    help=f"joints that wave about the pose (default: {DEFAULT_WAVE})")
@@ -88,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         raise PrimeError(f"--pose: no pose {pose_name!r} (poses: {', '.join(poses)})")
     wave = _wave_mask(robot, args.wave)
     domain = domain_id(args.domain)
+    namespace = node_namespace(args.namespace)
     sito_kp = config.locomotion.sito_kp if args.sito_kp is None else args.sito_kp
     sito_kd = config.locomotion.sito_kd if args.sito_kd is None else args.sito_kd
     stiffness, damping = gain_rows(robot, (config.remote.erob_kp, config.remote.erob_kd), (sito_kp, sito_kd))
@@ -95,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
     out = sys.stderr if args.json else sys.stdout
     stop = threading.Event()
 
-    with stop_on_signals(stop), RemoteClient(robot, domain=domain, command_topic=config.remote.topic) as client:
+    with stop_on_signals(stop), RemoteClient(robot, domain=domain, namespace=namespace,
+                                                    command_topic=config.remote.topic) as client:
         print(f"prime remote: domain {domain}, waiting for /prime/joint_states ...", file=out, flush=True)
         if not client.wait_for_joint_states(args.wait, sleep=lambda s: stop.wait(s)):
             raise PrimeError(f"no joint states from Prime on ROS 2 domain {domain} within {args.wait:g} s (is it "

@@ -42,7 +42,7 @@ def test_remote_without_a_prime_says_so(domain):
     assert done.returncode == 1
     assert done.stderr.strip().splitlines() == [
         f"prime remote: no joint states from Prime on ROS 2 domain {domain} within 0.5 s (is it running with --dds, "
-        "in the same domain, reachable on this network?)"]
+        "in the same domain and namespace, reachable on this network?)"]
 
 
 def test_the_dds_benchmark_measures_both_rates_with_a_subscriber(domain):

@@ -1,6 +1,6 @@
 """``prime remote``: the reference REMOTE client. Streams MIT commands over DDS to a running Prime (``prime sim
---dds`` or ``prime bringup --dds``, on this machine or another in the same ROS 2 domain) and prints what
-Prime publishes. The client itself is ``dds/remote.py``."""
+--dds --dds-control`` or ``prime bringup --dds --dds-control``, on this machine or another in the same ROS 2
+domain and namespace) and prints what Prime publishes. The client itself is ``dds/remote.py``."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "remote", help="stream MIT commands to a running Prime over DDS (REMOTE mode) and show what it publishes",
         description="The reference REMOTE client: a separate DDS participant that streams "
-                    "prime_msgs/MitCommand on /remote_policy_controller/command to a Prime started with --dds, "
+                    "prime_msgs/MitCommand on /remote_policy_controller/command to a Prime started with --dds "
+                    "--dds-control, "
                     "asks for REMOTE on /prime/mode_request, and prints the joint states, mode and safety status "
                     "it receives. The motion starts at the measured position, moves to the pose over --ramp "
                     "seconds, then holds it (--amplitude 0) or waves the --wave joints about it.")
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"prime remote: domain {domain}, waiting for /prime/joint_states ...", file=out, flush=True)
         if not client.wait_for_joint_states(args.wait, sleep=lambda s: stop.wait(s)):
             raise PrimeError(f"no joint states from Prime on ROS 2 domain {domain} within {args.wait:g} s (is it "
-                             "running with --dds, in the same domain, reachable on this network?)")
+                             "running with --dds, in the same domain and namespace, reachable on this network?)")
         motion = Motion(start=np.clip(client.seen.position, robot.lower, robot.upper),
                         pose=pose_array(robot, poses[pose_name]), lower=robot.lower, upper=robot.upper, wave=wave,
                         amplitude=args.amplitude, frequency=args.frequency, ramp=args.ramp)

@@ -83,6 +83,8 @@ def test_a_remote_process_drives_the_simulated_arm_and_its_death_makes_remote_da
     assert "no command on /remote_policy_controller/command for more than 100 ms; damp" in stale.message
 
     stop(process)
+    out = process.stdout.read()  # the startup line names the node and says control from the graph is on
+    assert "node /lab/prime" in out and "control from the graph ON" in out
     summary = json.loads(summary_path.read_text())
     received = summary["dds"]["topics"]["/remote_policy_controller/command"]
     assert received["received"] >= remote["commands_sent"] and received["refused"] == 0

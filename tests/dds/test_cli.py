@@ -52,3 +52,7 @@ def test_the_dds_benchmark_measures_both_rates_with_a_subscriber(domain):
         assert bridged["bridge"]["topics"]["/prime/joint_states"]["published"] == bridged["ticks"]
         assert bridged["subscriber"]["received"] > 0
         assert results[rate]["without"]["ticks"] == bridged["ticks"]
+        for paired in ("paired", "tap_paired"):  # attached and detached turns of one run, each with its median
+            figures = results[rate][paired]["paired_us"]
+            assert figures["added"] == pytest.approx(figures["attached"] - figures["detached"], abs=0.11)
+        assert results[rate]["added_tick_us_median"] == results[rate]["paired"]["paired_us"]["added"]

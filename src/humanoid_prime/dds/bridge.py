@@ -186,6 +186,15 @@ class DdsBridge(SafetyFlags):
             for parent, child, t, r in zip(f.static_parents, f.static_children, f.static_translations,
                                            f.static_rotations, strict=True)])
 
+    def pause(self) -> None:
+        """Stop taking the loop's ticks (the node, its latched topics and its readers stay on the graph)."""
+        self.tap.close()
+
+    def resume(self) -> None:
+        """Take the loop's ticks again after ``pause``."""
+        self.tap = TickTap(self.manager, self, name="dds-publish", on_drop=self._on_drop, slots=self.tap.slots,
+                           clock=self.clock)
+
     def joint_state_readers(self) -> int:
         """How many DDS readers of the joint states this bridge is matched with now."""
         return len(self._joint_states.get_matched_subscriptions())

@@ -59,9 +59,10 @@ def graph(ros_clients, tmp_path_factory):
     for namespace in ("/", "/second"):
         summary = folder / f"sim{namespace.replace('/', '_')}.json"
         extra = [] if namespace == "/" else ["--namespace", namespace.strip("/")]
-        sims[namespace] = (popen([*PRIME, "sim", "--dds", "--dds-control", *extra, "--mode", "STANDBY", "--duration",
-                                  "600", "--summary", str(summary)], env=env, stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.PIPE, text=True), summary)
+        with open(folder / f"sim{namespace.replace('/', '_')}.log", "w") as log:  # a file: a pipe could fill
+            sims[namespace] = (popen([*PRIME, "sim", "--dds", "--dds-control", *extra, "--mode", "STANDBY",
+                                      "--duration", "600", "--summary", str(summary)], env=env,
+                                     stdout=subprocess.DEVNULL, stderr=log), summary)
     probes = {}
     try:
         with pytest.MonkeyPatch.context() as patch:  # the ROS 2 nodes join once both Primes hold STANDBY
@@ -89,7 +90,7 @@ def graph(ros_clients, tmp_path_factory):
             stop(process)
     summaries = {}
     for namespace, (process, path) in sims.items():
-        assert process.returncode == 0, process.stderr.read()[-3000:]
+        assert process.returncode == 0, (folder / f"sim{namespace.replace('/', '_')}.log").read_text()[-3000:]
         summaries[namespace] = json.loads(path.read_text())
     return reports, summaries
 

@@ -1,16 +1,18 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# Debian packages the tests use: a Fast DDS peer (ROS 2's default middleware), check_urdf, a browser for the view,
-# cyclictest, which the 1 kHz benchmark runs after its loop to measure the machine's own real-time latency, and
-# stress-ng, which loads the cores for the tests that must hold on a busy robot computer.
-TEST_DEBS := g++ libfastrtps-dev libfastcdr-dev fastddsgen default-jre-headless liburdfdom-tools chromium rt-tests stress-ng
+# Debian packages the tests use: cmake and g++ (prime_msgs built in the ROS 2 client environments, as colcon
+# would), check_urdf, a browser for the view, cyclictest, which the 1 kHz benchmark runs after its loop to
+# measure the machine's own real-time latency, and stress-ng, which loads the cores for the tests that must hold
+# on a busy robot computer.
+TEST_DEBS := g++ cmake liburdfdom-tools chromium rt-tests stress-ng
+ROS_DEBS := g++ cmake
 BENCH_DEBS := rt-tests
 # The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.
 PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
 
-.PHONY: sim test bench soak lint clean
+.PHONY: sim test bench soak lint clean ros
 
 $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/humanoid_prime/*/*/*.pyx)
 	tools/install-debs $(BUILD_DEBS)
@@ -30,6 +32,12 @@ test: $(STAMP)
 bench: $(STAMP)
 	tools/install-debs $(BENCH_DEBS)
 	$(VENV)/bin/prime bench
+
+# ROS 2 clients from PyPI's wheels (Jazzy, Kilted), each in a venv of its own under ~/.cache/prime with prime_msgs
+# built in it; the tests build the same on first use.
+ros: $(STAMP)
+	tools/install-debs $(ROS_DEBS)
+	$(PY) tools/ros-venv jazzy kilted
 
 soak: $(STAMP)
 	$(VENV)/bin/prime bench soak

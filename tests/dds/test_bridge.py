@@ -1,4 +1,5 @@
-"""The bridge in one process, over real DDS on loopback: what a ROS 2 node on the graph sees and sends."""
+"""The bridge in one process, over real DDS on loopback: what a ROS 2 node on the graph sees and sends. (Real
+ROS 2 nodes, rclpy on Jazzy and Kilted, are in test_rclpy.py.)"""
 
 from __future__ import annotations
 
@@ -7,12 +8,17 @@ import threading
 import numpy as np
 import pytest
 from cyclonedds.internal import InvalidSample
+from cyclonedds.qos import Policy
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
 
 from doubles.control import Clock, Plant
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.bridge import MODE_REQUEST, bridge_manager
-from humanoid_prime.dds.node import DdsNode
+from humanoid_prime.dds.bridge import CONTROL_OFF, CONTROL_ON, MODE_REQUEST, bridge_manager
+from humanoid_prime.dds.node import DISCOVERY_TOPIC, DdsNode, ros_qos
+from humanoid_prime.dds.tf import frames_from_urdf
+from humanoid_prime.dds.typehash import type_hash
 from humanoid_prime.modes import Mode
 
 from .conftest import wait_for
@@ -30,6 +36,15 @@ def manager(sim_robot, config):
 
 @pytest.fixture
 def bridged(manager, domain):
+    """A bridge that takes control from the graph (--dds-control), publishing /clock as in simulation."""
+    bridge = bridge_manager(manager, domain=domain, control=True, sim_clock=True)
+    yield bridge
+    bridge.close()
+
+
+@pytest.fixture
+def publishing(manager, domain):
+    """A bridge that only publishes (--dds alone)."""
     bridge = bridge_manager(manager, domain=domain)
     yield bridge
     bridge.close()
@@ -71,7 +86,9 @@ def test_mode_and_safety_are_latched_for_a_late_joiner(manager, bridged, peer):
     assert [m.data for m in modes] == ["DAMPING"]
     names = [s.name for s in statuses[-1].status]
     assert names == [f"prime/{source}" for source in manager.flag_source_names]
-    assert all(s.level == msg.DiagnosticStatus.OK and s.message == "ok" for s in statuses[-1].status)
+    assert all(s.level == msg.DiagnosticStatus.OK for s in statuses[-1].status)
+    assert [s.message for s in statuses[-1].status if s.name != "prime/dds"] == ["ok"] * (len(names) - 1)
+    assert [s.message for s in statuses[-1].status if s.name == "prime/dds"] == [f"ok; {CONTROL_ON}"]
 
 
 def test_a_flag_is_one_key_value_under_its_source_at_its_level(manager, bridged, peer):
@@ -173,3 +190,99 @@ def test_closing_leaves_the_domain(manager, domain, peer):
     assert wait_for(lambda: bool(reader.get_matched_publications()))
     bridge.close()
     assert wait_for(lambda: not reader.get_matched_publications())
+
+
+def test_without_control_the_node_reads_nothing_from_the_graph_and_says_so(manager, publishing, peer):
+    (node,) = publishing.node.entities_info().node_entities_info_seq
+    assert node.reader_gid_seq == [] and len(node.writer_gid_seq) == 7
+    safety = peer.reader("/safety_status", msg.DiagnosticArray, latched=True, depth=1)
+    statuses: list = []
+    assert wait_for(lambda: statuses, poll=lambda: take(safety, statuses))
+    assert [s.message for s in statuses[-1].status if s.name == "prime/dds"] == [f"ok; {CONTROL_OFF}"]
+    assert publishing.summary()["control"] is False and MODE_REQUEST not in publishing.summary()["topics"]
+
+
+def test_the_node_is_announced_with_every_endpoint_and_its_type_hash(manager, bridged, peer):
+    # ros_discovery_info is a topic of the rmw layer, outside ROS 2's names (no rt/ prefix).
+    reader = DataReader(peer.participant, Topic(peer.participant, DISCOVERY_TOPIC, msg.ParticipantEntitiesInfo),
+                        qos=ros_qos(latched=True, depth=1))
+    infos: list = []
+    assert wait_for(lambda: infos and infos[-1].node_entities_info_seq[0].reader_gid_seq,
+                    poll=lambda: take(reader, infos))
+    info = infos[-1]
+    assert bytes(info.gid.data) == bridged.node.participant.guid.bytes
+    (node,) = info.node_entities_info_seq
+    assert (node.node_namespace, node.node_name) == ("/", "prime")
+    writers = {bytes(g.data) for g in node.writer_gid_seq}
+    assert writers == {w.guid.bytes for w in (bridged._joint_states, bridged._mode, bridged._safety,
+                                              bridged._diagnostics, bridged._description, bridged._tf_static,
+                                              bridged._tf, bridged._clock)}
+    assert {bytes(g.data) for g in node.reader_gid_seq} == {bridged._commands.guid.bytes,
+                                                            bridged._mode_requests.guid.bytes}
+    # What a peer discovers of the joint states' writer: ROS 2's type hash in its user data.
+    joint_states = peer.reader("/prime/joint_states", msg.JointState)
+    assert wait_for(lambda: bool(joint_states.get_matched_publications()))
+    (handle,) = joint_states.get_matched_publications()
+    data = joint_states.get_matched_publication_data(handle)
+    assert data.qos[Policy.Userdata].data == f"typehash={type_hash(msg.JointState)};".encode()
+
+
+def test_tf_clock_description_and_static_frames(manager, bridged, peer, sim_robot):
+    frames = frames_from_urdf(sim_robot.description.urdf, sim_robot.names)
+    tf = peer.reader("/tf", msg.TFMessage, depth=100)
+    clock = peer.reader("/clock", msg.Clock, depth=100)
+    assert wait_for(lambda: bool(tf.get_matched_publications()) and bool(clock.get_matched_publications()))
+    for k in range(5):
+        manager.tick(k * 0.01)
+    tfs: list = []
+    clocks: list = []
+    assert wait_for(lambda: len(tfs) >= 5 and len(clocks) >= 5, poll=lambda: (take(tf, tfs), take(clock, clocks)))
+    assert [round(msg.seconds(c.clock), 6) for c in clocks] == [0.0, 0.01, 0.02, 0.03, 0.04]
+    latest = tfs[-1]
+    measured = manager.resources.state.data[0]
+    translations, rotations = frames.transforms(measured)
+    assert [(t.header.frame_id, t.child_frame_id) for t in latest.transforms] == list(
+        zip(frames.parents, frames.children, strict=True))
+    assert {round(msg.seconds(t.header.stamp), 6) for t in latest.transforms} == {0.04}
+    got = np.array([[t.transform.translation.x, t.transform.translation.y, t.transform.translation.z]
+                    for t in latest.transforms])
+    np.testing.assert_allclose(got, translations)
+    got = np.array([[t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z, t.transform.rotation.w]
+                    for t in latest.transforms])
+    np.testing.assert_allclose(got, rotations)
+    # Late joiners: the URDF and the fixed joints are latched.
+    description = peer.reader("/robot_description", msg.String, latched=True, depth=1)
+    static = peer.reader("/tf_static", msg.TFMessage, latched=True, depth=1)
+    urdfs: list = []
+    statics: list = []
+    assert wait_for(lambda: urdfs and statics, poll=lambda: (take(description, urdfs), take(static, statics)))
+    assert urdfs[-1].data == sim_robot.description.urdf
+    assert [(t.header.frame_id, t.child_frame_id) for t in statics[-1].transforms] == [
+        ("base_link", "waist_yaw_link"), ("waist_yaw_link", "waist_roll_link"), ("waist_roll_link", "torso_link")]
+
+
+def test_diagnostics_repeat_every_second_of_loop_time(manager, bridged, peer):
+    diagnostics = peer.reader("/diagnostics", msg.DiagnosticArray, depth=100)
+    assert wait_for(lambda: bool(diagnostics.get_matched_publications()))
+    published = bridged.counts["/prime/joint_states"]
+    for k in range(251):  # 2.5 s of loop time, in bursts the publisher keeps up with (none dropped)
+        manager.tick(k * 0.01)
+        if k % 50 == 49:
+            assert wait_for(lambda k=k: published.samples == k + 1)
+    got: list = []
+    assert wait_for(lambda: len(got) >= 3, poll=lambda: take(diagnostics, got))
+    stamps = [round(msg.seconds(a.header.stamp), 6) for a in got]
+    assert stamps[-3:] == [0.0, 1.0, 2.0]
+    assert [s.name for s in got[-1].status] == [f"prime/{source}" for source in manager.flag_source_names]
+
+
+def test_a_namespace_prefixes_every_topic_and_the_node(manager, domain, peer):
+    bridge = bridge_manager(manager, domain=domain, namespace="/left")
+    try:
+        reader = peer.reader("/left/prime/joint_states", msg.JointState)
+        assert wait_for(lambda: bool(reader.get_matched_publications()))
+        (node,) = bridge.node.entities_info().node_entities_info_seq
+        assert (node.node_namespace, node.node_name) == ("/left", "prime")
+        assert bridge.summary()["node"] == "/left/prime"
+    finally:
+        bridge.close()

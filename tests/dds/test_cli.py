@@ -14,6 +14,11 @@ PRIME = [sys.executable, "-m", "humanoid_prime"]
 
 @pytest.mark.parametrize(("args", "env", "says"), [
     (["sim", "--domain", "3"], {}, "prime sim: --domain needs --dds"),
+    (["sim", "--dds-control"], {}, "prime sim: --dds-control needs --dds"),
+    (["bringup", "--namespace", "left"], {}, "prime bringup: --namespace needs --dds"),
+    (["sim", "--dds", "--namespace", "left/9arm"], {}, "--namespace 'left/9arm': '9arm' is not a ROS 2 name"),
+    (["sim", "--dds"], {"ROS_AUTOMATIC_DISCOVERY_RANGE": "MOON"},
+     "prime sim: ROS_AUTOMATIC_DISCOVERY_RANGE='MOON' is not one of SUBNET, LOCALHOST, OFF, SYSTEM_DEFAULT"),
     (["sim", "--dds", "--domain", "999"], {}, "--domain: must be in 0..232, got 999"),
     (["bringup", "--dds", "--domain", "-1"], {}, "--domain"),
     (["sim", "--dds"], {"ROS_DOMAIN_ID": "abc"}, "prime sim: ROS_DOMAIN_ID='abc' is not a domain id"),
@@ -37,7 +42,7 @@ def test_remote_without_a_prime_says_so(domain):
     assert done.returncode == 1
     assert done.stderr.strip().splitlines() == [
         f"prime remote: no joint states from Prime on ROS 2 domain {domain} within 0.5 s (is it running with --dds, "
-        "in the same domain, reachable on this network?)"]
+        "in the same domain and namespace, reachable on this network?)"]
 
 
 def test_the_dds_benchmark_measures_both_rates_with_a_subscriber(domain):
@@ -47,3 +52,7 @@ def test_the_dds_benchmark_measures_both_rates_with_a_subscriber(domain):
         assert bridged["bridge"]["topics"]["/prime/joint_states"]["published"] == bridged["ticks"]
         assert bridged["subscriber"]["received"] > 0
         assert results[rate]["without"]["ticks"] == bridged["ticks"]
+        for paired in ("paired", "tap_paired"):  # attached and detached turns of one run, each with its median
+            figures = results[rate][paired]["paired_us"]
+            assert figures["added"] == pytest.approx(figures["attached"] - figures["detached"], abs=0.11)
+        assert results[rate]["added_tick_us_median"] == results[rate]["paired"]["paired_us"]["added"]

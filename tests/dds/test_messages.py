@@ -145,3 +145,23 @@ def test_stamps_round_trip_in_nanoseconds():
     assert msg.stamp(1.9999999999) == msg.Time(sec=2, nanosec=0)
     assert msg.stamp(-0.5) == msg.Time(sec=-1, nanosec=500_000_000)
     assert msg.seconds(msg.stamp(1234.5678)) == pytest.approx(1234.5678, abs=1e-9)
+
+
+def test_the_packed_tf_message_has_the_bytes_of_the_built_one():
+    """/tf is serialised by filling numbers into bytes laid out once; they are the bytes of the message built
+    field by field, for any positions and stamps."""
+    from humanoid_prime.dds.tf import frames_from_urdf
+    from humanoid_prime.dds.tfmessage import TfPacker
+
+    prime = robot()
+    frames = frames_from_urdf(prime.description.urdf, prime.names)
+    packer = TfPacker(frames.parents, frames.children)
+    rng = np.random.default_rng(7)
+    for seconds in (0.0, 12.345, 1.8e9 + 0.5, -3.25):
+        translations, rotations = frames.transforms(rng.uniform(prime.lower, prime.upper))
+        stamp = msg.stamp(seconds)
+        built = msg.TFMessage(transforms=[
+            msg.TransformStamped(header=msg.Header(stamp=stamp, frame_id=parent), child_frame_id=child,
+                                 transform=msg.Transform(msg.Vector3(*map(float, t)), msg.Quaternion(*map(float, r))))
+            for parent, child, t, r in zip(frames.parents, frames.children, translations, rotations, strict=True)])
+        assert packer.fill(translations, rotations, stamp).serialize() == built.serialize()

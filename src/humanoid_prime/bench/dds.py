@@ -1,11 +1,15 @@
 """DDS and recording on the control loop (DESIGN §6): the simulated Prime in STANDBY, paced at 50 Hz and at 1 kHz, once
-without and once with ``--dds``, and a subscriber in another process measuring how late each joint state
-arrives.
+without ``--dds`` and once with the whole node as ``prime sim --dds`` runs it (joint states, /tf, /clock every
+tick, /diagnostics every second), with a subscriber in another process measuring how late each joint state
+arrives; then twice more with the publishing attached and detached in turns of half a second, once the node's
+and once a tap that publishes nothing (the hand-off to another thread alone: the floor of any publishing).
 
-Figures: the tick (read + update + write, our CPU) with and without the bridge and the difference of the
-medians (the added tick cost, target <= 30 us); overruns; joint states published per second against the loop
-rate, dropped and late; the latency from the tick to the subscriber (the loop clock is CLOCK_MONOTONIC, shared
-by every process on the machine). The physical floor of the latency is a loopback UDP round trip, tens of us.
+Figures: the added tick cost (read + update + write, our CPU): the median tick with publishing attached minus
+the median with it detached, in the same run, so a machine whose load drifts weighs on both alike (target
+<= 30 us), beside the bare tap's; overruns with and without; joint states published per second against the
+loop rate, dropped and late; the latency from the tick to the subscriber (the loop clock is CLOCK_MONOTONIC,
+shared by every process on the machine). The physical floor of the latency is a loopback UDP round trip, tens
+of us.
 """
 
 from __future__ import annotations
@@ -27,9 +31,20 @@ from humanoid_prime.runtime.registry import ComponentSettings, build_components
 
 BENCH_DOMAIN = 231  # away from the usual ROS 2 domains, so a benchmark does not talk to a robot's graph
 RATES_HZ = (50.0, 1000.0)
+TURN_S = 0.5  # publishing attached, then detached, for this long each, through a paired run
 
 
-def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None) -> dict[str, Any]:
+class _Nothing:
+    """A tap consumer that publishes nothing: what handing each tick over costs by itself."""
+
+    def on_tick(self, sample: Any) -> None: ...
+    def on_mode(self, message: Any) -> None: ...
+    def on_safety(self, message: Any) -> None: ...
+    def on_remote(self, message: Any) -> None: ...
+
+
+def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None,
+         tap_only: bool = False, paired: bool = False) -> dict[str, Any]:
     from humanoid_prime.config.calibration import identity_calibration
     from humanoid_prime.config.description import MUJOCO_BLOCK
     from humanoid_prime.sim.demo import START_POSE
@@ -38,33 +53,47 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
                                  physics_rate=max(rate, config.physics_rate), initial_pose=START_POSE)
     (system,) = build_components((MUJOCO_BLOCK,), settings)
     manager = ControllerManager(robot, [system], config, update_rate=rate, clock=time.monotonic)
-    listener = bridge = recorder = None
-    result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None}
+    listener = bridge = recorder = tap = None
+    result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None, "tap_only": tap_only,
+                              "paired": paired}
     with manager:
         manager.start()
         manager.request_mode(Mode.STANDBY)
         if dds:
             from humanoid_prime.dds.bridge import bridge_manager
 
-            listener = subprocess.Popen([sys.executable, "-m", "humanoid_prime.bench.dds", str(BENCH_DOMAIN)],
-                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-            bridge = bridge_manager(manager, domain=BENCH_DOMAIN)  # stamps: the loop clock, CLOCK_MONOTONIC
+            if not paired:  # the paired run measures the tick alone
+                listener = subprocess.Popen([sys.executable, "-m", "humanoid_prime.bench.dds", str(BENCH_DOMAIN)],
+                                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            # Stamps in the loop clock (CLOCK_MONOTONIC); /clock on, as in simulation.
+            bridge = bridge_manager(manager, domain=BENCH_DOMAIN, sim_clock=True)
             deadline = time.monotonic() + 30.0
-            while not bridge.joint_state_readers() and time.monotonic() < deadline:
+            while listener is not None and not bridge.joint_state_readers() and time.monotonic() < deadline:
                 time.sleep(0.01)
         if record is not None:
             from humanoid_prime.record.mcap import Recorder
 
             recorder = Recorder(record, manager)
+        if tap_only:
+            from humanoid_prime.control.tap import TickTap
+
+            tap = TickTap(manager, _Nothing(), name="bench-tap")
         began = time.monotonic()
-        manager.run(duration=seconds)
+        if paired:
+            result["paired_us"] = _paired(manager, seconds, bridge, tap)
+        else:
+            manager.run(duration=seconds)
         wall = time.monotonic() - began
         stats = manager.stats.summary()
-        if bridge is not None:
+        if tap is not None:
+            tap.close()
+        if bridge is not None and not paired:
             bridge.close()
             result["bridge"] = bridge.summary()
             published = result["bridge"]["topics"]["/prime/joint_states"]["published"]
             result["published_per_s"] = round(published / wall, 1)
+        elif bridge is not None:
+            bridge.close()
         if recorder is not None:
             recorder.close()
             result["recorder"] = recorder.summary()
@@ -76,6 +105,41 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
     return result
 
 
+def _paired(manager: ControllerManager, seconds: float, bridge: Any, tap: Any) -> dict[str, float]:
+    """Run ``seconds`` in turns of TURN_S with the bridge's (or the bare tap's) hand-off attached, then detached;
+    the median tick of each (each turn's first tick aside), and what attaching adds. Both start attached."""
+    from humanoid_prime.control.tap import TickTap
+
+    turns: dict[bool, list[np.ndarray]] = {True: [], False: []}
+    count = max(2, round(seconds / TURN_S))
+    for turn in range(count):
+        attached = turn % 2 == 0
+        if turn and bridge is not None:
+            if attached:
+                bridge.resume()
+            else:
+                bridge.pause()
+        elif turn:
+            if attached:
+                tap = TickTap(manager, _Nothing(), name="bench-tap")
+            else:
+                tap.close()
+        first = manager.stats.ticks
+        manager.run(duration=seconds / count)
+        turns[attached].append(manager.stats.costs[np.arange(first + 1, manager.stats.ticks) % manager.stats.capacity])
+    if tap is not None:
+        tap.close()
+    on_us, off_us = (float(np.median(np.concatenate(turns[state]))) * 1e6 for state in (True, False))
+    return {"attached": round(on_us, 1), "detached": round(off_us, 1), "added": round(on_us - off_us, 1)}
+
+
+def _added(plain: dict[str, Any], run: dict[str, Any]) -> float | None:
+    """What ``run`` adds to the median tick of ``plain``."""
+    if plain["tick_us"]["median"] is None or run["tick_us"]["median"] is None:
+        return None
+    return round(run["tick_us"]["median"] - plain["tick_us"]["median"], 1)
+
+
 def bench_dds(seconds: float = 10.0) -> dict[str, Any]:
     robot = load_robot(use_sim=True)
     config = load_controllers(robot.names)
@@ -83,13 +147,15 @@ def bench_dds(seconds: float = 10.0) -> dict[str, Any]:
     for rate in RATES_HZ:
         plain = _run(robot, config, rate, seconds, dds=False)
         bridged = _run(robot, config, rate, seconds, dds=True)
-        added = None
-        if plain["tick_us"]["median"] is not None and bridged["tick_us"]["median"] is not None:
-            added = round(bridged["tick_us"]["median"] - plain["tick_us"]["median"], 1)
-        key = f"{rate:g}_hz"
-        results[key] = {"without": plain, "with": bridged, "added_tick_us_median": added}
-    results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] or 0.0
-                                          for rate in RATES_HZ)
+        paired = _run(robot, config, rate, seconds, dds=True, paired=True)
+        tapped = _run(robot, config, rate, seconds, dds=False, tap_only=True, paired=True)
+        results[f"{rate:g}_hz"] = {"without": plain, "with": bridged, "paired": paired, "tap_paired": tapped,
+                                   "added_tick_us_median": paired["paired_us"]["added"],
+                                   "tap_added_tick_us_median": tapped["paired_us"]["added"],
+                                   "across_runs_added_tick_us_median": _added(plain, bridged)}
+    results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] for rate in RATES_HZ)
+    results["floors"] = {"tap_added_tick_us_median": max(results[f"{rate:g}_hz"]["tap_added_tick_us_median"]
+                                                         for rate in RATES_HZ)}
     results["overruns_with_dds"] = sum(results[f"{rate:g}_hz"]["with"]["overruns"] for rate in RATES_HZ)
     return results
 

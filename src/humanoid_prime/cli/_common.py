@@ -7,12 +7,13 @@ import json
 import math
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
-from humanoid_prime.dds.domain import MAX_DOMAIN_ID
+from humanoid_prime.dds.domain import MAX_DOMAIN_ID, Discovery
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.socket import default_socket_path
@@ -56,23 +57,59 @@ def add_domain_option(parser: argparse.ArgumentParser, *, with_dds: bool = True)
                         help=f"{'(with --dds) ' if with_dds else ''}ROS 2 domain id (default: ROS_DOMAIN_ID, else 0)")
 
 
-def add_dds_options(parser: argparse.ArgumentParser, dds_help: str | None = None) -> None:
+def add_dds_options(parser: argparse.ArgumentParser, dds_help: str | None = None, *, node: bool = False) -> None:
+    """``--dds`` and ``--domain``; with ``node`` (a run that is Prime on the graph) also ``--dds-control`` and
+    ``--namespace``."""
     parser.add_argument("--dds", action="store_true",
-                        help=dds_help or "take part in the ROS 2 graph over DDS: publish /prime/joint_states, "
-                                         "/control_mode and /safety_status, take REMOTE commands and "
-                                         "/prime/mode_request")
+                        help=dds_help or "be node 'prime' on the ROS 2 graph over DDS: publish /prime/joint_states, "
+                                         "/control_mode, /safety_status, /diagnostics, /robot_description, /tf "
+                                         "(and /clock in simulation); nothing on the graph can move the robot "
+                                         "unless --dds-control is given too")
+    if node:
+        parser.add_argument("--dds-control", action="store_true",
+                            help="(with --dds) take mode requests (/prime/mode_request) and REMOTE commands from "
+                                 "the ROS 2 graph: any participant in the domain that discovery reaches can then "
+                                 "move the robot (ROS_AUTOMATIC_DISCOVERY_RANGE and ROS_STATIC_PEERS limit who)")
+        parser.add_argument("--namespace", metavar="NAME",
+                            help="(with --dds) ROS 2 namespace of the node and every topic, so several Primes share "
+                                 "one domain (default: none)")
     add_domain_option(parser)
+
+
+@dataclass(frozen=True)
+class DdsOptions:
+    """Where and how a run is on the ROS 2 graph, checked before anything starts."""
+
+    domain: int
+    namespace: str
+    control: bool
+    discovery: Discovery
+
+    def describe(self) -> str:
+        node = "/prime" if self.namespace == "/" else f"{self.namespace}/prime"
+        control = "control from the graph ON" if self.control else "publishing only (no --dds-control)"
+        return f"ROS 2 domain {self.domain}, node {node}, {self.discovery.describe()}; {control}"
+
+
+def dds_options(args: argparse.Namespace) -> DdsOptions | None:
+    """The run's DDS options when ``--dds`` was given, None for no DDS; every option and ROS 2 variable is
+    checked here, before anything starts."""
+    from humanoid_prime.dds.domain import discovery, domain_id, node_namespace
+
+    control, namespace = getattr(args, "dds_control", False), getattr(args, "namespace", None)
+    if not args.dds:
+        given = [name for name, value in (("--domain", args.domain), ("--dds-control", control),
+                                          ("--namespace", namespace)) if value not in (None, False)]
+        if given:
+            raise PrimeError(f"{', '.join(given)} needs --dds")
+        return None
+    return DdsOptions(domain_id(args.domain), node_namespace(namespace), control, discovery())
 
 
 def dds_domain(args: argparse.Namespace) -> int | None:
     """The run's DDS domain when ``--dds`` was given, None for no DDS; checked before anything starts."""
-    if not args.dds:
-        if args.domain is not None:
-            raise PrimeError("--domain needs --dds")
-        return None
-    from humanoid_prime.dds.domain import domain_id
-
-    return domain_id(args.domain)
+    options = dds_options(args)
+    return None if options is None else options.domain
 
 
 def mcap_file(text: str) -> Path:

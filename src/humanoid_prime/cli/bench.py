@@ -42,6 +42,8 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
     ("sim", "realtime_factor"): ("sim", "floors.realtime_factor", "MuJoCo's own steps in this run"),
     ("bringup", "tick_io_us.median"): ("bringup", "floors.ethercat_cycle_us",
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
+    ("dds", "added_tick_us_median"): ("dds", "floors.tap_added_tick_us_median",
+                                      "handing each tick to the publisher thread, nothing published"),
     ("khz", "overruns"): ("khz", "floors.machine_late_wakeups",
                           "the machine's own: real-time wake-ups a period or more late, all CPUs, "
                           "in as long again right after the run (cyclictest)"),

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from humanoid_prime.cli._common import (
     SECONDS,
+    DdsOptions,
     add_config_options,
     add_dds_options,
     add_emulation_options,
@@ -21,7 +22,7 @@ from humanoid_prime.cli._common import (
     add_socket_option,
     add_web_option,
     check_web,
-    dds_domain,
+    dds_options,
     output_dir,
     output_file,
     real,
@@ -87,7 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--erob-config-dir", metavar="DIR", type=output_dir,
                    help="keep the folded per-slave eRob configs here")
     add_socket_option(p)
-    add_dds_options(p)
+    add_dds_options(p, node=True)
     add_record_option(p)
     add_web_option(p)
     p.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
@@ -145,7 +146,7 @@ def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     ring = ring_options(args, **{"--load-test": args.load_test})
-    domain = dds_domain(args)
+    dds = dds_options(args)
     check_web(args)
     # Everything is checked before anything opens, and before a private namespace is entered.
     load_test_joints = _load_test_joints(args, plan_session(options).robot) if args.load_test else []
@@ -175,8 +176,14 @@ def run(args: argparse.Namespace) -> int:
         epoch_offset = time.time() - time.monotonic()  # stamps in the system clock, as ROS 2 nodes on the robot
         if args.record is not None:
             _record(session, args.record, stack, epoch_offset)
-        if domain is not None:
-            _bridge(session, domain, stack, report, emulated=options.emulated, epoch_offset=epoch_offset)
+        if dds is not None:
+            network: contextlib.AbstractContextManager[bool] = contextlib.nullcontext(True)
+            if options.emulated:  # the node on the host's graph (as root), the robot in its private namespace
+                from humanoid_prime.virtual.harness import host_network
+
+                network = host_network()
+            with network as on_host:
+                _bridge(session, dds, stack, report, private=not on_host, epoch_offset=epoch_offset)
         if args.web is not None:
             _web(session, args.web, stack, report)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
@@ -191,7 +198,8 @@ def run(args: argparse.Namespace) -> int:
             if sys.stdin.isatty():
                 stack.enter_context(ModeKeys(session.manager.request_mode if full else _refuse, stop.set,
                                              on_reset=session.manager.request_reset))
-            stack.enter_context(LiveTable(session.manager, keys=full, reset_key=sys.stdin.isatty()))
+            graph = (lambda: "DDS control ON") if dds is not None and dds.control else None
+            stack.enter_context(LiveTable(session.manager, keys=full, reset_key=sys.stdin.isatty(), status=graph))
         # With --emulate, the plant's true joint angles (rad, joint frame) when the loop ends, beside the measured
         at_end = (lambda: emulator.__setitem__("joints", virtual.control.call("joints"))) if virtual else None
         run_loop(session, stop, report=lambda line: print(line, file=sys.stderr if args.json else sys.stdout),
@@ -251,17 +259,19 @@ def _record(session: Session, path: Path, stack: contextlib.ExitStack, epoch_off
     stack.callback(recorder.close)
 
 
-def _bridge(session: Session, domain: int, stack: contextlib.ExitStack, report, *, emulated: bool,
+def _bridge(session: Session, dds: DdsOptions, stack: contextlib.ExitStack, report, *, private: bool,
             epoch_offset: float) -> None:
     """Put the run on the ROS 2 graph; the bridge closes before the session's teardown, and its figures go in
     the summary."""
     from humanoid_prime.dds.bridge import bridge_manager
 
-    bridge = bridge_manager(session.manager, domain=domain, epoch_offset=epoch_offset)
+    bridge = bridge_manager(session.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
+                            epoch_offset=epoch_offset, settings=dds.discovery)
     stack.callback(lambda: session.reports.__setitem__("dds", bridge.summary()))
     stack.callback(bridge.close)
-    where = " (inside the emulation's private network namespace: only processes in it can join)" if emulated else ""
-    report(f"DDS: ROS 2 domain {domain}{where}")
+    where = (" (inside the emulation's private network namespace: only processes in it can join; run as root to "
+             "put the node on this machine's graph)") if private else ""
+    report(f"DDS: {dds.describe()}{where}")
 
 
 def _refuse(mode: Mode) -> None:

@@ -1,6 +1,6 @@
 """``prime remote``: the reference REMOTE client. Streams MIT commands over DDS to a running Prime (``prime sim
---dds`` or ``prime bringup --dds``, on this machine or another in the same ROS 2 domain) and prints what
-Prime publishes. The client itself is ``dds/remote.py``."""
+--dds --dds-control`` or ``prime bringup --dds --dds-control``, on this machine or another in the same ROS 2
+domain and namespace) and prints what Prime publishes. The client itself is ``dds/remote.py``."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.rate import Rate
-from humanoid_prime.dds.domain import domain_id
+from humanoid_prime.dds.domain import domain_id, node_namespace
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
@@ -37,11 +37,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "remote", help="stream MIT commands to a running Prime over DDS (REMOTE mode) and show what it publishes",
         description="The reference REMOTE client: a separate DDS participant that streams "
-                    "prime_msgs/MitCommand on /remote_policy_controller/command to a Prime started with --dds, "
+                    "prime_msgs/MitCommand on /remote_policy_controller/command to a Prime started with --dds "
+                    "--dds-control, "
                     "asks for REMOTE on /prime/mode_request, and prints the joint states, mode and safety status "
                     "it receives. The motion starts at the measured position, moves to the pose over --ramp "
                     "seconds, then holds it (--amplitude 0) or waves the --wave joints about it.")
     add_domain_option(p, with_dds=False)
+    p.add_argument("--namespace", metavar="NAME", help="the ROS 2 namespace of the Prime to drive (default: none)")
     p.add_argument("--pose", metavar="NAME", help="standby pose to hold or wave about (default: the default pose)")
     p.add_argument("--wave", metavar="JOINT,...", default=DEFAULT_WAVE,
                    help=f"joints that wave about the pose (default: {DEFAULT_WAVE})")
@@ -88,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise PrimeError(f"--pose: no pose {pose_name!r} (poses: {', '.join(poses)})")
     wave = _wave_mask(robot, args.wave)
     domain = domain_id(args.domain)
+    namespace = node_namespace(args.namespace)
     sito_kp = config.locomotion.sito_kp if args.sito_kp is None else args.sito_kp
     sito_kd = config.locomotion.sito_kd if args.sito_kd is None else args.sito_kd
     stiffness, damping = gain_rows(robot, (config.remote.erob_kp, config.remote.erob_kd), (sito_kp, sito_kd))
@@ -95,11 +98,12 @@ def run(args: argparse.Namespace) -> int:
     out = sys.stderr if args.json else sys.stdout
     stop = threading.Event()
 
-    with stop_on_signals(stop), RemoteClient(robot, domain=domain, command_topic=config.remote.topic) as client:
+    with stop_on_signals(stop), RemoteClient(robot, domain=domain, namespace=namespace,
+                                                    command_topic=config.remote.topic) as client:
         print(f"prime remote: domain {domain}, waiting for /prime/joint_states ...", file=out, flush=True)
         if not client.wait_for_joint_states(args.wait, sleep=lambda s: stop.wait(s)):
             raise PrimeError(f"no joint states from Prime on ROS 2 domain {domain} within {args.wait:g} s (is it "
-                             "running with --dds, in the same domain, reachable on this network?)")
+                             "running with --dds, in the same domain and namespace, reachable on this network?)")
         motion = Motion(start=np.clip(client.seen.position, robot.lower, robot.upper),
                         pose=pose_array(robot, poses[pose_name]), lower=robot.lower, upper=robot.upper, wave=wave,
                         amplitude=args.amplitude, frequency=args.frequency, ramp=args.ramp)

@@ -20,18 +20,19 @@ from typing import Any
 
 from humanoid_prime.cli._common import (
     SECONDS,
+    DdsOptions,
     add_config_options,
     add_dds_options,
     add_json_option,
     add_record_option,
     add_web_option,
-    dds_domain,
+    dds_options,
     output_file,
     print_json,
 )
 from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
-from humanoid_prime.config.controllers import load_controllers
-from humanoid_prime.config.robot import load_robot
+from humanoid_prime.config.controllers import ControllersConfig, load_controllers
+from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.drivers.erob.gains import check_mode_gains
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.errors import PrimeError
@@ -52,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "sim", help="run the simulated Prime through every mode (MuJoCo, headless by default)",
         description="Bring up the simulated Prime (MuJoCo, MIT law at the physics rate) with the staged start and "
                     f"run the {DEMO_SECONDS:g} s demonstration: ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION, REMOTE "
-                    "(a scripted command stream; with --dds, commands from the ROS 2 graph), DAMPING. On a "
+                    "(a scripted command stream; with --dds-control, commands from the ROS 2 graph), DAMPING. On a "
                     "terminal, keys 1-5 switch modes and q quits.")
     p.add_argument("--duration", type=SECONDS, metavar="S",
                    help=f"simulated seconds to run (default: {DEMO_SECONDS:g}; with --mode, until q or Ctrl-C)")
@@ -66,7 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "on a virtual CAN bus, their plants the wrists of the same model (default: none)")
     p.add_argument("--socket", metavar="PATH",
                    help=f"control socket for 'prime switch' (default: {default_socket_path()})")
-    add_dds_options(p)
+    add_dds_options(p, node=True)
     add_record_option(p)
     add_web_option(p)
     add_config_options(p, controllers=True)
@@ -168,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise PrimeError(f"--duration must be a positive number of seconds, got {args.duration:g}")
     duration = args.duration if args.duration is not None else (None if mode is not None else DEMO_SECONDS)
-    domain = dds_domain(args)
+    dds = dds_options(args)
 
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
@@ -177,12 +178,13 @@ def run(args: argparse.Namespace) -> int:
     # stops here with the reason.
     server = ControlServer(path=args.socket).start()
     try:
-        return _run(args, robot, config, mode, duration, domain, server)
+        return _run(args, robot, config, mode, duration, dds, server)
     finally:
         server.close()
 
 
-def _run(args: argparse.Namespace, robot, config, mode: Mode | None, duration: float | None, domain: int | None,
+def _run(args: argparse.Namespace, robot: Robot, config: ControllersConfig, mode: Mode | None,
+         duration: float | None, dds: DdsOptions | None,
          server: ControlServer) -> int:
     hil = None
     if args.hil == "can":
@@ -193,8 +195,8 @@ def _run(args: argparse.Namespace, robot, config, mode: Mode | None, duration: f
         start, close = (lambda: manager.start(now=system.sim_time)), manager.shutdown
     manager.configuration = {kind: entry for kind, entry in args.config.as_dict().items() if kind != "calibration"}
     try:
-        # With --dds, REMOTE follows the graph (prime remote, a policy node), not the scripted stream.
-        stream = demo_stream(robot, config, manager) if domain is None else None
+        # With --dds-control, REMOTE follows the graph (prime remote, a policy node), not the scripted stream.
+        stream = None if dds is not None and dds.control else demo_stream(robot, config, manager)
         viewer, close_viewer = _open_viewer(system) if args.viewer else (None, None)
     except BaseException:
         close()  # the CAN buses are open already
@@ -211,7 +213,8 @@ def _run(args: argparse.Namespace, robot, config, mode: Mode | None, duration: f
         rate = f"{system.sim_time / wall:5.1f}x real time" if wall > 0 else ""
         driver = "demonstration" if mode is None and sim.following_schedule else "operator"
         wrists = ", wrists over CAN" if hil is not None else ""
-        return f"sim {system.sim_time:6.2f} s  wall {wall:6.2f} s  {rate}  ({driver}{wrists})"
+        graph = ", DDS control ON" if dds is not None and dds.control else ""
+        return f"sim {system.sim_time:6.2f} s  wall {wall:6.2f} s  {rate}  ({driver}{wrists}{graph})"
 
     table = LiveTable(manager, status=status) if live_terminal else None
 
@@ -248,15 +251,15 @@ def _run(args: argparse.Namespace, robot, config, mode: Mode | None, duration: f
                 # writer instead of dropping a tick.
                 recorder = Recorder(args.record, manager, wait=args.fast)
                 stack.callback(recorder.close)
-            if domain is not None:
+            if dds is not None:
                 from humanoid_prime.dds.bridge import bridge_manager
 
-                # Stamps in simulated time, as ROS 2 nodes with use_sim_time expect.
-                bridge = bridge_manager(manager, domain=domain,
-                                        request_mode=lambda text: operator_mode(Mode.parse(text)))
+                # Stamps in simulated time, published on /clock, as ROS 2 nodes with use_sim_time expect.
+                bridge = bridge_manager(manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
+                                        request_mode=lambda text: operator_mode(Mode.parse(text)), sim_clock=True,
+                                        settings=dds.discovery)
                 stack.callback(bridge.close)
-                print(f"DDS: ROS 2 domain {domain}; publishing /prime/joint_states, /control_mode, /safety_status; "
-                      f"REMOTE follows {config.remote.topic}; modes on /prime/mode_request", file=out, flush=True)
+                print(f"DDS: {dds.describe()}", file=out, flush=True)
             from humanoid_prime.view.feeds import manager_source
 
             state, _ = manager_source(manager)  # for the run's whole life: no detach

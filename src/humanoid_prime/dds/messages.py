@@ -4,6 +4,9 @@ Each class is the field list of its ROS 2 definition, in order, with ROS 2's IDL
 ``sequence<string>``, ``float64`` -> ``double``, msg ``byte`` -> ``octet``). Every type is final (the default),
 so it serialises as XCDR1 exactly like both ROS 2 middlewares; the tests compare the bytes with ROS 2's own
 definitions (Humble and Jazzy) and ``MitCommand`` with ``prime_msgs/msg/MitCommand.msg``, field by field.
+
+``GRAPH_TYPES`` are the graph information rmw implementations share (``rmw_dds_common``, Iron and later: a GID
+is 16 bytes; Humble's were 24, so a Humble node lists Prime's topics but not the node ``prime``).
 """
 
 # No `from __future__ import annotations`: Cyclone DDS resolves these field annotations at run time.
@@ -11,7 +14,7 @@ definitions (Humble and Jazzy) and ``MitCommand`` with ``prime_msgs/msg/MitComma
 from dataclasses import dataclass, field
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import byte, float64, int32, sequence, uint32
+from cyclonedds.idl.types import array, bounded_str, byte, float64, int32, sequence, uint8, uint32
 
 
 def dds_type_name(ros_type: str) -> str:
@@ -89,6 +92,44 @@ class MitCommand(IdlStruct, typename=dds_type_name("prime_msgs/msg/MitCommand"))
     damping: sequence[float64] = field(default_factory=list)
 
 
+@dataclass
+class Clock(IdlStruct, typename=dds_type_name("rosgraph_msgs/msg/Clock")):
+    clock: Time = field(default_factory=Time)
+
+
+@dataclass
+class Vector3(IdlStruct, typename=dds_type_name("geometry_msgs/msg/Vector3")):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Quaternion(IdlStruct, typename=dds_type_name("geometry_msgs/msg/Quaternion")):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+    w: float64 = 1.0
+
+
+@dataclass
+class Transform(IdlStruct, typename=dds_type_name("geometry_msgs/msg/Transform")):
+    translation: Vector3 = field(default_factory=Vector3)
+    rotation: Quaternion = field(default_factory=Quaternion)
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename=dds_type_name("geometry_msgs/msg/TransformStamped")):
+    header: Header = field(default_factory=Header)
+    child_frame_id: str = ""
+    transform: Transform = field(default_factory=Transform)
+
+
+@dataclass
+class TFMessage(IdlStruct, typename=dds_type_name("tf2_msgs/msg/TFMessage")):
+    transforms: sequence[TransformStamped] = field(default_factory=list)
+
+
 # Every type above with its ROS 2 name (the byte-compatibility tests walk this table).
 ROS_TYPES: dict[str, type[IdlStruct]] = {
     "builtin_interfaces/msg/Time": Time,
@@ -99,6 +140,40 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "diagnostic_msgs/msg/DiagnosticStatus": DiagnosticStatus,
     "diagnostic_msgs/msg/DiagnosticArray": DiagnosticArray,
     "prime_msgs/msg/MitCommand": MitCommand,
+    "rosgraph_msgs/msg/Clock": Clock,
+    "geometry_msgs/msg/Vector3": Vector3,
+    "geometry_msgs/msg/Quaternion": Quaternion,
+    "geometry_msgs/msg/Transform": Transform,
+    "geometry_msgs/msg/TransformStamped": TransformStamped,
+    "tf2_msgs/msg/TFMessage": TFMessage,
+}
+
+GID_BYTES = 16  # RMW_GID_STORAGE_SIZE since Iron
+
+
+@dataclass
+class Gid(IdlStruct, typename=dds_type_name("rmw_dds_common/msg/Gid")):
+    data: array[uint8, GID_BYTES] = field(default_factory=lambda: [0] * GID_BYTES)
+
+
+@dataclass
+class NodeEntitiesInfo(IdlStruct, typename=dds_type_name("rmw_dds_common/msg/NodeEntitiesInfo")):
+    node_namespace: bounded_str[256] = ""
+    node_name: bounded_str[256] = ""
+    reader_gid_seq: sequence[Gid] = field(default_factory=list)
+    writer_gid_seq: sequence[Gid] = field(default_factory=list)
+
+
+@dataclass
+class ParticipantEntitiesInfo(IdlStruct, typename=dds_type_name("rmw_dds_common/msg/ParticipantEntitiesInfo")):
+    gid: Gid = field(default_factory=Gid)
+    node_entities_info_seq: sequence[NodeEntitiesInfo] = field(default_factory=list)
+
+
+GRAPH_TYPES: dict[str, type[IdlStruct]] = {
+    "rmw_dds_common/msg/Gid": Gid,
+    "rmw_dds_common/msg/NodeEntitiesInfo": NodeEntitiesInfo,
+    "rmw_dds_common/msg/ParticipantEntitiesInfo": ParticipantEntitiesInfo,
 }
 
 

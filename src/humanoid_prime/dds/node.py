@@ -1,17 +1,22 @@
-"""One DDS participant in a ROS 2 domain, with ROS 2's names and QoS.
+"""One DDS participant in a ROS 2 domain, with ROS 2's names and QoS, that ROS 2 sees as a node.
 
-A ROS 2 topic ``/a/b`` is the DDS topic ``rt/a/b``; ROS 2's default QoS is reliable, volatile, keep-last 10;
-"latched" is transient-local (with Cyclone's durability service keeping the same depth, as rmw_cyclonedds
-sets it); only XCDR1 is offered, like both ROS 2 middlewares. ``ROS_DOMAIN_ID`` picks the domain unless one
-is given. Cyclone's own configuration (``CYCLONEDDS_URI``: interfaces, peers) applies as usual.
+A ROS 2 topic ``/a/b`` is the DDS topic ``rt/a/b`` (under the node's namespace, ``rt/<ns>/a/b``); ROS 2's
+default QoS is reliable, volatile, keep-last 10; "latched" is transient-local (with Cyclone's durability
+service keeping the same depth, as rmw_cyclonedds sets it); only XCDR1 is offered, like both ROS 2
+middlewares. Each endpoint carries its type's hash in its user data and the participant its enclave, and the
+node's readers and writers are published on ``ros_discovery_info`` as rmw implementations do, so node lists,
+``ros2 node info`` and graph views show the node with its topics. The domain is created with ROS 2's discovery
+settings (``domain.py``) and then ``CYCLONEDDS_URI``.
 """
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from cyclonedds.core import DDSException
-from cyclonedds.domain import DomainParticipant
+from cyclonedds.domain import Domain, DomainParticipant
+from cyclonedds.idl import IdlStruct
 from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
@@ -19,11 +24,15 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from humanoid_prime.dds.domain import domain_id
+from humanoid_prime.dds import messages as msg
+from humanoid_prime.dds.domain import Discovery, cyclone_config, discovery, domain_id, in_namespace
+from humanoid_prime.dds.typehash import user_data
 from humanoid_prime.errors import PrimeError
 
 ROS_TOPIC_PREFIX = "rt"
 DEFAULT_DEPTH = 10
+DISCOVERY_TOPIC = "ros_discovery_info"  # a DDS topic of the rmw layer, outside ROS 2's names
+ENCLAVE = b"enclave=/;"  # the participant user data rmw implementations read (no security enclave)
 
 
 def dds_topic_name(topic: str) -> str:
@@ -33,9 +42,10 @@ def dds_topic_name(topic: str) -> str:
     return ROS_TOPIC_PREFIX + topic
 
 
-def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool = True) -> Qos:
+def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool = True,
+            data_type: type[IdlStruct] | None = None) -> Qos:
     """ROS 2's QoS profile as rmw_cyclonedds maps it: reliable, volatile, keep-last ``depth`` (the default
-    profile), or transient-local for a latched topic."""
+    profile), or transient-local for a latched topic; with ``data_type``, its type hash in the user data."""
     policies: list[Any] = [
         Policy.Reliability.Reliable(duration(milliseconds=100)) if reliable else Policy.Reliability.BestEffort,
         Policy.History.KeepLast(depth),
@@ -49,6 +59,8 @@ def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool
                                               max_samples=-1, max_instances=-1, max_samples_per_instance=-1)]
     else:
         policies.append(Policy.Durability.Volatile)
+    if data_type is not None:
+        policies.append(Policy.Userdata(user_data(data_type)))
     return Qos(*policies)
 
 
@@ -58,44 +70,117 @@ def take(reader: DataReader, n: int = 64, **conditions: Any) -> list[Any]:
     return [s for s in reader.take(N=n, **conditions) if not isinstance(s, InvalidSample)]
 
 
-class DdsNode:
-    """A DDS participant with ROS 2 conventions; ``close`` deletes it and everything it created."""
+class _Domains:
+    """The DDS domains this process created, each with the configuration of the first node to join it, kept
+    while a node uses it (deleting a domain deletes every participant in it)."""
 
-    def __init__(self, domain: int | None = None) -> None:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held: dict[int, tuple[Domain | None, int]] = {}
+
+    def join(self, domain: int, settings: Discovery) -> None:
+        with self._lock:
+            held, users = self._held.get(domain, (None, 0))
+            if not users:
+                try:
+                    held = Domain(domain, cyclone_config(settings))
+                except DDSException as exc:
+                    raise PrimeError(f"cannot join DDS domain {domain}: {exc} (check CYCLONEDDS_URI, "
+                                     "ROS_STATIC_PEERS and the network interfaces)") from None
+            self._held[domain] = (held, users + 1)
+
+    def leave(self, domain: int) -> None:
+        with self._lock:
+            held, users = self._held.pop(domain, (None, 0))
+            if users > 1:
+                self._held[domain] = (held, users - 1)
+            elif held is not None:
+                held.__del__()  # dds_delete now, not whenever the collector gets to it
+
+
+_domains = _Domains()
+
+
+def _gid(entity: Any) -> msg.Gid:
+    """An entity's ROS 2 GID: its DDS GUID, as every rmw implementation takes it (wire order)."""
+    return msg.Gid(data=list(entity.guid.bytes))
+
+
+class DdsNode:
+    """A DDS participant with ROS 2 conventions, seen on the graph as node ``name`` in ``namespace`` (no name:
+    a plain participant, as before ROS 2 knew of nodes). ``close`` deletes it and everything it created."""
+
+    def __init__(self, domain: int | None = None, *, name: str | None = None, namespace: str = "/",
+                 settings: Discovery | None = None) -> None:
         self.domain = domain_id(domain)
+        self.name = name
+        self.namespace = namespace
+        self.settings = settings if settings is not None else discovery()
+        _domains.join(self.domain, self.settings)
         try:
-            self.participant = DomainParticipant(self.domain)
+            self.participant = DomainParticipant(self.domain, qos=Qos(Policy.Userdata(ENCLAVE)))
         except DDSException as exc:
+            _domains.leave(self.domain)
             raise PrimeError(f"cannot join DDS domain {self.domain}: {exc} (check CYCLONEDDS_URI and the network "
                              "interfaces)") from None
         self._topics: dict[str, Topic] = {}
-        self._entities: list[Any] = []
+        self._readers: list[DataReader] = []
+        self._writers: list[DataWriter] = []
+        self._discovery: DataWriter | None = None
+        if name is not None:
+            qos = ros_qos(latched=True, depth=1, data_type=msg.ParticipantEntitiesInfo)
+            self._discovery = DataWriter(self.participant, Topic(self.participant, DISCOVERY_TOPIC,
+                                                                 msg.ParticipantEntitiesInfo), qos=qos)
+
+    def topic_name(self, topic: str) -> str:
+        """The ROS 2 name of ``topic`` (absolute) for this node: under its namespace."""
+        return in_namespace(self.namespace, topic)
 
     def _topic(self, topic: str, data_type: type) -> Topic:
-        name = dds_topic_name(topic)
+        name = dds_topic_name(self.topic_name(topic))
         if name not in self._topics:
             self._topics[name] = Topic(self.participant, name, data_type)
         return self._topics[name]
 
     def writer(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH) -> DataWriter:
-        writer = DataWriter(self.participant, self._topic(topic, data_type), qos=ros_qos(latched=latched, depth=depth))
-        self._entities.append(writer)
+        writer = DataWriter(self.participant, self._topic(topic, data_type),
+                            qos=ros_qos(latched=latched, depth=depth, data_type=data_type))
+        self._writers.append(writer)
+        self.announce()
         return writer
 
-    def reader(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH) -> DataReader:
-        reader = DataReader(self.participant, self._topic(topic, data_type), qos=ros_qos(latched=latched, depth=depth))
-        self._entities.append(reader)
+    def reader(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH,
+               reliable: bool = True) -> DataReader:
+        reader = DataReader(self.participant, self._topic(topic, data_type),
+                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type))
+        self._readers.append(reader)
+        self.announce()
         return reader
+
+    def entities_info(self) -> msg.ParticipantEntitiesInfo:
+        """What this participant publishes on ``ros_discovery_info``: its node with its readers and writers."""
+        nodes = [] if self.name is None else [msg.NodeEntitiesInfo(
+            node_namespace=self.namespace, node_name=self.name, reader_gid_seq=[_gid(r) for r in self._readers],
+            writer_gid_seq=[_gid(w) for w in self._writers])]
+        return msg.ParticipantEntitiesInfo(gid=_gid(self.participant), node_entities_info_seq=nodes)
+
+    def announce(self) -> None:
+        """Publish the node's endpoints on ``ros_discovery_info`` (latched: late joiners get the latest)."""
+        if self._discovery is not None:
+            self._discovery.write(self.entities_info())
 
     def close(self) -> None:
         """Delete the participant (and with it every reader, writer and topic: peers see them go at once)."""
         participant = getattr(self, "participant", None)
         if participant is None:
             return
-        self._entities.clear()
+        self._readers.clear()
+        self._writers.clear()
         self._topics.clear()
+        self._discovery = None
         self.participant = None
         participant.__del__()  # dds_delete now, not whenever the collector gets to it
+        _domains.leave(self.domain)
 
     def __enter__(self) -> DdsNode:
         return self

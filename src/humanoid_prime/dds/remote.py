@@ -1,7 +1,8 @@
 """A policy sender for Prime's REMOTE mode over DDS: the reference client behind ``prime remote``, and the
 example to copy for your own.
 
-It is an ordinary DDS participant with ROS 2's conventions, like any ROS 2 node: it publishes
+It is an ordinary DDS participant with ROS 2's conventions, node ``prime_remote`` on the graph, in the
+namespace of the Prime it drives: it publishes
 ``prime_msgs/MitCommand`` on ``/remote_policy_controller/command`` (all 14 joints, canonical order, every
 period) and ``std_msgs/String`` on ``/prime/mode_request``, and reads ``/prime/joint_states``,
 ``/control_mode`` and ``/safety_status``. The same works from rclpy with ``prime_msgs`` built in a colcon
@@ -26,6 +27,8 @@ from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, REMOTE_COM
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.bridge import MODE_REQUEST
 from humanoid_prime.dds.node import DdsNode, take
+
+NODE_NAME = "prime_remote"
 
 
 @dataclass
@@ -80,11 +83,11 @@ class Seen:
 class RemoteClient:
     """Talks to a running Prime over DDS. ``poll()`` takes what arrived; ``send()`` streams one command."""
 
-    def __init__(self, robot: Robot, *, domain: int | None = None, command_topic: str = REMOTE_COMMAND,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, robot: Robot, *, domain: int | None = None, namespace: str = "/",
+                 command_topic: str = REMOTE_COMMAND, clock: Callable[[], float] = time.monotonic) -> None:
         self.names = list(robot.names)
         self.clock = clock
-        self.node = DdsNode(domain)
+        self.node = DdsNode(domain, name=NODE_NAME, namespace=namespace)  # the Prime's topics are under it too
         try:
             self.commands = self.node.writer(command_topic, msg.MitCommand)
             self.mode_requests = self.node.writer(MODE_REQUEST, msg.String)

@@ -168,8 +168,8 @@ class Recorder(SafetyFlags):
         self._add(CONTROL_MODE, msg.String(data=message.mode), self._log_ns(message.stamp))
 
     def on_safety(self, message: SafetyStatus) -> None:
-        self._add(SAFETY_STATUS, diagnostics(message, self.sources, self.epoch_offset, self.configuration),
-                  self._log_ns(message.stamp))
+        array = diagnostics(message, self.sources, self.epoch_offset, configuration=self.configuration)
+        self._add(SAFETY_STATUS, array, self._log_ns(message.stamp))
 
     def on_remote(self, message: MitCommand) -> None:
         self._channel(self.remote_topic, "prime_msgs/msg/MitCommand", VOLATILE_QOS)

@@ -5,15 +5,22 @@ as root, ``unshare -rn`` otherwise), so nothing the emulation creates — a veth
 CAN traffic — is visible on the host, and all of it disappears with the process. Inside,
 ``VirtualPrime`` creates the veth pair (the master end stays here), gives the loopback interface a
 multicast route for the CAN bus, and starts the virtual Prime process on the other end.
+
+The part of a run that talks to the world rather than to the robot (the ROS 2 node) opens its sockets inside
+``host_network()``: as root, the command keeps a handle on the host's network namespace across the re-exec,
+and that block (with the threads it starts) runs in it, so the node is on the host's ROS 2 graph while the
+robot stays private. Without root that is impossible (a user namespace may not enter the host's network
+namespace) and the block stays inside.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import subprocess
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +30,8 @@ from humanoid_prime.runtime.socket import SOCKET_ENV, default_socket_path
 from humanoid_prime.virtual.netns import EmulatedRing, EmulationUnavailable, ip, netns_unavailable_reason
 
 PRIVATE_NETNS_MARK = "PRIME_PRIVATE_NETNS"
+HOST_NETNS_FD = "PRIME_HOST_NETNS_FD"  # a descriptor of the host's network namespace, kept across the re-exec
+CLONE_NEWNET = 0x40000000  # <sched.h>
 CAN_INTERFACE = "udp_multicast"
 CAN_CHANNEL = "239.74.163.2"  # python-can's default IPv4 group; private to the namespace
 
@@ -45,10 +54,39 @@ def enter_private_netns(argv: Sequence[str] | None = None) -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     unshare = ["unshare", "-n"] if os.geteuid() == 0 else ["unshare", "-rn"]
+    if os.geteuid() == 0:
+        host = os.open("/proc/self/ns/net", os.O_RDONLY)
+        os.set_inheritable(host, True)
+        os.environ[HOST_NETNS_FD] = str(host)
     try:
         os.execvp(unshare[0], [*unshare, "--", *args])
     except OSError as exc:
         raise EmulationUnavailable(f"cannot run `{' '.join(unshare)}`: {exc.strerror}") from None
+
+
+@contextlib.contextmanager
+def host_network() -> Iterator[bool]:
+    """Run the block, in this thread and the threads it starts, in the host's network namespace when this
+    process is a private-namespace run that kept a handle on it (as root); yields whether it is on the host.
+    Sockets opened in the block stay in the host's namespace after it."""
+    handle = os.environ.get(HOST_NETNS_FD, "") if in_private_netns() else ""
+    if not handle.isdigit():
+        yield False
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    private = os.open("/proc/thread-self/ns/net", os.O_RDONLY)
+    try:
+        if libc.setns(int(handle), CLONE_NEWNET) != 0:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            if libc.setns(private, CLONE_NEWNET) != 0:  # the robot's side of the run must stay private
+                raise EmulationUnavailable(f"cannot return to the emulation's network namespace: "
+                                           f"{os.strerror(ctypes.get_errno())}")
+    finally:
+        os.close(private)
 
 
 class VirtualPrime(EmulatedRing):

@@ -60,8 +60,10 @@ def graph(ros_clients, tmp_path_factory):
         summary = folder / f"sim{namespace.replace('/', '_')}.json"
         extra = [] if namespace == "/" else ["--namespace", namespace.strip("/")]
         with open(folder / f"sim{namespace.replace('/', '_')}.log", "w") as log:  # a file: a pipe could fill
+            socket = folder / f"sim{namespace.replace('/', '_')}.sock"  # each instance answers on its own
             sims[namespace] = (popen([*PRIME, "sim", "--dds", "--dds-control", *extra, "--mode", "STANDBY",
-                                      "--duration", "600", "--summary", str(summary)], env=env,
+                                      "--duration", "600", "--summary", str(summary), "--socket", str(socket)],
+                                     env=env,
                                      stdout=subprocess.DEVNULL, stderr=log), summary)
     probes = {}
     try:

@@ -44,7 +44,7 @@ def test_remote_refuses_gains_targets_and_velocities_out_of_bounds_and_none_reac
     doubled.stack.callback(sniffer.shutdown)
     session = doubled.open()
     manager = session.manager
-    bridge = bridge_manager(manager, domain=domain)
+    bridge = bridge_manager(manager, domain=domain, control=True)
     doubled.stack.callback(bridge.close)
     peer = doubled.stack.enter_context(DdsNode(domain))
     writer = peer.writer(TOPIC, msg.MitCommand)

@@ -159,7 +159,9 @@ def test_latched_mode_safety_and_diagnostics(graph, distro):
     assert graph[0][distro]["instances"][control]["modes"][0] == "STANDBY"
     for seen in graph[0][distro]["instances"].values():
         names = [status[0] for status in seen["safety"]]
-        assert names[-1] == "prime/dds" and [status[0] for status in seen["diagnostics"]] == names
+        # one status per flag source, the bridge's last, then the run's configuration files
+        assert names[-2:] == ["prime/dds", "prime/configuration"]
+        assert [status[0] for status in seen["diagnostics"]] == names
         dds = [message for status, _, message in seen["safety"] if status == "prime/dds"][0]
         assert "takes mode requests and REMOTE commands from the ROS 2 graph" in dds
     assert graph[0][distro]["instances"][control]["modes"][-1] == "REMOTE"

@@ -1,5 +1,5 @@
-"""The ``prime`` command. Each module in this package that defines ``register(subparsers)`` adds
-one or more subcommands; a subcommand sets ``func(args) -> int``. Errors meant for people
+"""The ``prime`` command. Each subcommand's module (``_commands.COMMANDS``) defines ``register(subparsers)``,
+which adds it (and any other command of that module); a subcommand sets ``func(args) -> int``. Errors meant for people
 (PrimeError, and argparse's own) print one line to stderr and exit non-zero; anything else is a bug,
 reported as one line too (exit 70), with the traceback only under PRIME_DEBUG=1."""
 
@@ -8,13 +8,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import pkgutil
 import signal
 import sys
 import threading
 from typing import Any, NoReturn
 
 from humanoid_prime import __version__
+from humanoid_prime.cli._commands import COMMANDS
 from humanoid_prime.errors import PrimeError
 
 
@@ -25,18 +25,26 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None) -> argparse.ArgumentParser:
+    """The ``prime`` parser: every subcommand listed, and ``command``'s own parser built by its module (only that
+    module is imported; None: no command's, which is enough for ``prime --help``)."""
     parser = _Parser(prog="prime", description="Bring up, calibrate and operate Prime.")
     parser.add_argument("--version", action="version", version=f"prime {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
-        register = getattr(module, "register", None)
-        if register is not None:
-            register(subparsers)
+    for name, (module, summary) in sorted(COMMANDS.items()):
+        if name in subparsers.choices:
+            continue  # registered with another command of its module
+        if name == command:
+            importlib.import_module(f"{__name__}.{module}").register(subparsers)
+        else:
+            subparsers.add_parser(name, help=summary, add_help=False)
     return parser
+
+
+def _command(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word that is no option), if it is one."""
+    word = next((arg for arg in argv if not arg.startswith("-")), None)
+    return word if word in COMMANDS else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     previous = _watch_interrupts(interrupted)
     name = "prime"
     try:
-        parser = build_parser()
+        argv = sys.argv[1:] if argv is None else argv
+        parser = build_parser(_command(argv))
         args = parser.parse_args(argv)
         if getattr(args, "func", None) is None:
             parser.print_help()

@@ -14,6 +14,7 @@ from typing import Any
 from rich.table import Table
 
 from humanoid_prime import bench as b
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import cpu_number, output_file, real
 from humanoid_prime.cli._live import Working
@@ -75,7 +76,7 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("bench", help="measure the performance targets",
+    p = subparsers.add_parser("bench", help=summary("bench"),
                               description="Run the benchmarks and print each figure against its target. "
                                           "Suites: " + "; ".join(f"{k}: {v[2]}" for k, v in SUITES.items()))
     p.add_argument("--only", metavar="SUITE,...", help=f"run only these suites ({', '.join(SUITES)})")

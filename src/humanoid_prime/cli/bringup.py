@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     SECONDS,
     DdsOptions,
@@ -48,7 +49,7 @@ from humanoid_prime.runtime.signals import stop_on_signals
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "bringup", help="bring up Prime on both buses (or one) and run the controller manager",
+        "bringup", help=summary("bringup"),
         description="Bring Prime up: fold the calibration into the eRob configs, take the EtherCAT ring to OP "
                     "with the fast bring-up loop (SYNC0 derived from update_rate), enable the Sito wrists, start "
                     "the controllers in stages (broadcaster, ZERO_TORQUE, the other modes inactive), then arm "

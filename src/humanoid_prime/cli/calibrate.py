@@ -31,6 +31,7 @@ from humanoid_prime.calibration.workflow import (
     tracked_joints,
     write,
 )
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
@@ -66,7 +67,7 @@ READOUT_HZ = 5.0
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "calibrate", help="track joint sweeps to both stops and write prime_calibration.yaml",
+        "calibrate", help=summary("calibrate"),
         description="Bring up the chosen buses with identity calibration (the prior's directions, offset 0) and "
                     "only the joint-state broadcaster, and track each joint's min/max while you sweep it to both "
                     "mechanical stops, the lower stop first (eRob: `prime limp RING_POS` in another terminal; "

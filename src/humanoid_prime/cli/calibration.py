@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_hidden_alias, add_json_option, output_dir, print_json
 from humanoid_prime.config.calibration import load_calibration, save_calibration
 from humanoid_prime.config.controllers import load_controllers
@@ -16,7 +17,7 @@ from humanoid_prime.errors import PrimeError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("calibration", help="fold, flip or check a calibration file",
+    p = subparsers.add_parser("calibration", help=summary("calibration"),
                               description="Work with a calibration file (direction and homing_offset per joint).")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 

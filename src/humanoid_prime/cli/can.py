@@ -15,6 +15,7 @@ from collections import Counter
 
 import can
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_duration_option, add_json_option, print_json, whole
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
 from humanoid_prime.config.robot import load_robot
@@ -113,7 +114,7 @@ def _ids(text: str) -> list[int]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("can", help="monitor, discover or emulate the Sito wrists on CAN",
+    p = subparsers.add_parser("can", help=summary("can"),
                               description="Look at the Sito wrists' CAN traffic, or emulate the wrists.")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
 from humanoid_prime.config.location import FILE_NAMES, KINDS, robot_folder, template
 from humanoid_prime.errors import PrimeError
@@ -11,7 +12,7 @@ from humanoid_prime.files import atomic_write_bytes
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("config", help="the robot's configuration folder: create it, show what is used",
+    p = subparsers.add_parser("config", help=summary("config"),
                               description="Every command reads the robot's hardware, calibration and controllers "
                                           "files by one rule: the file given with --hardware, --calibration or "
                                           "--controllers; else the one in the robot's config folder "

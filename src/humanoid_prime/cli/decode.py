@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_json_option, print_json
 from humanoid_prime.drivers.erob.cia402 import (
     ERROR_HINTS,
@@ -27,7 +28,7 @@ def _word(text: str) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("decode", help="decode a statusword, eRob error code or EtherCAT AL status",
+    p = subparsers.add_parser("decode", help=summary("decode"),
                               description="Decode values read off a drive. Numbers in decimal or 0x hex.")
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
     for name, help_text, func in (

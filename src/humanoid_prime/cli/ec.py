@@ -12,6 +12,7 @@ import math
 import time
 from typing import Any
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json, whole
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
@@ -34,7 +35,7 @@ _SCAN_CYCLES = 5  # exchanges after OP before statusword and error code are read
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     ec = subparsers.add_parser(
-        "ec", help="EtherCAT commissioning: scan the ring, read and write SDOs",
+        "ec", help=summary("ec"),
         description="--backend soem opens the NIC in this process (nothing else may own it) and brings the ring "
                     "to OP before any SDO; --backend igh asks a running IgH master through its `ethercat` tool.")
     commands = ec.add_subparsers(dest="ec_command", metavar="COMMAND", required=True)

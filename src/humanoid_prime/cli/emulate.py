@@ -17,6 +17,7 @@ import sys
 import tempfile
 import time
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.errors import PrimeError
@@ -26,7 +27,7 @@ from humanoid_prime.virtual.ring.options import RingOptions
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("emulate", help="emulate hardware for running the stack without the robot",
+    p = subparsers.add_parser("emulate", help=summary("emulate"),
                               description="Emulated hardware a real driver can talk to.")
     kinds = p.add_subparsers(dest="emulate_kind", metavar="KIND", required=True)
     ec = kinds.add_parser(

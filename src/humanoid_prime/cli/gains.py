@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json, real
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.hardware import HardwareConfig
@@ -21,7 +22,7 @@ from humanoid_prime.modes import Mode
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "gains", help="eRob registers (vel_reg, pos_reg, integral) for --kp/--kd or --mode",
+        "gains", help=summary("gains"),
         description="Convert stiffness kp (Nm/rad) and damping kd (Nm*s/rad), or a mode's gains, to the eRob "
                     "loop-gain registers of each eRob joint (its Kt and gear from the hardware file), and show "
                     "the kp and kd the drive realises with the rounded registers.")

@@ -6,13 +6,14 @@ import argparse
 
 from rich.table import Table
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, console, print_json
 from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.robot import load_robot
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("info", help="joint topology: family, bus, address, limits, direction",
+    p = subparsers.add_parser("info", help=summary("info"),
                               description="Show Prime's 14 joints in canonical order with the bus and address "
                                           "each lives on, the described limits and the calibration.")
     add_config_options(p, calibration=True)

@@ -9,6 +9,7 @@ import time
 from types import FrameType
 
 from humanoid_prime.calibration.limp import DampedLimp
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     add_config_options,
     add_duration_option,
@@ -27,7 +28,7 @@ from humanoid_prime.runtime.socket import SocketSdoClient
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "limp", help="damped limp of one eRob (position gain 0, damping kept) until Enter",
+        "limp", help=summary("limp"),
         description="Make one eRob damped-limp for a hand sweep: snapshot its gains, arm the gate, position "
                     "gain 0, integral 0, keep (or set) the damping, read back Kp = 0, wait, and restore the "
                     "snapshot on every exit path. The other joints keep holding. Needs a running "

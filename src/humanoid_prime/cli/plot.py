@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import argparse
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, output_file
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "plot", help="plot commanded vs measured position and torque per joint from a recording (.mcap) to a PNG",
+        "plot", help=summary("plot"),
         description="Read a recording made with --record and draw, one row per joint, the measured position "
                     "against the commanded target (where the joint was stiff) and the measured torque against "
                     "the torque the MIT command asked for (effort + stiffness x position error + damping x "

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     SECONDS,
     add_config_options,
@@ -35,7 +36,7 @@ STATUS_EVERY_S = 1.0
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "remote", help="stream MIT commands to a running Prime over DDS (REMOTE mode) and show what it publishes",
+        "remote", help=summary("remote"),
         description="The reference REMOTE client: a separate DDS participant that streams "
                     "prime_msgs/MitCommand on /remote_policy_controller/command to a Prime started with --dds "
                     "--dds-control, "

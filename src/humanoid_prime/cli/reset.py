@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import argparse
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_json_option, add_socket_option, print_json
 from humanoid_prime.runtime.socket import send_reset_request
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("reset", help="reset latched drive faults of a running prime",
+    p = subparsers.add_parser("reset", help=summary("reset"),
                               description="A drive fault latches until the operator resets it. This asks the "
                                           "running prime sim, bringup or calibrate to send every faulted drive a "
                                           "fault reset with its next frame and to enter the active mode again from "

@@ -18,6 +18,7 @@ from collections.abc import Callable
 from itertools import groupby
 from typing import Any
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     SECONDS,
     DdsOptions,
@@ -50,7 +51,7 @@ HIL_CHOICES = ("none", "can")
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "sim", help="run the simulated Prime through every mode (MuJoCo, headless by default)",
+        "sim", help=summary("sim"),
         description="Bring up the simulated Prime (MuJoCo, MIT law at the physics rate) with the staged start and "
                     f"run the {DEMO_SECONDS:g} s demonstration: ZERO_TORQUE, DAMPING, STANDBY, LOCOMOTION, REMOTE "
                     "(a scripted command stream; with --dds-control, commands from the ROS 2 graph), DAMPING. On a "

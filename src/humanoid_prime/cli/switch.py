@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_json_option, add_socket_option, print_json, real
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
@@ -15,7 +16,7 @@ DEFAULT_WAIT_S = 10.0  # a mode switch on the robot takes well under a second; a
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("switch", help="switch the mode of a running prime sim or bringup",
+    p = subparsers.add_parser("switch", help=summary("switch"),
                               description="Switch the control mode of a running prime sim or prime bringup "
                                           "from another terminal. The switch lands between two ticks; the command "
                                           "waits until the mode is active (on the robot: its eRob gains applied) "

@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 
+from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     DEFAULT_WEB_PORT,
     add_config_options,
@@ -28,7 +29,7 @@ def _port(p: argparse.ArgumentParser) -> None:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "view", help="the live 3D view of a running prime sim or prime bringup, in the browser",
+        "view", help=summary("view"),
         description="Serve a page on 127.0.0.1 (offline: nothing is fetched from the internet) showing the robot "
                     "posed live, the mode with a button per mode (the same requests and refusals as prime "
                     "switch), the safety flags and each joint against its limits. It reads a running instance "
@@ -40,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_view)
 
     r = subparsers.add_parser(
-        "replay", help="play a recording (.mcap) into the 3D view",
+        "replay", help=summary("replay"),
         description="Serve the 3D view and play a recording made with --record into it at its own pace "
                     "(--speed to change it), with its modes and joints; Ctrl-C stops.")
     r.add_argument("recording", metavar="FILE.mcap")

@@ -68,3 +68,22 @@ def drawn(png: bytes) -> dict[str, float]:
     pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).reshape(-1, 3).astype(int)
     blue = np.abs(pixels - np.array([79, 110, 148])).max(axis=1) < 40  # the eRob links, lit or shaded
     return {"colours": len(np.unique(pixels, axis=0)), "std": float(pixels.std()), "erob_pixels": int(blue.sum())}
+
+
+def answering(socket: str, process, timeout: float = 120.0) -> None:
+    """Wait until the prime instance ``process`` answers on its control socket."""
+    import time
+
+    from humanoid_prime.errors import PrimeError
+    from humanoid_prime.runtime.socket import request
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert process.poll() is None, f"the instance ended with {process.returncode}"
+        try:
+            if request(socket, {"op": "ping"}, timeout=0.5)["ready"]:
+                return
+        except PrimeError:
+            pass
+        time.sleep(0.1)
+    raise AssertionError(f"nothing answered on {socket} within {timeout:g} s")

@@ -9,7 +9,7 @@ import subprocess
 from doubles.process import popen, stop
 from humanoid_prime.config.robot import load_robot
 
-from .conftest import PRIME, drawn, start
+from .conftest import PRIME, answering, drawn, start
 
 JOINTS = load_robot(use_sim=True).names
 
@@ -17,7 +17,7 @@ JOINTS = load_robot(use_sim=True).names
 def test_the_page_of_a_running_simulation_shows_it_and_switches_its_mode(browser, tmp_path):
     assert len(JOINTS) == 14
     summary = tmp_path / "sim.json"
-    sim, url = start("sim", "--web", "0", "--mode", "DAMPING", "--duration", "300", "--summary", str(summary),
+    sim, url = start("sim", "--web", "--port", "0", "--mode", "DAMPING", "--duration", "300", "--summary", str(summary),
                      "--socket", str(tmp_path / "control.sock"))
     try:
         page = browser.page
@@ -45,6 +45,7 @@ def test_prime_view_attaches_to_a_running_simulation_over_its_control_socket(bro
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     view = None
     try:
+        answering(socket, sim)
         view, url = start("view", "--port", "0", "--socket", socket)
         page = browser.page
         page.goto(url)
@@ -58,28 +59,51 @@ def test_prime_view_attaches_to_a_running_simulation_over_its_control_socket(bro
     assert browser.hosts() == {"127.0.0.1"}
 
 
-def test_with_no_running_instance_the_page_says_so_and_a_request_shows_its_refusal(browser, tmp_path):
-    view, url = start("view", "--port", "0", "--socket", str(tmp_path / "nobody.sock"))
+def test_with_no_running_instance_prime_view_says_so_at_once(tmp_path):
+    done = subprocess.run([*PRIME, "view", "--port", "0", "--socket", str(tmp_path / "nobody.sock")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert done.stderr.startswith(f"prime view: no running prime instance listens on {tmp_path / 'nobody.sock'}")
+
+
+def test_a_run_that_goes_away_shows_as_not_connected_and_a_request_shows_its_refusal(browser, tmp_path):
+    socket = str(tmp_path / "control.sock")
+    sim = popen([*PRIME, "sim", "--mode", "DAMPING", "--duration", "300", "--socket", socket],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    view = None
     try:
+        answering(socket, sim)
+        view, url = start("view", "--port", "0", "--socket", socket)
         page = browser.page
         page.goto(url)
+        page.get_by_text("mode DAMPING").wait_for(timeout=60_000)
+        stop(sim)
         page.get_by_text("not connected").first.wait_for(timeout=60_000)
         page.get_by_role("button", name="STANDBY").click()
         page.get_by_text("STANDBY refused: no running prime instance listens on").wait_for(timeout=30_000)
     finally:
-        stop(view)
+        for process in (view, sim):
+            if process is not None:
+                stop(process)
 
 
-def test_a_recording_replays_into_the_view(browser, tmp_path):
+def test_a_recording_replays_into_the_view_once_a_browser_opens_it_and_pauses_and_seeks(browser, tmp_path):
     recording = tmp_path / "run.mcap"
     subprocess.run([*PRIME, "sim", "--fast", "--record", str(recording)], check=True, capture_output=True,
                    timeout=300)
-    # --loop: the replay starts at once, and a browser slowed by a busy machine may join after STANDBY has passed
-    replay, url = start("replay", str(recording), "--port", "0", "--speed", "4", "--loop")
+    replay, url = start("replay", str(recording), "--port", "0", "--speed", "2")
     try:
         page = browser.page
-        page.goto(url)
-        page.get_by_text("mode STANDBY").wait_for(timeout=60_000)  # the demonstration's third mode, replayed
+        page.goto(url)  # the replay waits for this browser: it sees the start, ZERO_TORQUE
+        page.get_by_text("mode ZERO_TORQUE").wait_for(timeout=60_000)
+        page.get_by_text("mode STANDBY").wait_for(timeout=60_000)  # the demonstration's third mode, played
+        page.get_by_role("button", name="pause").click()
+        page.get_by_text("(paused)").wait_for(timeout=30_000)
+        paused = page.get_by_text(" s of ").first.inner_text()
+        page.wait_for_timeout(1000)
+        assert page.get_by_text(" s of ").first.inner_text() == paused  # time stands still while paused
+        page.get_by_role("button", name="play").click()
+        page.get_by_text("(paused)").wait_for(state="detached", timeout=30_000)
     finally:
         stop(replay)
 

@@ -31,12 +31,10 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
     parser = _Parser(prog="prime", description="Bring up, calibrate and operate Prime.")
     parser.add_argument("--version", action="version", version=f"prime {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module, summary) in sorted(COMMANDS.items()):
-        if name in subparsers.choices:
-            continue  # registered with another command of its module
-        if name == command:
-            importlib.import_module(f"{__name__}.{module}").register(subparsers)
-        else:
+    if command is not None:  # its module may register other commands too (view and replay)
+        importlib.import_module(f"{__name__}.{COMMANDS[command][0]}").register(subparsers)
+    for name, (_, summary) in sorted(COMMANDS.items()):
+        if name not in subparsers.choices:
             subparsers.add_parser(name, help=summary, add_help=False)
     return parser
 
@@ -64,6 +62,10 @@ def main(argv: list[str] | None = None) -> int:
             from humanoid_prime.cli._common import resolve_config
 
             resolve_config(args)
+        if hasattr(args, "web_port"):  # --web and --port, one idea on every command that serves the view
+            from humanoid_prime.cli._common import resolve_web
+
+            resolve_web(args)
         return int(args.func(args) or 0)
     except PrimeError as exc:
         print(f"{name}: {exc}", file=sys.stderr)

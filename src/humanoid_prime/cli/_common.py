@@ -129,9 +129,26 @@ DEFAULT_WEB_PORT = 8080
 
 
 def add_web_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--web", nargs="?", const=DEFAULT_WEB_PORT, type=whole(at_least=0, at_most=65535),
-                        metavar="PORT", help=f"serve the live 3D view on http://127.0.0.1:PORT/ (default "
-                                             f"{DEFAULT_WEB_PORT}; the next free port if taken; 0: any)")
+    """``--web`` serves the live view, on ``--port`` (``--web PORT``, the old spelling, still works);
+    ``resolve_web`` leaves the port to serve on in ``args.web`` (None: no view)."""
+    port = whole(at_least=0, at_most=65535)
+    parser.add_argument("--web", nargs="?", const=True, type=port, metavar="PORT",
+                        help="serve the live 3D view on http://127.0.0.1:PORT/ (PORT: --port)")
+    parser.add_argument("--port", dest="web_port", type=port, metavar="PORT",
+                        help=f"(with --web) the view's port (default {DEFAULT_WEB_PORT}; the next free port if "
+                             "taken; 0: any)")
+
+
+def resolve_web(args: argparse.Namespace) -> None:
+    """``args.web``: the port the view serves on, or None without ``--web``."""
+    if args.web is None:
+        if args.web_port is not None:
+            raise PrimeError("--port is the port of the view: give --web too")
+        return
+    if args.web_port is not None:
+        args.web = args.web_port
+    elif args.web is True:
+        args.web = DEFAULT_WEB_PORT
 
 
 def check_web(args: argparse.Namespace) -> None:

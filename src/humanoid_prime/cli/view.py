@@ -8,6 +8,8 @@ import sys
 import threading
 import time
 
+import numpy as np
+
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     DEFAULT_WEB_PORT,
@@ -43,11 +45,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r = subparsers.add_parser(
         "replay", help=summary("replay"),
         description="Serve the 3D view and play a recording made with --record into it at its own pace "
-                    "(--speed to change it), with its modes and joints; Ctrl-C stops.")
+                    "(--speed to change it), with its modes and joints. Playing starts when the first browser "
+                    "opens the page; the page pauses, plays and seeks, and shows the time. Ctrl-C stops.")
     r.add_argument("recording", metavar="FILE.mcap")
     r.add_argument("--speed", type=real(above=0.0, at_most=100.0), default=1.0, metavar="X",
                    help="playback speed (default 1)")
     r.add_argument("--loop", action="store_true", help="start again at the end")
+    r.add_argument("--no-wait", action="store_true", help="play at once, without waiting for a browser")
     _port(r)
     add_config_options(r)
     r.set_defaults(func=run_replay)
@@ -94,28 +98,50 @@ def run_replay(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware, use_sim=True)
     recording = read_recording(args.recording, robot.names)
     stop = threading.Event()
+    end = float(recording.time[-1])
     with stop_on_signals(stop):
-        view = PrimeView(robot, port=args.port, title=f"Prime replay: {args.recording}")
+        view = PrimeView(robot, port=args.port, title=f"Prime replay: {args.recording}", timeline=end)
         try:
-            print(f"prime replay: {view.url} ({len(recording.time)} ticks, {recording.time[-1]:.1f} s; Ctrl-C stops)",
+            waiting = "" if args.no_wait else "; it plays when a browser opens the page"
+            print(f"prime replay: {view.url} ({len(recording.time)} ticks, {end:.1f} s{waiting}; Ctrl-C stops)",
                   flush=True)
-            while not stop.is_set():
-                _play(recording, view, args.speed, stop)
-                if not args.loop:
-                    break
+            if not args.no_wait:
+                while not stop.is_set() and not view.browser.wait(0.2):
+                    pass
+            _play(recording, view, args.speed, args.loop, stop)
         finally:
             view.close()
     print(f"prime replay: {'stopped' if stop.is_set() else 'played'} {args.recording}", file=sys.stderr)
     return 0
 
 
-def _play(recording, view, speed: float, stop: threading.Event) -> None:
-    modes = list(recording.modes)
-    began = time.monotonic()
-    for k, t in enumerate(recording.time):
-        wait = began + t / speed - time.monotonic()
-        if wait > 0 and stop.wait(wait):
-            return
-        while modes and modes[0][0] <= t:
-            view.update(mode=modes.pop(0)[1])
-        view.update(position=recording.position[k])
+FRAME_S = 1.0 / 60.0  # the replay redraws at most this often, whatever the recording's tick rate
+
+
+def _play(recording, view, speed: float, loop: bool, stop: threading.Event) -> None:
+    """Play ``recording`` into ``view`` from its start at ``speed``, following the page's pause and seek; to its
+    end (again from the start with ``loop``) or until ``stop``."""
+    times, timeline = recording.time, view.timeline
+    mode_times = np.array([t for t, _ in recording.modes])
+    position = 0.0  # seconds into the recording
+    anchor = time.monotonic()
+    while not stop.is_set():
+        seek = timeline.seek_request()
+        if seek is not None:
+            position = min(max(seek, 0.0), float(times[-1]))
+        if timeline.playing.is_set():
+            now = time.monotonic()
+            if seek is None:
+                position += (now - anchor) * speed
+            anchor = now
+        else:
+            anchor = time.monotonic()
+        if position > times[-1]:
+            if not loop:
+                break
+            position = 0.0
+        k = max(int(np.searchsorted(times, position, side="right")) - 1, 0)
+        m = int(np.searchsorted(mode_times, position, side="right")) - 1
+        view.update(position=recording.position[k], mode=recording.modes[m][1] if m >= 0 else None)
+        timeline.show(position)
+        stop.wait(FRAME_S)

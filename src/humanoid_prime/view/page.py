@@ -27,10 +27,56 @@ REDRAW_HZ = 20.0
 LEVEL_MARK = {"WARN": "⚠️", "ERROR": "⛔"}
 
 
+class Timeline:
+    """A replay's controls on the page: play/pause, a time slider to seek with, and the time readout. The player
+    reads ``playing`` and takes ``seek_request()``; a person's drag of the slider is a seek, the player's own
+    moves of it are not."""
+
+    def __init__(self, gui: Any, duration: float) -> None:
+        self.duration = duration
+        self.playing = threading.Event()
+        self.playing.set()
+        self._seek: float | None = None
+        self._lock = threading.Lock()
+        self._button = gui.add_button("pause")
+        self._button.on_click(lambda event: self.toggle())
+        self._slider = gui.add_slider("time (s)", min=0.0, max=max(duration, 0.01), step=0.01, initial_value=0.0)
+        self._slider.on_update(self._on_slider)
+        self._readout = gui.add_markdown(self._words(0.0))
+
+    def toggle(self) -> None:
+        if self.playing.is_set():
+            self.playing.clear()
+            self._button.label = "play"
+        else:
+            self.playing.set()
+            self._button.label = "pause"
+
+    def _on_slider(self, event: Any) -> None:
+        if event.client is None:  # the player moved it
+            return
+        with self._lock:
+            self._seek = float(event.target.value)
+
+    def seek_request(self) -> float | None:
+        """The time a person asked to go to since the last call, if any."""
+        with self._lock:
+            seek, self._seek = self._seek, None
+        return seek
+
+    def show(self, t: float) -> None:
+        self._slider.value = float(min(max(t, 0.0), self._slider.max))
+        self._readout.content = self._words(t)
+
+    def _words(self, t: float) -> str:
+        return f"**t** {t:6.2f} s of {self.duration:.2f} s" + ("" if self.playing.is_set() else " (paused)")
+
+
 class PrimeView:
     def __init__(self, robot: Robot, *, port: int = 8080, host: str = "127.0.0.1", title: str = "Prime",
                  request_mode: Callable[[str], Any] | None = None, source: Callable[[], dict[str, Any]] | None = None,
-                 sweeps: bool = False, model_path: str | Path | None = None, rate: float = REDRAW_HZ) -> None:
+                 sweeps: bool = False, model_path: str | Path | None = None, rate: float = REDRAW_HZ,
+                 timeline: float | None = None) -> None:
         import viser
 
         self.robot = robot
@@ -49,6 +95,13 @@ class PrimeView:
         server.initial_camera.look_at = (0.0, 0.0, 1.05)
         self.scene = RobotScene(server, robot, model_path)
         gui = server.gui
+        self.browser = threading.Event()  # a browser has opened the page
+        server.on_client_connect(lambda client: self.browser.set())
+        # A replay's controls (its length in seconds), above the rest; None: a live run.
+        self.timeline = None
+        if timeline is not None:
+            with gui.add_folder("replay"):
+                self.timeline = Timeline(gui, timeline)
         self._mode = gui.add_markdown("**mode** —")
         self._buttons = gui.add_button_group("switch to", [mode.value for mode in Mode],
                                              disabled=request_mode is None)

@@ -425,6 +425,68 @@ def test_repeat_request_offers_the_last_reply_again():
     assert master.mailbox_read(0x1001) == first
 
 
+UPLOAD_IDENTITY = struct.pack("<HBHBI", 0x2000, 0x40, 0x1018, 1, 0)
+
+
+def reply_after(master: WireMaster, limit_ms: int) -> int | None:
+    """Emulated ms until the request's reply shows in the read mailbox (None: not within ``limit_ms``)."""
+    for waited in range(limit_ms + 1):
+        if master.mailbox_read(0x1001) is not None:
+            return waited
+        master.now_ns += MS
+        master.ring.advance(master.now_ns)
+    return None
+
+
+def test_a_scripted_late_reply_comes_that_much_later_and_the_next_one_on_time():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.001)
+    ring.latency.script(1, 0.008)
+    master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+    assert reply_after(master, 20) == 9
+    master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+    assert reply_after(master, 20) == 1
+
+
+def test_a_burst_slows_that_many_replies_then_the_drive_answers_on_time_again():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.001, mailbox_burst_s=0.005,
+                             mailbox_burst_replies=2)
+    waits = []
+    for chance in (1.0, 0.0, 0.0, 0.0):  # the first reply starts a burst, then none does
+        ring.options.mailbox_burst_chance = chance
+        master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+        waits.append(reply_after(master, 20))
+    assert waits == [6, 6, 1, 1]
+
+
+def test_jitter_keeps_each_reply_within_latency_plus_jitter_and_the_same_seed_repeats_a_run():
+    def waits(seed: int) -> list[int | None]:
+        _ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.001, mailbox_jitter_s=0.010, seed=seed)
+        out = []
+        for _ in range(8):
+            master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+            out.append(reply_after(master, 30))
+        return out
+
+    first = waits(7)
+    assert all(w is not None and 1 <= w <= 11 for w in first) and len(set(first)) > 1
+    assert waits(7) == first
+
+
+def test_a_read_mailbox_switched_off_above_init_drops_the_slave_to_init_with_0x0016():
+    # what SOEM's repeat request writes when it toggles a stale copy of SM1's status word: enable bit clear
+    ring, master = in_safeop(1, sync0_ns=None)
+    master.fpwr(0x1001, 0x080D, b"\x0a\x02")
+    assert master.al_status(0x1001) == (0x11, 0x0016)
+    master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+    assert reply_after(master, 5) is None
+
+
+def test_a_repeat_request_with_the_mailbox_left_enabled_keeps_the_slave_where_it_was():
+    ring, master = in_safeop(1, sync0_ns=None)
+    master.fpwr(0x1001, 0x080D, b"\x00\x03")
+    assert master.al_status(0x1001) == (0x04, 0)
+
+
 # ---- process data moves the drive -------------------------------------------------------------------------------
 def test_process_data_enables_the_drive_and_tracks_the_target():
     ring, master = in_op(1)

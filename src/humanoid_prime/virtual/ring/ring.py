@@ -29,6 +29,7 @@ from humanoid_prime.virtual.ring.frames import (
     FrameError,
     iter_datagrams,
 )
+from humanoid_prime.virtual.ring.latency import MailboxLatency
 from humanoid_prime.virtual.ring.options import RingOptions
 
 _U16 = struct.Struct("<H")
@@ -53,7 +54,9 @@ class Ring:
         self.clock = clock
         now = clock()
         self.sdo_log: list[tuple[float, int, int, int, int, bool]] = []
-        self.slaves = [ErobFirmware(i, options, clock_origin_ns=now - 1_000_003 * (i + 1), log=self._log)
+        self.latency = MailboxLatency(options)
+        self.slaves = [ErobFirmware(i, options, clock_origin_ns=now - 1_000_003 * (i + 1), log=self._log,
+                                    latency=self.latency)
                        for i in range(options.slaves)]
         self.plant = (plant if plant is not None
                       else make_ring_plant(options.plant, options.slaves, options.physics_dt_s))

@@ -24,7 +24,6 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,10 +31,10 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoRefused
+from humanoid_prime.drivers.ethercat.errors import SdoError as SdoError  # re-exported for older imports
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
-
-if TYPE_CHECKING:
-    from humanoid_prime.drivers.ethercat.sdo import SdoClient
 
 RX_DTYPE = np.dtype([(e.name, e.dtype) for e in RXPDO])  # 14 bytes per slave, packed
 TX_DTYPE = np.dtype([(e.name, e.dtype) for e in TXPDO])  # 16 bytes per slave, packed
@@ -49,27 +48,6 @@ AL_ERROR = AL_ERROR_FLAG
 OP_REQUEST_REPEAT_S = 0.5  # a slave left in SAFE-OP after OP was asked for is asked again this often
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
-
-
-class RingError(PrimeError):
-    """The ring cannot be opened, does not match the hardware file, or does not reach OP."""
-
-
-class SdoError(PrimeError):
-    """An SDO transfer failed; names the slave, the object and the reason."""
-
-    def __init__(self, position: int, index: int, sub_index: int, problem: str,
-                 abort_code: int | None = None) -> None:
-        self.position = position
-        self.index = index
-        self.sub_index = sub_index
-        self.abort_code = abort_code
-        self.problem = problem
-        super().__init__(f"SDO 0x{index:04X}:{sub_index:02X} on ring {position}: {problem}")
-
-
-class SdoRefused(SdoError):
-    """An SDO was asked for before every slave is in OP with process data flowing."""
 
 
 @dataclass(frozen=True)

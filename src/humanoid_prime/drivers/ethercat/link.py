@@ -42,8 +42,8 @@ QUARANTINE_S = 0.25  # an index whose reply never came is used again after this 
 LATE_KEPT = 64  # late replies remembered (when, how late, what)
 
 # datagram commands (ETG.1000.4)
-APRD, APWR, FPRD, FPWR, BRD = 0x01, 0x02, 0x04, 0x05, 0x07
-_AUTO_OR_BROADCAST = {APRD, APWR, BRD}  # slaves change ADP on the way: not compared
+APRD, APWR, FPRD, FPWR, BRD, BWR = 0x01, 0x02, 0x04, 0x05, 0x07, 0x08
+_AUTO_OR_BROADCAST = {APRD, APWR, BRD, BWR}  # slaves change ADP on the way: not compared
 _READS = {APRD, FPRD, BRD}
 
 _HEADER = struct.Struct("<BBHHHH")  # command, index, ADP, ADO, length (bit 15: more follow), IRQ
@@ -256,7 +256,7 @@ class Channel:
         self.wire.close()
 
 
-_NAMES = {APRD: "APRD", APWR: "APWR", FPRD: "FPRD", FPWR: "FPWR", BRD: "BRD"}
+_NAMES = {APRD: "APRD", APWR: "APWR", FPRD: "FPRD", FPWR: "FPWR", BRD: "BRD", BWR: "BWR"}
 
 
 # ---------------------------------------------------------------------------------------------- the raw socket

@@ -202,12 +202,13 @@ class EthercatMaster(ABC):
     """One EtherCAT ring of eRob drives in CSP, addressed by ring position (0 = first after the master)."""
 
     def __init__(self, interface: str, *, update_rate: float, bringup_rate: float = 1000.0,
-                 sync0_period_s: float | None = None, unsafe_sync0_period_s: float | None = None,
-                 bringup_timeout_s: float = 30.0) -> None:
+                 sync0_period_s: float | None = None, bringup_timeout_s: float = 30.0,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], object] = time.sleep) -> None:
         self.interface = interface
         self.cycle_ns = sync0_period_ns(update_rate, sync0_period_s=sync0_period_s)
-        # Test-only escape hatch: a SYNC0 that differs from the loop period, to reproduce fault 4616.
-        self.sync0_ns = self.cycle_ns if unsafe_sync0_period_s is None else round(unsafe_sync0_period_s * 1e9)
+        self.sync0_ns = self.cycle_ns  # SYNC0 armed on the slaves: the loop period, always
+        self.clock = clock  # paces the bring-up and times its waits (the keeper runs on the wall clock)
+        self.sleep = sleep
         if not (math.isfinite(bringup_rate) and bringup_rate > 0):
             raise PrimeError(f"bringup_rate must be a positive number of Hz, got {bringup_rate!r}")
         self.bringup_rate = float(bringup_rate)
@@ -231,6 +232,7 @@ class EthercatMaster(ABC):
         self.rated_torque_nm = np.zeros(0)
         self.rated_torque_problems: dict[int, str] = {}
         self.kept_cycles = 0  # frames the keeper sent while the owner of the cycle was quiet
+        self.cycles_answered = 0  # cycle frames that came back answered (each carried the ring's time)
         self._io = threading.Lock()  # one send or receive at a time: the owner's and the keeper's
         self._in_flight = False
         self._last_send = 0.0
@@ -275,7 +277,7 @@ class EthercatMaster(ABC):
             raise RingError(f"EtherCAT ring on {self.interface} is already in OP; close the master to start again")
         self.open()
         check_ring(self.slaves, expected, self.interface)
-        t0 = time.monotonic()
+        t0 = self.clock()
         self._configure()
         n = len(self.slaves)
         if self.outputs.shape != (n,) or self.inputs.shape != (n,):
@@ -285,7 +287,7 @@ class EthercatMaster(ABC):
         deadline = t0 + self.bringup_timeout_s
         check_every = max(1, round(self.bringup_rate * 0.01))  # read AL states about every 10 ms
         cycles = 0
-        rate = Rate(self.bringup_rate)
+        rate = Rate(self.bringup_rate, clock=self.clock, sleep=self.sleep)
         op_asked = np.full(n, -math.inf)  # when each slave was last asked for OP (-inf: since its last ack)
         while True:
             rate.wait()
@@ -297,14 +299,14 @@ class EthercatMaster(ABC):
             cycles += 1
             if cycles == 1:  # one valid frame first, so the outputs are defined when OP is asked for
                 self._request_op()
-                op_asked[:] = time.monotonic()
+                op_asked[:] = self.clock()
             if wkc == self.expected_wkc or cycles % check_every == 0:
                 states = self._read_states()
                 self._store_states(states)
                 if all(state == AL_OP for state, _ in states):
                     break
-                self._advance(self._to_push(states, op_asked, time.monotonic()))
-            if time.monotonic() > deadline:
+                self._advance(self._to_push(states, op_asked, self.clock()))
+            if self.clock() > deadline:
                 raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
         self.operational = True
         self.slave_ok[:] = True
@@ -313,7 +315,7 @@ class EthercatMaster(ABC):
         self._stop_keeping.clear()
         self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
         self._keeper.start()
-        return BringupReport(time.monotonic() - t0, cycles, self.bringup_rate, self.sync0_ns)
+        return BringupReport(self.clock() - t0, cycles, self.bringup_rate, self.sync0_ns)
 
     def close(self) -> None:
         """Stop every thread, leave the slaves in INIT and release the interface."""
@@ -362,6 +364,8 @@ class EthercatMaster(ABC):
         wkc = self._receive()
         self._in_flight = False
         self.wkc = wkc
+        if wkc > 0:
+            self.cycles_answered += 1
         if wkc == self.expected_wkc:
             self.flowing = self.operational
         elif self.operational:

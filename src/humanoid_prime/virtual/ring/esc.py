@@ -136,6 +136,10 @@ class Esc:
         self.sync0_missed = False
         self.output_watchdog_ns = 0  # SM watchdog period; 0 = disabled
         self.dc_offset_ns = 0
+        # quirks of some ESCs: bit 31 of 0x092C read the other way round (ESC documents disagree on it), and a
+        # clock whose difference stays this far off whatever offset it is given (it never comes into step)
+        self.difference_reversed = False
+        self.difference_error_ns = 0
         self.sync_activation = 0
         self.sync0_start_ns = 0
         self.sync0_cycle_ns = 0
@@ -334,8 +338,10 @@ class Esc:
         diff = (received - (own & mask)) & mask
         if diff >= 1 << (8 * width - 1):
             diff -= 1 << (8 * width)
+        diff = self.difference_error_ns or diff
         magnitude = min(abs(diff), 0x7FFFFFFF)
-        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (DC_DIFFERENCE_LOCAL_SMALLER if diff > 0 else 0))
+        smaller = (diff > 0) != self.difference_reversed
+        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (DC_DIFFERENCE_LOCAL_SMALLER if smaller else 0))
         self.dc_difference_ns = diff
         self.dc_sample_ns = self.frame_time_ns
         self.dc_samples += 1

@@ -362,7 +362,7 @@ class SoemMaster(EthercatMaster):
         self.registers.request_all(AL_OP)
 
     def _read_states(self) -> list[tuple[int, int]]:
-        states = self.registers.states()
+        states = self.registers.states() if self.registers is not None else None
         if states is None:
             return [(0, int(code)) for code in self.al_status_code]
         return [s if s is not None else (0, 0) for s in states]

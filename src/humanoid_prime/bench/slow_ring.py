@@ -42,7 +42,7 @@ def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
     from humanoid_prime.runtime.session import BringupOptions, open_session, plan_session
     from humanoid_prime.virtual.harness import attach_virtual_prime
 
-    options = BringupOptions(emulated=True, sequence=SEQUENCE, dwell=dwell_s, realtime=False, control_socket=None)
+    options = BringupOptions(emulated=True, sequence=SEQUENCE, dwell=dwell_s, realtime=True, control_socket=None)
     began = time.monotonic()
     result: dict[str, Any] = {"seed": seed}
     with contextlib.ExitStack() as stack:
@@ -59,22 +59,22 @@ def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
         master = session.ethercat.master
         result["configured_again"] = [*master.scan_reasons, *master.configure_reasons]
         run_loop(session, threading.Event())
+        result["left_op"] = [int(n) for n in master.left_op]  # the run's own, before anything winds down
+        problems = list(session.problems)
         impedance = session.impedance
         impedance.wait_checked(10.0)
         switches = [r.as_dict() for r in impedance.reports]
         result["switches"] = [{"mode": s["mode"], "ok": s["ok"], "wall_ms": round(s["wall_seconds"] * 1e3, 1),
                                "retries": s["retries"], "failed": s["failed"]} for s in switches]
-        result["left_op"] = [int(n) for n in master.left_op]
         result["late_replies"] = len(master.late_replies())
         stats = virtual.control.call("stats")
         result["emulator"] = {k: stats[k] for k in ("stalls", "held_reply_frames", "slow_replies")}
         modes = [s["mode"] for s in switches]
-        problems = [f"{s['mode']}: {s['failed']}" for s in switches if not s["ok"]]
+        problems += [f"{s['mode']}: {s['failed']}" for s in switches if not s["ok"]]
         if modes[-len(SEQUENCE):] != [m.value for m in SEQUENCE]:
             problems.append(f"switches {modes}, expected {[m.value for m in SEQUENCE]}")
         if any(result["left_op"]):
             problems.append(f"slaves left OP: {result['left_op']}")
-        problems += session.problems
     result["seconds"] = time.monotonic() - began
     result["verdict"] = "up" if not problems else "failed"
     if problems:
@@ -100,7 +100,8 @@ def bench_slow_ring(runs: int = 50, *, report: Callable[[str], None] = print) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m humanoid_prime.bench.slow_ring", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m humanoid_prime.bench.slow_ring",
+                                     description=(__doc__ or "").split("\n")[0])
     parser.add_argument("--runs", type=int, default=50)
     parser.add_argument("--output", metavar="FILE")
     args = parser.parse_args(argv)

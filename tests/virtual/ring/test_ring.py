@@ -539,7 +539,7 @@ def test_a_drive_powers_up_with_zeroerr_s_mapping_not_prime_s():
         count = master.sdo_upload(0x1001, mapping, 0)[0]
         return [struct.unpack("<I", master.sdo_upload(0x1001, mapping, sub))[0] for sub in range(1, count + 1)]
 
-    assert entries(0x1600) == [0x607A0020, 0x60FE0120, 0x60400010] == [e.mapping for e in POWER_UP_RXPDO]
+    assert entries(0x1600) == [0x607A0020, 0x60FE0020, 0x60400010] == [e.mapping for e in POWER_UP_RXPDO]
     assert entries(0x1A00) == [0x60640020, 0x60FD0020, 0x60410010] == [e.mapping for e in POWER_UP_TXPDO]
 
 

@@ -46,6 +46,7 @@ from humanoid_prime.drivers.erob.cia402 import (
     FAULT_RESET,
     OPERATION_ENABLED_PATTERN,
     describe_al_state,
+    describe_al_status_code,
     describe_error,
     drive_state,
     enable_step,
@@ -439,8 +440,10 @@ class EthercatSystem(HardwareComponent):
             if master.slave_ok[position]:
                 self.clear_flag(key)
                 continue
-            state = int(master.al_state[position])
+            state, code = int(master.al_state[position]), int(master.al_status_code[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
+            if code and not (lost is not None and lost[position]):  # why it left OP, as its ESC says
+                why += f", AL status 0x{code:04X} {describe_al_status_code(code)}"
             problem = master.recovery_problems.get(position)
             if problem:
                 why += f"; {problem}"

@@ -61,7 +61,8 @@ def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
         run_loop(session, threading.Event())
         result["left_op"] = [int(n) for n in master.left_op]  # the run's own, before anything winds down
         result["al_status_codes"] = [f"0x{int(c):04X}" for c in master.al_status_code]
-        result["flags"] = [(round(r.since_s, 2), r.key.split("/", 1)[-1]) for r in session.faults][:20]
+        result["flags"] = [(round(r.since_s, 2), r.key.split("/", 1)[-1], r.text[:160]) for r in session.faults
+                           if r.key.endswith("/lost") or "ring" not in r.key][:12]
         result["loop_ended_s"] = round(time.monotonic() - plan.began, 2)
         problems = list(session.problems)
         impedance = session.impedance

@@ -20,6 +20,7 @@ from humanoid_prime.drivers.ethercat.link import (
     Request,
     Wire,
     aprd,
+    apwr,
     brd,
     fprd,
     fpwr,
@@ -29,10 +30,18 @@ from humanoid_prime.drivers.ethercat.link import (
 STATION_BASE = 0x1001
 REGISTER_TIMEOUT_S = 0.05  # a register frame: microseconds on a ring, tens of ms behind a stalled host
 REG_STATION_ADDRESS = 0x0010
+REG_EEPROM_CONFIG = 0x0500
+REG_EEPROM_CONTROL = 0x0502  # u16 control/status, then u32 word address
+REG_EEPROM_DATA = 0x0508
+EEPROM_READ = 0x0100
+EEPROM_BUSY = 0x8000
+SII_IDENTITY = (0x08, 0x0A, 0x0C)  # SII words: vendor, product code, revision (u32 each)
+_EEPROM_READ = struct.Struct("<HI")
 REG_AL_CONTROL = 0x0120
 REG_AL_STATUS = 0x0130  # u16 status, u16 reserved, u16 AL status code (0x0134)
 _AL_STATUS = struct.Struct("<HxxH")
 _U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
 MAX_CHANNELS = (LAST_INDEX - FIRST_INDEX + 1) // 2
 
 
@@ -84,6 +93,36 @@ class RingRegisters:
         replies = self.channel(k).exchange([fpwr(self.stations[k], address, data)], timeout_s=timeout_s)
         if replies is None or replies[0].wkc != 1:
             raise NoReply(f"ring {k}: register 0x{address:04X} " + ("not written" if replies else "no reply frame"))
+
+    def sii_read(self, k: int, word: int, timeout_s: float = 0.02) -> int:
+        """Word ``word`` (and the next) of slave ``k``'s SII EEPROM, as a u32, through its EEPROM interface."""
+        self.write(k, REG_EEPROM_CONTROL, _EEPROM_READ.pack(EEPROM_READ, word))
+        deadline = self.clock() + timeout_s
+        while _U16.unpack(self.read(k, REG_EEPROM_CONTROL, 2))[0] & EEPROM_BUSY:
+            if self.clock() > deadline:
+                raise NoReply(f"ring {k}: its EEPROM stayed busy")
+        return _U32.unpack(self.read(k, REG_EEPROM_DATA, 4))[0]
+
+    def readdress(self, k: int, identity: tuple[int, int, int]) -> bool:
+        """Slave ``k`` answers at its station address again: True at once if it does; one that answers at its
+        ring position without an address (back from a power cycle, in INIT) gets it back when its SII says it is
+        the same device (vendor, product, revision), as SOEM's ``ecx_recover_slave`` does, one frame at a time."""
+        replies = self.ring.exchange([aprd(k, REG_STATION_ADDRESS, 2)], timeout_s=REGISTER_TIMEOUT_S)
+        if replies is None or replies[0].wkc != 1:
+            return False
+        address = _U16.unpack(replies[0].data)[0]
+        if address == self.stations[k] or address != 0:
+            return address == self.stations[k]  # another address is another slave's to keep
+        self.ring.exchange([apwr(k, REG_STATION_ADDRESS, _U16.pack(self.stations[k]))], timeout_s=REGISTER_TIMEOUT_S)
+        try:
+            self.write(k, REG_EEPROM_CONFIG, b"\x00")  # the EEPROM to the master
+            found = tuple(self.sii_read(k, word) for word in SII_IDENTITY)
+        except NoReply:
+            found = None
+        if found == tuple(identity):
+            return True
+        self.ring.exchange([apwr(k, REG_STATION_ADDRESS, _U16.pack(0))], timeout_s=REGISTER_TIMEOUT_S)
+        return False
 
     def request_state(self, k: int, state: int) -> None:
         """Write AL control of slave ``k`` (``state``, with the acknowledge bit if asked)."""

@@ -386,8 +386,11 @@ class SoemMaster(EthercatMaster):
         self._mapping.hook(k)
 
     def _recover(self, k: int) -> bool:
-        """SOEM's recovery of a slave that stopped answering: True when it answers at its station address again."""
-        return self._pslaves[k].recover(round(self.frame_timeout_us * 3)) > 0
+        """A slave that stopped answering: True when it answers at its station address again (given back to it if
+        it lost it in a power cycle; over our frames, not SOEM's ``ecx_recover_slave``, which holds the interpreter
+        lock through SII reads of up to 20 ms each and would stall the cycle)."""
+        info = self.slaves[k]
+        return self.registers.readdress(k, (info.vendor_id, info.product_code, info.revision))
 
     def poll_frames(self, poll: bool) -> bool:
         if self._socket is None or self._m is None or (poll and self.threaded_receive is not None):

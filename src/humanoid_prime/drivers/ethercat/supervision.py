@@ -54,8 +54,8 @@ class RingHealth(Protocol):
 
 class RingSupervisor:
     """Supervises the ring whose health is ``health``. ``remap(k)`` runs the PDO mapping hook on ring ``k`` (raises
-    SdoError); ``recover(k)`` gives a slave that stopped answering its station address back (SOEM's
-    ``ecx_recover_slave``: True when it answers there again); ``wkc()`` is the cycle's last working counter."""
+    SdoError); ``recover(k)`` gives a slave that stopped answering its station address back (True when it answers
+    there again); ``wkc()`` is the cycle's last working counter."""
 
     def __init__(self, health: RingHealth, registers: RingRegisters, clocks: RingClocks, setups: Sequence[EscSetup],
                  *, remap: Callable[[int], None], recover: Callable[[int], bool], wkc: Callable[[], int],

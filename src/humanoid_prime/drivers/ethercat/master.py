@@ -17,12 +17,14 @@ master -> drive) and ``inputs`` (TxPDO, drive -> master), laid out exactly as ``
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import struct
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +48,10 @@ AL_SAFE_OP = 0x04
 AL_OP = 0x08
 AL_ERROR = AL_ERROR_FLAG
 OP_REQUEST_REPEAT_S = 0.5  # a slave left in SAFE-OP after OP was asked for is asked again this often
+# SCHED_FIFO of the threads that feed the drives' output watchdogs before and beside the control loop (the bring-up
+# loop, the drives' enabling, the keeper), where permitted: below the virtual Prime's 70 and the control loop's 80.
+# At normal priority a busy host kept them off the CPU past the drives' 100 ms watchdog.
+FEEDING_PRIORITY = 60
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
 
@@ -183,6 +189,25 @@ def sync0_period_ns(update_rate: float, *, sync0_period_s: float | None = None) 
     return period_ns
 
 
+@contextlib.contextmanager
+def feeding_priority() -> Iterator[None]:
+    """The calling thread at ``FEEDING_PRIORITY`` (SCHED_FIFO) while it feeds the drives, its own scheduling back
+    after; nothing where real-time scheduling is not permitted, or for a thread already real-time above it."""
+    try:
+        previous = os.sched_getscheduler(0), os.sched_getparam(0)
+        raised = previous[0] not in (os.SCHED_FIFO, os.SCHED_RR) or previous[1].sched_priority < FEEDING_PRIORITY
+        if raised:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FEEDING_PRIORITY))
+    except (OSError, AttributeError):
+        raised = False
+    try:
+        yield
+    finally:
+        if raised:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, *previous)
+
+
 def read_live_error(sdo: SdoClient, position: int) -> int:
     """The drive's current error code (0x603F), through any SDO client."""
     return struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
@@ -284,6 +309,20 @@ class EthercatMaster(ABC):
             raise RingError(f"{type(self).__name__} configured {self.outputs.shape} outputs for {n} slaves")
         self.outputs[:] = 0
         self.outputs["mode_of_operation"] = MODE_CSP
+        with feeding_priority():
+            cycles = self._bring_to_op(on_cycle, t0)
+        self.operational = True
+        self.slave_ok[:] = True
+        self.health_version += 1
+        self._started()
+        self._stop_keeping.clear()
+        self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
+        self._keeper.start()
+        return BringupReport(self.clock() - t0, cycles, self.bringup_rate, self.sync0_ns)
+
+    def _bring_to_op(self, on_cycle: Callable[[EthercatMaster], None] | None, t0: float) -> int:
+        """The fast loop of ``start`` until every slave is in OP; the cycles it took."""
+        n = len(self.slaves)
         deadline = t0 + self.bringup_timeout_s
         check_every = max(1, round(self.bringup_rate * 0.01))  # read AL states about every 10 ms
         cycles = 0
@@ -308,14 +347,7 @@ class EthercatMaster(ABC):
                 self._advance(self._to_push(states, op_asked, self.clock()))
             if self.clock() > deadline:
                 raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
-        self.operational = True
-        self.slave_ok[:] = True
-        self.health_version += 1
-        self._started()
-        self._stop_keeping.clear()
-        self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
-        self._keeper.start()
-        return BringupReport(self.clock() - t0, cycles, self.bringup_rate, self.sync0_ns)
+        return cycles
 
     def close(self) -> None:
         """Stop every thread, leave the slaves in INIT and release the interface."""
@@ -376,6 +408,10 @@ class EthercatMaster(ABC):
         """Once in OP, every cycle period: when the owner of the cycle has been quiet for two periods, send the
         current outputs, and go on every period until it ticks again, so no slave's output watchdog runs out
         and SYNC0 keeps its frames while controllers load, a tick stalls, or the component is inactive."""
+        with feeding_priority():
+            self._keep_feeding()
+
+    def _keep_feeding(self) -> None:
         rate = Rate(1e9 / self.cycle_ns, sleep=self._stop_keeping.wait)
         quiet_s = 2e-9 * self.cycle_ns
         while True:

@@ -19,11 +19,12 @@ socket", oshw/linux/nicdrv.c) but opens it blocking with a 1 µs receive timeout
 whole scheduler ticks. Blocking, a lost frame holds its thread for those ticks instead of the 2 ms frame timeout,
 and a thread whose frame another thread has already filed sleeps in ``recv`` until some other frame arrives.
 ``poll_frames`` makes the socket non-blocking, so each waiting thread polls until its frame is filed or its timeout
-passes. It is for the time a real-time thread owns the cycle: the bring-up loop, the drives' enabling and the
-keeper run at normal priority, and polling there put a loaded machine's bring-up behind its other work. Nor does
-the master poll where the kernel delivers the NIC's frames from a thread (``threaded_receive``): a real-time thread
-polling on that thread's CPU would keep it from delivering the very frame it waits for. The socket also gets a
-filter that keeps our replies out of its queue.
+passes. It is for the time the control loop's real-time thread owns the cycle: the bring-up loop, the drives'
+enabling and the keeper sleep on the socket (at ``FEEDING_PRIORITY``, where permitted): a thread polling below the
+loop's priority would use up what the kernel lets real-time threads run. Nor does the master poll where the kernel
+delivers the NIC's frames from a thread (``threaded_receive``): a real-time thread polling on that thread's CPU
+would keep it from delivering the very frame it waits for. The socket also gets a filter that keeps our replies out
+of its queue.
 """
 
 from __future__ import annotations

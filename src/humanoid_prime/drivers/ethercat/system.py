@@ -71,6 +71,7 @@ from humanoid_prime.drivers.ethercat.master import (
     EthercatMaster,
     ExpectedSlave,
     check_ring,
+    feeding_priority,
 )
 from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, parse_slave_config
 from humanoid_prime.errors import ConfigError, PrimeError
@@ -284,6 +285,10 @@ class EthercatSystem(HardwareComponent):
         A fault latches (it waits for the operator's reset), with one exception: the EtherCAT communication
         fault (0xA000) a drive may raise while DC locks during bring-up is reset here, so it clears by itself.
         Enabling ends when every drive is enabled or latched in another fault (flagged by ``read``)."""
+        with feeding_priority():
+            self._enable_drives()
+
+    def _enable_drives(self) -> None:
         master = self._master()
         deadline = time.monotonic() + self.enable_timeout_s
         rate = Rate(self.bringup_rate)

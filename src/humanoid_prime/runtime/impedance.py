@@ -54,7 +54,7 @@ from humanoid_prime.drivers.erob.objects import (
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
-from humanoid_prime.drivers.ethercat.master import SlaveInfo
+from humanoid_prime.drivers.ethercat.master import HELPER_PRIORITY, SlaveInfo, raise_thread
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
@@ -229,10 +229,13 @@ class ImpedanceManager(SafetyFlags):
         self._by_position = {s.position: s for s in self.slaves}
         self._dropped: DroppedDrives | None = None
         self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
-        self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
+        # helpers of the ring: real-time below the loop where permitted (master.HELPER_PRIORITY says why)
+        self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo",
+                                        initializer=raise_thread, initargs=(HELPER_PRIORITY,)) \
             if parallel and self.slaves else None
         # the read-back after each switch, on workers of its own: the next switch never queues behind it
-        self._checks = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-read-back") \
+        self._checks = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-read-back",
+                                          initializer=raise_thread, initargs=(HELPER_PRIORITY,)) \
             if parallel and self.slaves else None
         self._pending: list[SwitchReport] = []
         self._queue: queue.Queue[Mode | str | None] = queue.Queue()

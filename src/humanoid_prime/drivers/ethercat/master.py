@@ -52,6 +52,10 @@ OP_REQUEST_REPEAT_S = 0.5  # a slave left in SAFE-OP after OP was asked for is a
 # loop, the drives' enabling, the keeper), where permitted: below the virtual Prime's 70 and the control loop's 80.
 # At normal priority a busy host kept them off the CPU past the drives' 100 ms watchdog.
 FEEDING_PRIORITY = 60
+# SCHED_FIFO of the ring's helper threads (supervision, SDO workers): below the kernel's threaded interrupts (50).
+# Preempted by a host's other work while holding Python's interpreter lock, a helper kept the control loop and the
+# keeper waiting for that lock past the drives' watchdog; as real-time threads they block, never spin.
+HELPER_PRIORITY = 40
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
 
@@ -189,21 +193,27 @@ def sync0_period_ns(update_rate: float, *, sync0_period_s: float | None = None) 
     return period_ns
 
 
-@contextlib.contextmanager
-def feeding_priority() -> Iterator[None]:
-    """The calling thread at ``FEEDING_PRIORITY`` (SCHED_FIFO) while it feeds the drives, its own scheduling back
-    after; nothing where real-time scheduling is not permitted, or for a thread already real-time above it."""
+def raise_thread(priority: int) -> tuple[int, os.sched_param] | None:
+    """The calling thread at ``priority`` (SCHED_FIFO) where permitted and it runs lower; its scheduling before
+    (None: left as it was)."""
     try:
         previous = os.sched_getscheduler(0), os.sched_getparam(0)
-        raised = previous[0] not in (os.SCHED_FIFO, os.SCHED_RR) or previous[1].sched_priority < FEEDING_PRIORITY
-        if raised:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FEEDING_PRIORITY))
+        if previous[0] in (os.SCHED_FIFO, os.SCHED_RR) and previous[1].sched_priority >= priority:
+            return None
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return previous
     except (OSError, AttributeError):
-        raised = False
+        return None
+
+
+@contextlib.contextmanager
+def feeding_priority(priority: int = FEEDING_PRIORITY) -> Iterator[None]:
+    """The calling thread at ``priority`` (``raise_thread``) while it feeds the drives, its scheduling back after."""
+    previous = raise_thread(priority)
     try:
         yield
     finally:
-        if raised:
+        if previous is not None:
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(0, *previous)
 

@@ -30,6 +30,7 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.ethercat.clocks import RingClocks
 from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.ethercat.mapping import EscSetup
+from humanoid_prime.drivers.ethercat.master import HELPER_PRIORITY, feeding_priority
 from humanoid_prime.drivers.ethercat.registers import REG_AL_CONTROL, REG_AL_STATUS, NoReply, RingRegisters
 
 AL_INIT, AL_PRE_OP, AL_SAFE_OP, AL_OP, AL_ERROR = 0x01, 0x02, 0x04, 0x08, 0x10
@@ -107,6 +108,10 @@ class RingSupervisor:
         self._wake.set()
 
     def _run(self) -> None:
+        with feeding_priority(HELPER_PRIORITY):
+            self._supervise()
+
+    def _supervise(self) -> None:
         rate = Rate(1.0 / self.period_s, sleep=self._pause)
         while not self._stop.is_set():
             rate.wait()

@@ -167,9 +167,28 @@ def test_frames_that_arrive_during_a_step_are_answered_between_its_parts():
     ring.slaves[0].tick = lambda now_ns: (checked.append(now_ns), tick(now_ns))
     ring.serve_waiting = serve
     ring.advance(master.now_ns + MS)  # one physics step
-    assert [(d.wkc, d.data) for d in answered] == [(1, struct.pack("<H", 0x08))] * 2  # before the plant, after
+    # before the plant, after it, and before the timed checks
+    assert [(d.wkc, d.data) for d in answered] == [(1, struct.pack("<H", 0x08))] * 3
     assert ring._pending_frame is None  # the slaves' reaction to it ran there too, not at the next step
     assert checked == [master.now_ns]  # the timed checks never run at a time before a frame already answered
+
+
+def test_an_output_watchdog_does_not_run_out_on_a_frame_that_waited_while_the_emulator_was_not_running():
+    # a host that did not run the emulator for 150 ms: the master's frames queued meanwhile reached the ESCs,
+    # which are hardware on the robot; the watchdog (100 ms) counts them before it looks
+    ring, master = in_op(1)
+    queued = [True]
+
+    def serve() -> None:  # the frame that waited in the socket, with the outputs the master kept sending
+        if queued and queued.pop():
+            image = IDLE_OUTPUT + bytes(TXPDO_STRUCT.size)
+            master.exchange([Datagram.logical(Command.LRW, 0, image),
+                             Datagram(Command.FRMW, bytes(8), adp=STATION_BASE, ado=0x0910)])
+
+    ring.serve_waiting = serve
+    master.now_ns += 150 * MS
+    ring.advance(master.now_ns, max_steps=0)
+    assert states(master, 1) == [(0x08, 0)]
 
 
 def test_a_slow_firmware_shows_the_old_state_until_its_state_change_is_done():

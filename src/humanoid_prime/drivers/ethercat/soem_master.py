@@ -166,7 +166,7 @@ class SoemMaster(EthercatMaster):
         for attempt in range(1, SCAN_ATTEMPTS + 1):
             m = self._open_soem()
             found = m.config_init()
-            answered, waited = self._count(m)
+            answered, waited = self._count()
             if found > 0 and found >= (answered or 0):
                 break
             self._close_soem()
@@ -208,7 +208,7 @@ class SoemMaster(EthercatMaster):
         m.sdo_read_timeout = m.sdo_write_timeout = round(self.sdo_timeout_s * 1e6)
         return m
 
-    def _count(self, m: pysoem.Master) -> tuple[int | None, float]:
+    def _count(self) -> tuple[int | None, float]:
         """(slaves that answer a broadcast read of ours, how long it took); the read waits ``SCAN_PATIENCE_S``."""
         probe = RingRegisters(lambda indices: self._wire(self.interface, indices), 1, clock=self.clock)
         try:
@@ -231,11 +231,12 @@ class SoemMaster(EthercatMaster):
             self.sleep(STATE_POLL_S)
         found = [SlaveInfo(k, s.name, s.man, s.id, s.rev, *(states[k] if states and states[k] else (0, 0)))
                  for k, s in enumerate(self._pslaves)]
-        if any(info.al_state != want for info in found):
-            self._store_found(found)
-            raise Reconfigure(f"the ring {what}: {describe_states(found, want)}") if want != AL_PRE_OP else \
-                RingError(f"EtherCAT ring on {self.interface} {what}: {describe_states(found, want)}")
-        return found
+        if all(info.al_state == want for info in found):
+            return found
+        self._store_found(found)
+        if want == AL_PRE_OP:  # straight after a scan: nothing of ours has touched the slaves yet
+            raise RingError(f"EtherCAT ring on {self.interface} {what}: {describe_states(found, want)}")
+        raise Reconfigure(f"the ring {what}: {describe_states(found, want)}")
 
     def _store_found(self, found: Sequence[SlaveInfo]) -> None:
         if len(self.al_state) == len(found):

@@ -287,6 +287,7 @@ class ImpedanceManager(SafetyFlags):
         self._queue.put(Mode(msg.mode))
 
     def _run(self) -> None:
+        raise_thread(HELPER_PRIORITY)  # it holds the interpreter lock between writes (master.HELPER_PRIORITY)
         try:
             self.arm()
         except Exception as exc:  # a bug, not a bus error (those are flagged per slave): say it, keep following
@@ -488,6 +489,7 @@ class ImpedanceManager(SafetyFlags):
                                          f"{dict(pos_reg=want.pos_reg, vel_reg=want.vel_reg, integral=want.integral)}")
 
         def check_all() -> None:
+            raise_thread(HELPER_PRIORITY)
             try:
                 targets = [r for r in report.slaves if r.error is None and not self._closing]
                 if self._checks is not None:

@@ -258,6 +258,7 @@ class EthercatMaster(ABC):
         # Ring health kept by the implementation's supervision, in ring order.
         self.slave_ok = np.zeros(0, dtype=bool)
         self.left_op = np.zeros(0, dtype=np.int64)  # times the supervision found each slave out of OP since start
+        self.left_op_code = np.zeros(0, dtype=np.uint16)  # the AL status code each slave gave when it last left OP
         self.al_state = np.zeros(0, dtype=np.uint16)
         self.al_status_code = np.zeros(0, dtype=np.uint16)
         self.health_version = 0
@@ -283,6 +284,7 @@ class EthercatMaster(ABC):
             n = len(self.slaves)
             self.slave_ok = np.zeros(n, dtype=bool)
             self.left_op = np.zeros(n, dtype=np.int64)
+            self.left_op_code = np.zeros(n, dtype=np.uint16)
             self.al_state = np.array([s.al_state for s in self.slaves], dtype=np.uint16)
             self.al_status_code = np.array([s.al_status_code for s in self.slaves], dtype=np.uint16)
             self.rated_torque_nm = np.full(n, math.nan)

@@ -49,6 +49,7 @@ class RingHealth(Protocol):
     al_state: np.ndarray
     al_status_code: np.ndarray
     left_op: np.ndarray
+    left_op_code: np.ndarray
     health_version: int
     recovery_problems: dict[int, str]
 
@@ -171,6 +172,7 @@ class RingSupervisor:
                     state == AL_OP, state, code):
                 if health.slave_ok[k] and state != AL_OP:
                     health.left_op[k] += 1
+                    health.left_op_code[k] = code
                 health.slave_ok[k] = state == AL_OP
                 health.al_state[k] = state
                 health.al_status_code[k] = code

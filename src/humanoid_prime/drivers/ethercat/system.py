@@ -156,6 +156,7 @@ class EthercatSystem(HardwareComponent):
         self._grace = np.zeros(n, np.uint16)  # frames left in which a fault reset of ours may take effect
         self._held_seen = np.zeros(n, dtype=bool)  # held, when the flags were last worded
         self._restored: collections.deque[tuple[int, int]] = collections.deque()  # (joint, left OP count) told
+        self._came_back: list[str] = []  # lost flags of slaves that were back in OP when the loop looked
         self._left_op_seen = np.zeros(n, dtype=np.int64)  # each slave's departures from OP, when the loop last looked
         self._held = np.zeros(n)  # the last CSP target sent (raw), what a NaN position command keeps
         self._tick: EcTick | None = None  # the compiled read and write, bound to the process image at start
@@ -397,6 +398,8 @@ class EthercatSystem(HardwareComponent):
         if (self._wkc_bad_cycles >= self.wkc_tolerance_cycles) != self._wkc_flagged or (
                 self._wkc_flagged and (wkc <= 0) != self._wkc_silent):
             self._update_wkc_flag(wkc)
+        while self._came_back:  # said for one tick (_update_health_flags says it again if it left OP again)
+            self.clear_flag(self._came_back.pop())
         if master.health_version != self._health_seen:
             self._update_health_flags()
         if self._fault_seen or faulted:
@@ -439,11 +442,21 @@ class EthercatSystem(HardwareComponent):
         master = self._master()
         self._health_seen = master.health_version
         lost = getattr(master, "lost", None)
+        left = master.left_op[self.ring]
+        again = left != self._left_op_seen
         for k, joint in enumerate(self.joints):
             position = int(self.ring[k])
             key = f"ethercat/ring{position}/lost"
             if master.slave_ok[position]:
-                self.clear_flag(key)
+                if again[k] and key not in self.flags:
+                    # out of OP and back between two looks of the loop (a loop kept off the CPU while the keeper and
+                    # the supervision went on): said for one tick, with why it left, never passed over
+                    code = int(master.left_op_code[position])
+                    why = f" (AL status 0x{code:04X} {describe_al_status_code(code)})" if code else ""
+                    self.set_flag(key, f"{joint} (ring {position}): slave left OP{why} and came back")
+                    self._came_back.append(key)
+                else:
+                    self.clear_flag(key)
                 continue
             state, code = int(master.al_state[position]), int(master.al_status_code[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
@@ -454,8 +467,6 @@ class EthercatSystem(HardwareComponent):
                 why += f"; {problem}"
             self.set_flag(key, f"{joint} (ring {position}): slave lost ({why}); recovering")
         # A held drive whose slave left OP again may have lost its settings again, restored or not: restore anew
-        left = master.left_op[self.ring]
-        again = left != self._left_op_seen
         np.copyto(self._left_op_seen, left)
         if self.on_restore_needed is not None and again.any() and \
                 apply_event(self._state, Event.LEFT_OP, where=again).any():

@@ -1,6 +1,7 @@
 """The soak's verdicts: each injected fault judged from the run's own fault history, and every flag no injection
 explains reported."""
 
+import threading
 import time
 
 from humanoid_prime.bench.soak import FAULTS, SETTLE_S, Injection, explained, judge
@@ -14,6 +15,22 @@ SILENT = BY_NAME["silent Sito"]
 DRIVE_FAULT = BY_NAME["drive fault 0x7500"]
 ONE_FRAME = BY_NAME["one EtherCAT frame lost"]
 SDO_ABORT = BY_NAME["SDO abort"]
+
+
+class LoopManager:
+    """The controller manager's part in a reset: asked from the injector's thread, applied a tick later."""
+
+    def __init__(self, asked=lambda: None) -> None:
+        self.resets = 0
+        self.update_rate = 50.0
+        self._asked = asked
+
+    def request_reset(self) -> None:
+        self._asked()
+        threading.Timer(0.05, self._apply).start()
+
+    def _apply(self) -> None:
+        self.resets += 1
 
 
 def record(key, since, until=None, level=Level.ERROR):
@@ -132,7 +149,7 @@ def test_a_latched_fault_whose_ring_was_whole_only_after_its_settle_time_is_rese
     ethercat = SimpleNamespace(master=SimpleNamespace(slave_ok=np.ones(10, dtype=bool)), restore_pending=lambda: [9])
     session = SimpleNamespace(plan=SimpleNamespace(began=0.0), ethercat=ethercat, impedance=None,
                               faults=[record("PrimeEtherCATSide/ethercat/ring9/disabled", 12.0)],
-                              manager=SimpleNamespace(request_reset=lambda: requested.append(True)))
+                              manager=LoopManager(lambda: requested.append(True)))
     injector = Injector(None, session, 6.0, threading.Event(), 600.0)
     owed = Injection(LOST, at_s=10.0, done_s=11.0)
     injector.owed.append(owed)
@@ -160,14 +177,20 @@ def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(m
     from humanoid_prime.bench import soak
 
     injected, looked = threading.Event(), threading.Semaphore(0)
-    fault = replace(LOST, inject=lambda control, session: injected.set(), hold_s=0.0, end=None, verify=None)
+    applied_before_injection = []
+
+    def inject(control, session) -> None:
+        applied_before_injection.append(session.manager.resets)
+        injected.set()
+
+    fault = replace(LOST, inject=inject, hold_s=0.0, end=None, verify=None)
     monkeypatch.setattr(soak, "FAULTS", (fault,))
     slave_ok = np.zeros(10, dtype=bool)
     session = SimpleNamespace(plan=SimpleNamespace(began=time.monotonic()), impedance=None,
                               ethercat=SimpleNamespace(master=SimpleNamespace(slave_ok=slave_ok),
                                                        restore_pending=lambda: []),
                               faults=[record("PrimeEtherCATSide/ethercat/ring9/disabled", 0.0)],
-                              manager=SimpleNamespace(request_reset=lambda: None))
+                              manager=LoopManager())
     stop = threading.Event()
     injector = soak.Injector(None, session, 0.001, stop, 600.0)
     injector.owed.append(Injection(fault, at_s=0.0, done_s=0.0))
@@ -187,6 +210,7 @@ def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(m
         assert injected.wait(timeout=60.0)
         assert all(owed.at_s > 0.0 for owed in injector.owed)  # the one it was owed went out
         assert len(injector.resets) >= 1
+        assert applied_before_injection[0] >= 1  # the loop applied it before the next fault went in
     finally:
         stop.set()
         injector.join(timeout=60.0)

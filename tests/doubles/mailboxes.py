@@ -32,6 +32,8 @@ class DriveMailboxes:
         self.fail_next: dict[int, int] = {}  # position -> number of writes to refuse
         self.dead: set[int] = set()
         self.held: dict[int, threading.Event] = {}  # position -> writes there wait until the event is set
+        self.reads_held: threading.Event | None = None  # reads wait until it is set
+        self.meet: threading.Event | None = None  # transfers wait here until two have been in flight at once
         self.slow: dict[int, float] = {}  # position -> its mailbox service time, instead of latency_s
         self.in_flight = 0  # transfers being served now, and the most ever served at once
         self.most_in_flight = 0
@@ -52,7 +54,11 @@ class DriveMailboxes:
         with self._lock:
             self.in_flight += 1
             self.most_in_flight = max(self.most_in_flight, self.in_flight)
+            if self.meet is not None and self.in_flight >= 2:
+                self.meet.set()
         try:
+            if self.meet is not None:
+                self.meet.wait(30.0)
             time.sleep(self.slow.get(position, self.latency_s))
         finally:
             with self._lock:
@@ -60,6 +66,8 @@ class DriveMailboxes:
 
     def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
         name = self._check(position, index, sub_index)
+        if self.reads_held is not None:
+            self.reads_held.wait()
         self._serve(position)
         return self.values[position][name].to_bytes(self.sizes[name], "little")
 

@@ -95,3 +95,32 @@ def test_with_a_cpu_the_loop_and_every_thread_that_shares_its_interpreter_lock_r
     report = json.loads(result.stdout)
     assert report["cpu"] == cpu
     assert report["threads"] and all(cpus == [cpu] for cpus in report["threads"].values()), report
+
+
+RAISE_CHILD = """
+import json, os, threading
+from humanoid_prime.runtime.realtime import enter_realtime, leave_realtime
+ready, done = threading.Event(), threading.Event()
+helper = threading.Thread(target=lambda: (ready.set(), done.wait()))
+helper.start()
+ready.wait()
+report = enter_realtime(0.02, memory_refused=None)
+during = os.sched_getscheduler(helper.native_id), os.sched_getparam(helper.native_id).sched_priority
+leave_realtime(report)
+after = os.sched_getscheduler(helper.native_id)
+done.set()
+print(json.dumps({"loop": report.scheduling, "during": during, "after": after}))
+"""
+
+
+def test_the_threads_beside_the_loop_run_real_time_below_it_while_it_runs():
+    """A thread at normal priority that a busy host preempts while it holds the interpreter lock keeps the loop
+    waiting for the lock; beside a real-time loop it runs real-time too, below the loop, and back after."""
+    result = subprocess.run([sys.executable, "-c", RAISE_CHILD], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    if report["loop"] == "SCHED_OTHER":
+        pytest.skip("real-time scheduling is not permitted here")
+    policy, priority = report["during"]
+    assert policy & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and priority == realtime.OTHERS_PRIORITY
+    assert report["after"] == os.SCHED_OTHER

@@ -82,7 +82,7 @@ def test_config_init_finds_every_erob_with_its_identity(master):
 
 def test_config_map_alone_finds_zeroerr_s_power_up_mapping(master):
     master.config_init()
-    assert master.config_map() == SLAVES * (10 + 10)  # 607A 60FE:01 6040 / 6064 60FD 6041
+    assert master.config_map() == SLAVES * (10 + 10)  # 607A 60FE 6040 / 6064 60FD 6041
     assert [(len(s.output), len(s.input)) for s in master.slaves] == [(10, 10)] * SLAVES
 
 

@@ -174,6 +174,21 @@ def test_silent_motor_obeys_but_sends_nothing(bench):
     assert bench.plant.q[0] == pytest.approx(0.2, abs=1e-3)
 
 
+def test_late_feedback_comes_that_much_later_every_frame_of_it(bench):
+    bench.send(mit_enable(10, 10))
+    bench.emulator.step(0.001)
+    bench.received()
+    bench.motor.late_s = 0.030
+    bench.emulator.step(0.029)
+    assert bench.received() == []  # measured, not sent yet
+    bench.emulator.step(0.031)
+    kinds = [type(f).__name__ for f in bench.feedback()]
+    assert (kinds.count("Feedback1"), kinds.count("Feedback2")) == (3, 3)
+    bench.motor.late_s = 0.0
+    bench.emulator.step(0.1)
+    assert len(bench.received()) == 6 + 20 and bench.motor.late_sent == 12  # the rest held back, then on time
+
+
 def test_dropping_half_the_frames_loses_about_half_the_feedback(bench):
     bench.send(mit_enable(1, 1))
     bench.emulator.step(0.001)

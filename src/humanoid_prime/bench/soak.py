@@ -50,6 +50,7 @@ LOST_RING = 9  # the last slave: losing it leaves the rest of the line reachable
 REFERENCE_RING = 0  # the first slave, the reference clock: losing it cuts the whole line off
 READ_ONLY_ABORT = "0X06010002"  # CiA 301 abort: attempt to write a read-only object
 VERIFY_READS = 3  # reads of the returned drive's settings, when a mode switch falls between two
+RESET_APPLIED_S = 2.0  # the longest an operator's reset may wait for the loop's next tick
 
 
 @dataclass
@@ -119,6 +120,13 @@ FAULTS: tuple[Fault, ...] = (
     Fault("EtherCAT frames delayed 30 ms, 30 frames", "ethercat", "recovered", "*/ethercat/wkc",
           lambda c, s: c.call("delay", seconds=0.03, count=30), also=("*/ethercat/ring*/lost",)),
     Fault("garbage EtherCAT frames", "ethercat", "counted", None, lambda c, s: c.call("garbage", count=5)),
+    # a slow drive or a busy host: mailbox replies 40 ms late, the frames that carry replies back after the 2 ms a
+    # frame is given, and the whole emulator stalled for 30 ms (the cycle's frames late too)
+    Fault("EtherCAT mailbox replies 40 ms late, 20 replies", "ethercat", "counted", None,
+          lambda c, s: c.call("late_replies", count=20, seconds=0.04)),
+    Fault("EtherCAT reply frames held 8 ms, 5 frames", "ethercat", "counted", None,
+          lambda c, s: c.call("hold_reply_frames", count=5, seconds=0.008)),
+    Fault("EtherCAT ring stalled 30 ms", "ethercat", "counted", None, lambda c, s: c.call("stall", seconds=0.03)),
     # back in OP once it has relocked (350 frames at the control rate: 7 s at 50 Hz), its drive held disabled
     Fault("slave lost and returned", "ethercat", "latched", f"*/ethercat/ring{LOST_RING}/disabled",
           lambda c, s: c.call("lose", position=LOST_RING), hold_s=1.0,
@@ -144,6 +152,8 @@ FAULTS: tuple[Fault, ...] = (
     Fault("Sito frames dropped (30 %)", "can", "counted", None,
           _sito("right_wrist_pitch", drop_fraction=0.3), hold_s=2.0,
           end=_sito("right_wrist_pitch", drop_fraction=0.0)),
+    Fault("Sito feedback 50 ms late", "can", "counted", None, _sito("left_wrist_pitch", late_s=0.05), hold_s=2.0,
+          end=_sito("left_wrist_pitch", late_s=0.0)),
 )
 
 
@@ -248,8 +258,16 @@ class Injector(threading.Thread):
                    and not (still and r.until_s is not None) for r in list(self.session.faults))
 
     def _reset(self, injection: Injection) -> None:
+        """The operator's reset, and a wait until the loop has applied it: a fault injected meanwhile would be
+        cleared by it, unseen."""
+        manager = self.session.manager
         self.resets.append(self._now())
-        self.session.manager.request_reset()
+        applied = manager.resets
+        manager.request_reset()
+        deadline = time.monotonic() + RESET_APPLIED_S
+        while manager.resets == applied and time.monotonic() < deadline and not self.stop.wait(0.01):
+            pass
+        self.stop.wait(3.0 / manager.update_rate)  # its fault-reset pulse goes out with the next writes
         if injection.fault.verify is not None:
             injection.released_wrong = injection.fault.verify(self.control, self.session)
             if injection.released_wrong:

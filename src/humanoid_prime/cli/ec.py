@@ -120,7 +120,10 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
                         bringup_rate=bringup_rate)
     report["interface"] = master.interface
     with master:
-        found = master.open()
+        try:
+            found = master.open()
+        finally:
+            report["retried"] = list(master.scan_reasons)  # ring scans SOEM made again (a slow ring)
         rows = [_row(s, joints) for s in found]
         report["slaves"] = rows
         expected = expected_ring(hw.erob_slaves)
@@ -132,6 +135,8 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
             for row, slave in zip(rows, master.read_states(), strict=True):
                 row.update(_row(slave, joints))
             raise
+        finally:
+            report["retried"] = [*master.scan_reasons, *master.configure_reasons]
         report["bringup_seconds"] = round(bringup.seconds, 3)
         for _ in range(_SCAN_CYCLES):
             master.exchange()
@@ -175,7 +180,7 @@ def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) ->
 def run_scan(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     report: dict[str, Any] = {"backend": args.backend, "interface": None, "slaves": [], "ring_matches": False,
-                              "bringup_seconds": None, "problem": None}
+                              "bringup_seconds": None, "retried": [], "problem": None}
     try:
         (_scan_igh if args.backend == "igh" else _scan_soem)(args, robot, report)
     except (RingError, SdoError) as exc:
@@ -209,6 +214,8 @@ def _print_scan(report: dict[str, Any]) -> None:
         if "error_history" in r:
             line += f"  history [{', '.join(r['error_history'])}]"
         print(line.rstrip())
+    for reason in report["retried"]:
+        print(f"configured again: {reason}")
     if report["problem"]:
         print(f"problem: {report['problem']}")
 

@@ -19,6 +19,10 @@ per mode, not per tick (DESIGN §2, §3). The manager:
   effect on every drive within a few milliseconds of each other, and the wait holds a drive only in the
   intermediate pair, which is no stiffer than both modes;
 - retries a failed write a bounded number of times, then raises a safety flag for that slave;
+- counts a switch ``ok`` only when it is: every slave's writes went through and its AL state, read right after,
+  is OP; then reads each slave's gains back in the background (the switch is not held for it) and flags a slave
+  whose drive holds other values (a write that went astray, a drive that lost power meanwhile). The report says per
+  slave what was written, what was read back, the retries and the wall time;
 - restores a slave that dropped out (power or link) once it is back in OP: its window, its gate and the
   current mode's gains again, since a drive that lost power comes back with factory values; its drive stays
   held disabled until then (``DroppedDrives``), so a reset never enables it on gains nobody chose;
@@ -34,7 +38,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Protocol
@@ -50,14 +54,16 @@ from humanoid_prime.drivers.erob.objects import (
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
-from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
+from humanoid_prime.drivers.ethercat.master import HELPER_PRIORITY, SlaveInfo, raise_thread
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
 
-@dataclass(frozen=True)
+@dataclass
 class SlaveSwitch:
-    """One slave's part of a mode switch: what was written, when it finished, and how it ended."""
+    """One slave's part of a mode switch: what was written, when it finished, how it ended, its AL state read right
+    after the switch, and what its registers read back afterwards (filled in by the background read-back)."""
 
     position: int
     joint: str
@@ -65,9 +71,27 @@ class SlaveSwitch:
     retries: int
     finished_s: float  # seconds after the switch started
     error: str | None = None
+    mode: str = ""
+    al_state: str | None = None  # None: not read (no ring states where the manager's SDOs go)
+    read_back: dict[str, int] | None = None  # pos_reg, vel_reg, integral as the drive holds them
+    read_back_error: str | None = None  # why they could not be read, or how they differ from what was written
+
+    @property
+    def problem(self) -> str | None:
+        """Why this slave's part of the switch is not ok (None: it is, as far as known yet)."""
+        if self.error:
+            return self.error
+        if self.al_state is not None and self.al_state != "OP":
+            return f"{self.mode} switch: the slave is in {self.al_state} after it, not OP"
+        return self.read_back_error
+
+    def as_dict(self) -> dict:
+        return {"joint": self.joint, "position": self.position, "written": dict(self.writes),
+                "read_back": self.read_back, "retries": self.retries, "seconds": self.finished_s,
+                "al_state": self.al_state, "ok": self.problem is None, "problem": self.problem}
 
 
-@dataclass(frozen=True)
+@dataclass
 class SwitchReport:
     mode: str
     wall_seconds: float
@@ -75,10 +99,12 @@ class SwitchReport:
     retries: int
     slaves: tuple[SlaveSwitch, ...]
     together: bool  # every slave met the others before its last write (``Rendezvous``)
+    checked: threading.Event = field(default_factory=threading.Event, repr=False)  # the read-back is done
 
     @property
     def ok(self) -> bool:
-        return all(s.error is None for s in self.slaves)
+        """Every slave written, in OP after the switch, and (once read back) holding what was written."""
+        return all(s.problem is None for s in self.slaves)
 
     def as_dict(self) -> dict:
         return {
@@ -88,7 +114,9 @@ class SwitchReport:
             "retries": self.retries,
             "together": self.together,
             "ok": self.ok,
-            "failed": {s.joint: s.error for s in self.slaves if s.error},
+            "read_back": "done" if self.checked.is_set() else "pending",
+            "failed": {s.joint: s.problem for s in self.slaves if s.problem},
+            "slaves": [s.as_dict() for s in self.slaves],
         }
 
 
@@ -158,16 +186,27 @@ class _Slave:
     registers: ErobRegisters | None = None  # what the drive holds now; None = unknown
     gate_armed: bool = False
     factory_window: int | None = None  # the drive's own window, put back on close
+    written: int = 0  # gain writes so far: a read-back that finds this moved on is for an older switch
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
+class RingStates(Protocol):
+    """Where the manager reads the slaves' AL states after a switch (an EtherCAT master)."""
+
+    def read_states(self) -> Sequence[SlaveInfo]: ...
+
+
 class ImpedanceManager(SafetyFlags):
+    """``states`` (default: ``sdo`` itself when it can read the ring's AL states) confirms each slave in OP after a
+    switch."""
+
     def __init__(self, robot: Robot, sdo: SdoClient, mode_gains: Mapping[Mode, tuple[float, float]], *,
                  parallel: bool = True, retries: int = 3, clock: Callable[[], float] = time.monotonic,
-                 rendezvous_s: float = RENDEZVOUS_S) -> None:
+                 rendezvous_s: float = RENDEZVOUS_S, states: RingStates | None = None) -> None:
         super().__init__("erob_impedance_manager")
         hw = robot.hardware
         self.sdo = sdo
+        self.states = states if states is not None else (sdo if callable(getattr(sdo, "read_states", None)) else None)
         self.parallel = parallel
         self.retries = retries
         self.clock = clock
@@ -190,8 +229,15 @@ class ImpedanceManager(SafetyFlags):
         self._by_position = {s.position: s for s in self.slaves}
         self._dropped: DroppedDrives | None = None
         self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
-        self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo") \
+        # helpers of the ring: real-time below the loop where permitted (master.HELPER_PRIORITY says why)
+        self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo",
+                                        initializer=raise_thread, initargs=(HELPER_PRIORITY,)) \
             if parallel and self.slaves else None
+        # the read-back after each switch, on workers of its own: the next switch never queues behind it
+        self._checks = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-read-back",
+                                          initializer=raise_thread, initargs=(HELPER_PRIORITY,)) \
+            if parallel and self.slaves else None
+        self._pending: list[SwitchReport] = []
         self._queue: queue.Queue[Mode | str | None] = queue.Queue()
         self._worker: threading.Thread | None = None
         self._joint_states_seen = threading.Event()
@@ -241,6 +287,7 @@ class ImpedanceManager(SafetyFlags):
         self._queue.put(Mode(msg.mode))
 
     def _run(self) -> None:
+        raise_thread(HELPER_PRIORITY)  # it holds the interpreter lock between writes (master.HELPER_PRIORITY)
         try:
             self.arm()
         except Exception as exc:  # a bug, not a bus error (those are flagged per slave): say it, keep following
@@ -372,12 +419,13 @@ class ImpedanceManager(SafetyFlags):
                     problem = self._arm_one(slave)
                     if problem is not None and problem[1] is Level.ERROR:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
-                                           f"{mode.value} gains not applied: {problem[0]}")
+                                           f"{mode.value} gains not applied: {problem[0]}", mode.value)
                     if not slave.gate_armed:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
-                                           f"{mode.value} gains not applied: the manager is closing")
+                                           f"{mode.value} gains not applied: the manager is closing", mode.value)
                 written, retries, error = self._write_gains(slave, mode, new, before_last=meet)
-                return SlaveSwitch(slave.position, slave.joint, written, retries, self.clock() - start, error)
+                return SlaveSwitch(slave.position, slave.joint, written, retries, self.clock() - start, error,
+                                   mode.value)
 
             self.mode = mode
             results = [r for r in self._each(switch_one) if isinstance(r, SlaveSwitch)]
@@ -390,11 +438,75 @@ class ImpedanceManager(SafetyFlags):
                 slaves=tuple(results),
                 together=rendezvous.together,
             )
+            self._confirm_op(report)
             self.reports.append(report)
-            for r in results:
-                self._set_flag(f"erob/impedance/ring{r.position}",
-                               (f"{r.joint} (ring {r.position}): {r.error}", Level.ERROR) if r.error else None)
+            self._flag(report)
+            self._read_back(report)
             return report
+
+    def _confirm_op(self, report: SwitchReport) -> None:
+        """Each slave's AL state, read once the switch is done: a drive that left OP during it (its working counter
+        may still look right) makes the switch not ok."""
+        if self.states is None:
+            return
+        try:
+            found = {s.position: s for s in self.states.read_states()}
+        except Exception as exc:  # the states could not be read: not confirmed, said as such
+            for r in report.slaves:
+                r.al_state = f"unknown (the AL states could not be read: {exc})"
+            return
+        for r in report.slaves:
+            info = found.get(r.position)
+            r.al_state = info.state_text if info is not None else "not found on the ring"
+
+    def _flag(self, report: SwitchReport) -> None:
+        for r in report.slaves:
+            problem = r.problem
+            self._set_flag(f"erob/impedance/ring{r.position}",
+                           (f"{r.joint} (ring {r.position}): {problem}", Level.ERROR) if problem else None)
+
+    def _read_back(self, report: SwitchReport) -> None:
+        """Read every written slave's gain registers back, in the background: the switch does not wait for it. A
+        slave whose drive holds other values is flagged, and its registers count as unknown (the next switch
+        writes all three)."""
+        written = {s.position: s.written for s in self.slaves}
+
+        def check(r: SlaveSwitch) -> None:
+            slave = self._by_position[r.position]
+            with slave.lock:
+                if slave.written != written[r.position]:
+                    return  # a later switch wrote it meanwhile: its own read-back checks it
+                try:
+                    held = self._read_registers(slave)
+                except Exception as exc:
+                    r.read_back_error = f"gains not read back: {exc}"
+                    return
+                r.read_back = {"pos_reg": held.pos_reg, "vel_reg": held.vel_reg, "integral": held.integral}
+                want = self.targets[Mode(report.mode)][r.position]
+                if held != want:
+                    slave.registers = None
+                    r.read_back_error = (f"{report.mode} switch: gains read back as {r.read_back}, not "
+                                         f"{dict(pos_reg=want.pos_reg, vel_reg=want.vel_reg, integral=want.integral)}")
+
+        def check_all() -> None:
+            raise_thread(HELPER_PRIORITY)
+            try:
+                targets = [r for r in report.slaves if r.error is None and not self._closing]
+                if self._checks is not None:
+                    list(self._checks.map(check, targets))
+                else:
+                    for r in targets:
+                        check(r)
+                if any(r.read_back_error for r in targets):
+                    self._flag(report)
+            finally:
+                report.checked.set()
+
+        if self._closing:
+            report.checked.set()
+            return
+        self._pending = [r for r in self._pending if not r.checked.is_set()] + [report]
+        threading.Thread(target=check_all, name="erob-read-back", daemon=True).start()
 
     def _write_gains(self, slave: _Slave, mode: Mode, new: ErobRegisters,
                      before_last: Callable[[], None] | None = None
@@ -409,6 +521,7 @@ class ImpedanceManager(SafetyFlags):
                 for k, (address, value) in enumerate(writes):
                     if k == len(writes) - 1 and before_last is not None:
                         before_last()
+                    slave.written += 1
                     retries += self._write(slave, address, value)
                     written.append((_NAMES[address], value))
                     slave.registers = _updated(slave.registers, address, value)
@@ -451,6 +564,11 @@ class ImpedanceManager(SafetyFlags):
             return f"{where}: back from a drop, {error}; its drive stays held disabled", Level.ERROR
         return None  # the registers are known again, whether or not they could be read back
 
+    def wait_checked(self, timeout: float = 5.0) -> bool:
+        """Block until every switch so far has been read back (for reports and tests); False on timeout."""
+        deadline = time.monotonic() + timeout
+        return all(report.checked.wait(max(deadline - time.monotonic(), 0.0)) for report in list(self.reports))
+
     def close(self) -> list[str]:
         """Stop following modes and reset the gate to 0 on every reachable slave; returns failures."""
         self._closing = True
@@ -458,6 +576,8 @@ class ImpedanceManager(SafetyFlags):
             self._queue.put(None)
             self._worker.join(timeout=5.0)
             self._worker = None
+        for report in self._pending:  # a read-back under way finishes before the gate goes back to 0
+            report.checked.wait(5.0)
         if self._topics is not None:
             self._topics.unsubscribe(CONTROL_MODE, self._on_control_mode)
             self._topics.unsubscribe(JOINT_STATES, self._on_joint_states)
@@ -479,9 +599,10 @@ class ImpedanceManager(SafetyFlags):
                 return f"{slave.joint} (ring {slave.position}): " + "; ".join(problems) if problems else None
             failures = [e for e in self._each(reset) if e]
             self.armed = False
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        for pool in (self._pool, self._checks):
+            if pool is not None:
+                pool.shutdown(wait=True)
+        self._pool = self._checks = None
         return failures
 
     def _set_flag(self, key: str, problem: tuple[str, Level] | None) -> None:

@@ -66,7 +66,6 @@ class BringupOptions:
     can_interface: str | None = None  # python-can interface (default: prime_hardware.yaml)
     can_channel: str | None = None
     sync0_period_s: float | None = None  # must equal 1/update_rate; only for an explicit cross-check
-    unsafe_sync0_period_s: float | None = None  # bypasses the check: reproduces the 4616 fault on purpose
     bringup_rate: float | None = None  # Hz of the EtherCAT bring-up loop (default: prime_controllers.yaml)
     parallel_sdo: bool | None = None  # default: prime_controllers.yaml
     duration: float | None = None  # seconds of control loop after bringup; None = until stopped
@@ -332,8 +331,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     stack.callback(sys.setswitchinterval, tighten_switch_interval(1.0 / plan.update_rate))
     settings = ComponentSettings(
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
-        ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s,
-        unsafe_sync0_period_s=options.unsafe_sync0_period_s, parallel_sdo=plan.parallel_sdo,
+        ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
         erob_config_dir=options.erob_config_dir, can_interface=options.can_interface,
         can_channel=options.can_channel)
     components = build_components(BACKEND_BLOCKS[options.backends], settings)

@@ -7,6 +7,7 @@ biases the figure low by about friction/torque (0.1/5 = 2 % on the eRob joints).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import threading
 import time
@@ -20,9 +21,12 @@ from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.session import Session
 from humanoid_prime.virtual.ring.control import RingControl
 
+SETTLED_RAD = 5e-4  # a joint that moved less than this over SETTLE_WINDOW_S has settled under its push
+SETTLE_WINDOW_S = 0.5
+
 
 def measure_stiffness(session: Session, control: RingControl, joints: Sequence[str], *, torque_nm: float = 5.0,
-                      settle_s: float = 3.0, average_s: float = 1.0,
+                      settle_s: float = 3.0, average_s: float = 1.0, settle_timeout_s: float = 20.0,
                       stop: threading.Event | None = None) -> list[dict[str, Any]]:
     """Nominal against realised kp per joint of ``joints`` (eRob joints of the running ``session``)."""
     robot, manager = session.robot, session.manager
@@ -37,8 +41,23 @@ def measure_stiffness(session: Session, control: RingControl, joints: Sequence[s
     stop = stop or threading.Event()
 
     def settle_and_average(i: int) -> float:
+        """The joint's mean position once it has settled: at least ``settle_s``, then until it moved less than
+        SETTLED_RAD over SETTLE_WINDOW_S (on a busy host the emulated robot's physics falls behind the clock, and
+        a fixed wait would average a joint still on its way)."""
         if stop.wait(settle_s):
             raise PrimeError("load test stopped before it finished")
+        window: collections.deque[tuple[float, float]] = collections.deque()
+        deadline = time.monotonic() + settle_timeout_s
+        while time.monotonic() < deadline:
+            now, q = time.monotonic(), float(manager.resources.state.position[i])
+            window.append((now, q))
+            while window and now - window[0][0] > SETTLE_WINDOW_S:
+                window.popleft()
+            if now - window[0][0] >= 0.9 * SETTLE_WINDOW_S and \
+                    max(p for _t, p in window) - min(p for _t, p in window) < SETTLED_RAD:
+                break
+            if stop.wait(0.01):
+                raise PrimeError("load test stopped before it finished")
         samples = []
         end = time.monotonic() + average_s
         while time.monotonic() < end:

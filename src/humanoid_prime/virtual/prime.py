@@ -56,7 +56,7 @@ class VirtualPrimeServer(EmulatorServer):
                 for j, c in self.world.truth.joints.items()}
 
     def _op_sito(self, joint: str, silent: bool | None = None, drop_fraction: float | None = None,
-                 garbage: bool | None = None) -> dict[str, Any]:
+                 garbage: bool | None = None, late_s: float | None = None) -> dict[str, Any]:
         if self.sito is None:
             raise KeyError("this virtual Prime has no Sito motors")
         can_id = self.world.robot.hardware.mit_joints[joint]
@@ -67,8 +67,10 @@ class VirtualPrimeServer(EmulatorServer):
             motor.drop_fraction = float(drop_fraction)
         if garbage is not None:
             motor.garbage = bool(garbage)
+        if late_s is not None:
+            motor.late_s = float(late_s)
         return {"can_id": can_id, "silent": motor.silent, "drop_fraction": motor.drop_fraction,
-                "garbage": motor.garbage}
+                "garbage": motor.garbage, "late_s": motor.late_s}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,8 +8,9 @@ motor is limp until it is enabled with non-zero gains, and a disable (reset) mak
 
 ``SitoEmulator`` owns the motors on one bus. ``step(duration)`` advances it deterministically (tests);
 ``start()`` runs it in a background thread at the firmware rate, paced by the wall clock (live use).
-Faults: per motor drop a fraction of frames, go silent, send garbage after each feedback frame; for the
-whole bus stop acknowledging (the host's transmit queue fills) and report bus-off.
+Faults: per motor drop a fraction of frames, go silent, send garbage after each feedback frame, send its feedback
+late (``late_s``: each frame held that long, as a busy bus or a stalled host delivers it); for the whole bus stop
+acknowledging (the host's transmit queue fills) and report bus-off.
 """
 
 from __future__ import annotations
@@ -89,6 +90,10 @@ class SitoMotor:
         self.silent = False  # obeys commands but sends no feedback
         self.garbage = False  # a protocol-breaking frame after every feedback frame
         self.undocumented_feedback = False  # 0xB0 and 0xB3 frames besides 0xB1/0xB2, as a Sito may send
+        self.late_s = 0.0  # each feedback frame goes out this much later than it was measured
+        self.late_sent = 0
+        self._held: deque[tuple[int, can.Message]] = deque()  # (firmware tick it is due, frame)
+        self._ticks = 0  # firmware ticks since the motor was created (``_tick`` restarts on enable)
         # Counters a test can assert on.
         self.received: dict[FrameType, int] = {t: 0 for t in FrameType}
         self.invalid_received = 0
@@ -160,7 +165,11 @@ class SitoMotor:
         return min(max(torque, -self.torque_limit), self.torque_limit)
 
     def stream(self, send: Callable[[can.Message], None]) -> None:
-        """Send the feedback frames due at this tick (after the world has moved)."""
+        """Send the feedback frames due at this tick (after the world has moved), and those held back till now."""
+        self._ticks += 1
+        while self._held and self._held[0][0] <= self._ticks:
+            send(self._held.popleft()[1])
+            self.late_sent += 1
         if not self.enabled:
             return
         for frame_type, interval_ms in ((FrameType.FEEDBACK1, self.feedback_ms[0]),
@@ -191,7 +200,11 @@ class SitoMotor:
             output = position_to_counts(q)
             motor = (round(q * self.model.gear * COUNTS_PER_RAD) + 2**31) % 2**32 - 2**31  # wraps on the motor
             data = FEEDBACK2.pack(motor, output)
-        send(can.Message(arbitration_id=self.ids[frame_type], is_extended_id=True, data=data))
+        message = can.Message(arbitration_id=self.ids[frame_type], is_extended_id=True, data=data)
+        if self.late_s > 0:
+            self._held.append((self._ticks + max(1, round(self.late_s * self.rate_hz)), message))
+        else:
+            send(message)
         self.feedback_sent += 1
         if self.garbage:
             send(self._garbage_frame())

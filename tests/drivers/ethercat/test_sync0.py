@@ -41,8 +41,3 @@ def test_the_master_refuses_a_mismatched_sync0_when_constructed():
 
 def test_the_master_derives_sync0_from_the_update_rate():
     assert FakeMaster(update_rate=50.0).sync0_ns == 20_000_000
-
-
-def test_the_unsafe_override_is_used_as_given():
-    master = FakeMaster(update_rate=50.0, unsafe_sync0_period_s=0.001)
-    assert (master.cycle_ns, master.sync0_ns) == (20_000_000, 1_000_000)

@@ -673,3 +673,17 @@ def test_the_compiled_tick_refuses_a_process_image_of_another_layout(robot, tmp_
     with pytest.raises(ValueError, match="dtype mismatch"):
         r.system.activate()
     r.system.shutdown()
+
+
+def test_a_slave_out_of_op_and_back_between_two_ticks_is_said_for_one_tick_with_why_it_left(rig):
+    """A loop kept off the CPU while the supervision found a slave out of OP and brought it back: the next tick
+    says so, with the AL status code the slave gave for leaving, and the tick after clears it."""
+    rig.tick()
+    rig.master.left_op[2] += 1
+    rig.master.left_op_code[2] = 0x001B
+    rig.master.health_version += 1
+    rig.tick()
+    assert rig.system.flags["ethercat/ring2/lost"] == (
+        "left_shoulder_yaw (ring 2): slave left OP (AL status 0x001B sync manager watchdog) and came back")
+    rig.tick()
+    assert "ethercat/ring2/lost" not in rig.system.flags

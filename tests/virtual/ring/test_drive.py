@@ -289,5 +289,5 @@ def test_the_torque_offset_takes_plus_minus_3000_per_mille():
 
 def test_at_power_up_the_drive_maps_the_vendor_layout():
     od = ErobDrive().od
-    assert [od.value(0x1600, s) for s in range(4)] == [3, 0x607A0020, 0x60FE0120, 0x60400010]
+    assert [od.value(0x1600, s) for s in range(4)] == [3, 0x607A0020, 0x60FE0020, 0x60400010]
     assert [od.value(0x1A00, s) for s in range(4)] == [3, 0x60640020, 0x60FD0020, 0x60410010]

@@ -167,9 +167,28 @@ def test_frames_that_arrive_during_a_step_are_answered_between_its_parts():
     ring.slaves[0].tick = lambda now_ns: (checked.append(now_ns), tick(now_ns))
     ring.serve_waiting = serve
     ring.advance(master.now_ns + MS)  # one physics step
-    assert [(d.wkc, d.data) for d in answered] == [(1, struct.pack("<H", 0x08))] * 2  # before the plant, after
+    # before the plant, after it, and before the timed checks
+    assert [(d.wkc, d.data) for d in answered] == [(1, struct.pack("<H", 0x08))] * 3
     assert ring._pending_frame is None  # the slaves' reaction to it ran there too, not at the next step
     assert checked == [master.now_ns]  # the timed checks never run at a time before a frame already answered
+
+
+def test_an_output_watchdog_does_not_run_out_on_a_frame_that_waited_while_the_emulator_was_not_running():
+    # a host that did not run the emulator for 150 ms: the master's frames queued meanwhile reached the ESCs,
+    # which are hardware on the robot; the watchdog (100 ms) counts them before it looks
+    ring, master = in_op(1)
+    queued = [True]
+
+    def serve() -> None:  # the frame that waited in the socket, with the outputs the master kept sending
+        if queued and queued.pop():
+            image = IDLE_OUTPUT + bytes(TXPDO_STRUCT.size)
+            master.exchange([Datagram.logical(Command.LRW, 0, image),
+                             Datagram(Command.FRMW, bytes(8), adp=STATION_BASE, ado=0x0910)])
+
+    ring.serve_waiting = serve
+    master.now_ns += 150 * MS
+    ring.advance(master.now_ns, max_steps=0)
+    assert states(master, 1) == [(0x08, 0)]
 
 
 def test_a_slow_firmware_shows_the_old_state_until_its_state_change_is_done():
@@ -425,6 +444,68 @@ def test_repeat_request_offers_the_last_reply_again():
     assert master.mailbox_read(0x1001) == first
 
 
+UPLOAD_IDENTITY = struct.pack("<HBHBI", 0x2000, 0x40, 0x1018, 1, 0)
+
+
+def reply_after(master: WireMaster, limit_ms: int) -> int | None:
+    """Emulated ms until the request's reply shows in the read mailbox (None: not within ``limit_ms``)."""
+    for waited in range(limit_ms + 1):
+        if master.mailbox_read(0x1001) is not None:
+            return waited
+        master.now_ns += MS
+        master.ring.advance(master.now_ns)
+    return None
+
+
+def test_a_scripted_late_reply_comes_that_much_later_and_the_next_one_on_time():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.001)
+    ring.latency.script(1, 0.008)
+    master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+    assert reply_after(master, 20) == 9
+    master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+    assert reply_after(master, 20) == 1
+
+
+def test_a_burst_slows_that_many_replies_then_the_drive_answers_on_time_again():
+    ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.001, mailbox_burst_s=0.005,
+                             mailbox_burst_replies=2)
+    waits = []
+    for chance in (1.0, 0.0, 0.0, 0.0):  # the first reply starts a burst, then none does
+        ring.options.mailbox_burst_chance = chance
+        master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+        waits.append(reply_after(master, 20))
+    assert waits == [6, 6, 1, 1]
+
+
+def test_jitter_keeps_each_reply_within_latency_plus_jitter_and_the_same_seed_repeats_a_run():
+    def waits(seed: int) -> list[int | None]:
+        _ring, master = in_safeop(1, sync0_ns=None, mailbox_latency_s=0.001, mailbox_jitter_s=0.010, seed=seed)
+        out = []
+        for _ in range(8):
+            master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+            out.append(reply_after(master, 30))
+        return out
+
+    first = waits(7)
+    assert all(w is not None and 1 <= w <= 11 for w in first) and len(set(first)) > 1
+    assert waits(7) == first
+
+
+def test_a_read_mailbox_switched_off_above_init_drops_the_slave_to_init_with_0x0016():
+    # what SOEM's repeat request writes when it toggles a stale copy of SM1's status word: enable bit clear
+    ring, master = in_safeop(1, sync0_ns=None)
+    master.fpwr(0x1001, 0x080D, b"\x0a\x02")
+    assert master.al_status(0x1001) == (0x11, 0x0016)
+    master.mailbox_write(0x1001, UPLOAD_IDENTITY)
+    assert reply_after(master, 5) is None
+
+
+def test_a_repeat_request_with_the_mailbox_left_enabled_keeps_the_slave_where_it_was():
+    ring, master = in_safeop(1, sync0_ns=None)
+    master.fpwr(0x1001, 0x080D, b"\x00\x03")
+    assert master.al_status(0x1001) == (0x04, 0)
+
+
 # ---- process data moves the drive -------------------------------------------------------------------------------
 def test_process_data_enables_the_drive_and_tracks_the_target():
     ring, master = in_op(1)
@@ -477,7 +558,7 @@ def test_a_drive_powers_up_with_zeroerr_s_mapping_not_prime_s():
         count = master.sdo_upload(0x1001, mapping, 0)[0]
         return [struct.unpack("<I", master.sdo_upload(0x1001, mapping, sub))[0] for sub in range(1, count + 1)]
 
-    assert entries(0x1600) == [0x607A0020, 0x60FE0120, 0x60400010] == [e.mapping for e in POWER_UP_RXPDO]
+    assert entries(0x1600) == [0x607A0020, 0x60FE0020, 0x60400010] == [e.mapping for e in POWER_UP_RXPDO]
     assert entries(0x1A00) == [0x60640020, 0x60FD0020, 0x60410010] == [e.mapping for e in POWER_UP_TXPDO]
 
 

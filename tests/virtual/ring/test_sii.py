@@ -61,7 +61,7 @@ def test_sync_manager_category_lists_mailboxes_and_process_data(image):
     assert sms == [
         (0x1000, 128, 0x26, 0, 1, sii.SM_TYPE_MAILBOX_OUT),
         (0x1080, 128, 0x22, 0, 1, sii.SM_TYPE_MAILBOX_IN),
-        (0x1100, 10, 0x64, 0, 1, sii.SM_TYPE_OUTPUTS),  # ZeroErr's power-up mapping: 607A, 60FE:01, 6040
+        (0x1100, 10, 0x64, 0, 1, sii.SM_TYPE_OUTPUTS),  # ZeroErr's power-up mapping: 607A, 60FE, 6040
         (0x1180, 10, 0x20, 0, 1, sii.SM_TYPE_INPUTS),  # 6064, 60FD, 6041
     ]
 

@@ -25,7 +25,9 @@ ERROR_CODE = 0x603F
 ERROR_HISTORY = 0x1003
 FOLLOWING_ERROR_WINDOW = 0x6065
 DIGITAL_INPUTS = 0x60FD
-DIGITAL_OUTPUTS = (0x60FE, 0x01)  # physical outputs
+# a VAR, mapped as 0x60FE:00: the drive's own dictionary as SOEM's slaveinfo lists it (0x1600 = 607A0020 60FE0020
+# 60400010 in a public ZeroErr CSP example), and the public IgH eRob example maps 0x60FE, 0
+DIGITAL_OUTPUTS = (0x60FE, 0x00)
 SUPPORTED_DRIVE_MODES = 0x6502
 TORQUE_OFFSET_LIMIT_PER_MILLE = 3000  # 0x60B2 range, +-3000 (ZeroErr EDS V1.5)
 

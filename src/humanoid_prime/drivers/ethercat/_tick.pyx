@@ -66,10 +66,12 @@ cdef class EcTick:
     cdef const Py_ssize_t[::1] ring, index
     cdef double[:, ::1] raw, state_factor, state_offset, command_factor, command_offset
     cdef double[::1] held
-    cdef unsigned char[::1] enabled, fault, was_enabled, held_off, held_off_seen, was_fault
+    cdef unsigned char[::1] enabled, fault, state
+    cdef const unsigned char[::1] chart
+    cdef unsigned char state_fault, state_resetting, state_held
     cdef const unsigned short[::1] cw_table
-    cdef unsigned short[::1] cw_prev, reset_grace
-    cdef public unsigned short grace_ticks  # 0: leaving a fault never holds a drive
+    cdef unsigned short[::1] cw_prev, grace
+    cdef public unsigned short grace_ticks  # frames in which a drive leaving its fault left it by our reset
     cdef unsigned short enabled_mask, enabled_value, fault_mask, fault_value, fault_reset, disable_voltage
     cdef signed char mode
     cdef double target_low, target_high, velocity_low, velocity_high, torque_low, torque_high
@@ -81,23 +83,23 @@ cdef class EcTick:
                  double[:, ::1] state_offset not None, double[:, ::1] command_factor not None,
                  double[:, ::1] command_offset not None, double[::1] held not None,
                  unsigned char[::1] enabled not None, unsigned char[::1] fault not None,
-                 unsigned char[::1] was_enabled not None, unsigned char[::1] held_off not None,
-                 unsigned char[::1] held_off_seen not None, const unsigned short[::1] cw_table not None,
+                 unsigned char[::1] state not None, const unsigned char[::1] chart not None, tuple states,
+                 const unsigned short[::1] cw_table not None,
                  unsigned short[::1] cw_prev not None, tuple enabled_pattern, tuple fault_pattern,
                  unsigned short fault_reset, unsigned short disable_voltage, signed char mode,
                  tuple target_limits, tuple velocity_limits, tuple torque_limits,
-                 unsigned char[::1] was_fault not None, unsigned short[::1] reset_grace not None):
+                 unsigned short[::1] grace not None):
         cdef Py_ssize_t n = ring.shape[0], k
         if cw_table.shape[0] != 0x80:
             raise ValueError(f"controlword table has {cw_table.shape[0]} entries, expected 128")
         for k in range(n):
             if not 0 <= ring[k] < inputs.shape[0] or ring[k] >= outputs.shape[0]:
                 raise ValueError(f"ring position {ring[k]} outside the process image of {inputs.shape[0]} slaves")
+        if chart.shape[0] % 3 != 0:
+            raise ValueError(f"drive chart has {chart.shape[0]} entries, not 3 per state")
         for name, length in (("index", index.shape[0]), ("rec", rec.shape[0]), ("held", held.shape[0]),
-                             ("enabled", enabled.shape[0]), ("fault", fault.shape[0]),
-                             ("was_enabled", was_enabled.shape[0]), ("held_off", held_off.shape[0]),
-                             ("held_off_seen", held_off_seen.shape[0]), ("cw_prev", cw_prev.shape[0]),
-                             ("was_fault", was_fault.shape[0]), ("reset_grace", reset_grace.shape[0])):
+                             ("enabled", enabled.shape[0]), ("fault", fault.shape[0]), ("state", state.shape[0]),
+                             ("cw_prev", cw_prev.shape[0]), ("grace", grace.shape[0])):
             if length != n:
                 raise ValueError(f"{name} has {length} entries for {n} joints")
         for name, rows, columns in (("raw", raw.shape[0], raw.shape[1]),
@@ -111,9 +113,9 @@ cdef class EcTick:
         self.raw, self.held = raw, held
         self.state_factor, self.state_offset = state_factor, state_offset
         self.command_factor, self.command_offset = command_factor, command_offset
-        self.enabled, self.fault, self.was_enabled = enabled, fault, was_enabled
-        self.held_off, self.held_off_seen = held_off, held_off_seen
-        self.was_fault, self.reset_grace, self.grace_ticks = was_fault, reset_grace, 0
+        self.enabled, self.fault, self.state, self.chart = enabled, fault, state, chart
+        self.state_fault, self.state_resetting, self.state_held = states  # drive_state: FAULT, RESETTING, HELD
+        self.grace, self.grace_ticks = grace, 0
         self.cw_table, self.cw_prev = cw_table, cw_prev
         self.enabled_mask, self.enabled_value = enabled_pattern
         self.fault_mask, self.fault_value = fault_pattern
@@ -141,50 +143,51 @@ cdef class EcTick:
         return faulted
 
     def read(self, double[:, ::1] state not None):
-        """Gather, hold disabled every drive that dropped out (power or link), and write position, velocity and
-        effort into ``state``. A drive dropped out when it was enabled in the last frame and is now neither
-        enabled nor in fault, or (with ``grace_ticks``) when it left a fault no fault reset of ours asked it to
-        leave within ``grace_ticks`` frames: a drive that loses power comes back out of its fault.
-        Returns (drives in fault, whether the held-disabled set differs from ``held_off_seen``)."""
+        """Gather, move each drive's state (drive_state.FRAME_CHART, one row per state, one column per what the
+        frame says: enabled, fault, other), and write position, velocity and effort into ``state``. A drive whose
+        fault reset is under way (RESETTING) and still in fault after ``grace_ticks`` frames is latched again.
+        Returns (drives in fault, whether a drive entered or left a held state)."""
         cdef Py_ssize_t k, row
         cdef int faulted = self.gather()
         cdef bint held_changed = False
+        cdef unsigned char before, seen, now
         for k in range(self.n):
-            if self.was_enabled[k] and not self.enabled[k] and not self.fault[k]:
-                self.held_off[k] = True
-            if self.grace_ticks and self.was_fault[k] and not self.fault[k] and self.reset_grace[k] == 0:
-                self.held_off[k] = True
-            if not self.fault[k]:
-                self.reset_grace[k] = 0
-            elif self.reset_grace[k]:
-                self.reset_grace[k] -= 1
-            self.was_fault[k] = self.fault[k]
-            self.was_enabled[k] = self.enabled[k]
-            held_changed |= self.held_off[k] != self.held_off_seen[k]
+            seen = 0 if self.enabled[k] else (1 if self.fault[k] else 2)
+            before = self.state[k]
+            now = self.chart[before * 3 + seen]
+            if now == self.state_resetting and seen == 1:
+                if self.grace[k]:
+                    self.grace[k] -= 1
+                if not self.grace[k]:
+                    now = self.state_fault
+            self.state[k] = now
+            held_changed |= (before >= self.state_held) != (now >= self.state_held)
             for row in range(3):
                 state[row, self.index[k]] = self.raw[row, k] * self.state_factor[row, k] + self.state_offset[row, k]
         return faulted, held_changed
 
-    def controlwords(self, const unsigned char[::1] reset=None, bint reset_all=False):
+    def controlwords(self, const unsigned char[::1] reset=None):
         """Per drive, the controlword one step toward enabled. Drives in ``reset`` that are in fault get a fault
-        reset, as does every faulted drive when ``reset_all``; a fault reset is a rising edge, so it
-        alternates with disable voltage. A drive held disabled gets disable voltage."""
+        reset; a fault reset is a rising edge, so it alternates with disable voltage, and a faulted drive it goes to
+        is RESETTING for ``grace_ticks`` frames. A held drive gets disable voltage."""
         cdef Py_ssize_t k
         cdef unsigned short cw
         for k in range(self.n):
             cw = self.cw_table[self.rec[k].statusword & 0x7F]
-            if self.fault[k] and (reset_all or (reset is not None and reset[k])):
+            if self.fault[k] and reset is not None and reset[k]:
                 cw = self.fault_reset
-            if self.held_off[k]:
+            if self.state[k] >= self.state_held:
                 cw = self.disable_voltage
             if cw == self.fault_reset and self.cw_prev[k] == self.fault_reset:
                 cw = self.disable_voltage
-            if cw == self.fault_reset:
-                self.reset_grace[k] = self.grace_ticks
+            if cw == self.fault_reset:  # leaving the fault within grace_ticks frames is this reset's doing
+                self.grace[k] = self.grace_ticks
+                if self.state[k] < self.state_held:
+                    self.state[k] = self.state_resetting
             self.cw_prev[k] = cw
             self.outputs[self.ring[k]].controlword = cw
 
-    def write(self, const double[:, ::1] command not None, bint reset_all=False):
+    def write(self, const double[:, ::1] command not None, const unsigned char[::1] reset=None):
         """The MIT command (rows position, velocity, effort, stiffness, damping; robot order) into the
         process image, then the controlwords.
 
@@ -215,4 +218,4 @@ cdef class EcTick:
             self.outputs[slave].torque_offset = <short>_round_clamp(torque, self.torque_low, self.torque_high)
         for slave in range(self.outputs.shape[0]):
             self.outputs[slave].mode_of_operation = self.mode
-        self.controlwords(None, reset_all)
+        self.controlwords(reset)

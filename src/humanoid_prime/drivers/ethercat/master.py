@@ -17,14 +17,15 @@ master -> drive) and ``inputs`` (TxPDO, drive -> master), laid out exactly as ``
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import struct
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,10 +33,10 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoRefused
+from humanoid_prime.drivers.ethercat.errors import SdoError as SdoError  # re-exported for older imports
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
-
-if TYPE_CHECKING:
-    from humanoid_prime.drivers.ethercat.sdo import SdoClient
 
 RX_DTYPE = np.dtype([(e.name, e.dtype) for e in RXPDO])  # 14 bytes per slave, packed
 TX_DTYPE = np.dtype([(e.name, e.dtype) for e in TXPDO])  # 16 bytes per slave, packed
@@ -47,29 +48,16 @@ AL_SAFE_OP = 0x04
 AL_OP = 0x08
 AL_ERROR = AL_ERROR_FLAG
 OP_REQUEST_REPEAT_S = 0.5  # a slave left in SAFE-OP after OP was asked for is asked again this often
+# SCHED_FIFO of the threads that feed the drives' output watchdogs before and beside the control loop (the bring-up
+# loop, the drives' enabling, the keeper), where permitted: below the virtual Prime's 70 and the control loop's 80.
+# At normal priority a busy host kept them off the CPU past the drives' 100 ms watchdog.
+FEEDING_PRIORITY = 60
+# SCHED_FIFO of the ring's helper threads (supervision, SDO workers): below the kernel's threaded interrupts (50).
+# Preempted by a host's other work while holding Python's interpreter lock, a helper kept the control loop and the
+# keeper waiting for that lock past the drives' watchdog; as real-time threads they block, never spin.
+HELPER_PRIORITY = 40
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
-
-
-class RingError(PrimeError):
-    """The ring cannot be opened, does not match the hardware file, or does not reach OP."""
-
-
-class SdoError(PrimeError):
-    """An SDO transfer failed; names the slave, the object and the reason."""
-
-    def __init__(self, position: int, index: int, sub_index: int, problem: str,
-                 abort_code: int | None = None) -> None:
-        self.position = position
-        self.index = index
-        self.sub_index = sub_index
-        self.abort_code = abort_code
-        self.problem = problem
-        super().__init__(f"SDO 0x{index:04X}:{sub_index:02X} on ring {position}: {problem}")
-
-
-class SdoRefused(SdoError):
-    """An SDO was asked for before every slave is in OP with process data flowing."""
 
 
 @dataclass(frozen=True)
@@ -205,6 +193,31 @@ def sync0_period_ns(update_rate: float, *, sync0_period_s: float | None = None) 
     return period_ns
 
 
+def raise_thread(priority: int) -> tuple[int, os.sched_param] | None:
+    """The calling thread at ``priority`` (SCHED_FIFO) where permitted and it runs lower; its scheduling before
+    (None: left as it was)."""
+    try:
+        previous = os.sched_getscheduler(0), os.sched_getparam(0)
+        if previous[0] in (os.SCHED_FIFO, os.SCHED_RR) and previous[1].sched_priority >= priority:
+            return None
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return previous
+    except (OSError, AttributeError):
+        return None
+
+
+@contextlib.contextmanager
+def feeding_priority(priority: int = FEEDING_PRIORITY) -> Iterator[None]:
+    """The calling thread at ``priority`` (``raise_thread``) while it feeds the drives, its scheduling back after."""
+    previous = raise_thread(priority)
+    try:
+        yield
+    finally:
+        if previous is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, *previous)
+
+
 def read_live_error(sdo: SdoClient, position: int) -> int:
     """The drive's current error code (0x603F), through any SDO client."""
     return struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
@@ -224,12 +237,13 @@ class EthercatMaster(ABC):
     """One EtherCAT ring of eRob drives in CSP, addressed by ring position (0 = first after the master)."""
 
     def __init__(self, interface: str, *, update_rate: float, bringup_rate: float = 1000.0,
-                 sync0_period_s: float | None = None, unsafe_sync0_period_s: float | None = None,
-                 bringup_timeout_s: float = 30.0) -> None:
+                 sync0_period_s: float | None = None, bringup_timeout_s: float = 30.0,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], object] = time.sleep) -> None:
         self.interface = interface
         self.cycle_ns = sync0_period_ns(update_rate, sync0_period_s=sync0_period_s)
-        # Test-only escape hatch: a SYNC0 that differs from the loop period, to reproduce fault 4616.
-        self.sync0_ns = self.cycle_ns if unsafe_sync0_period_s is None else round(unsafe_sync0_period_s * 1e9)
+        self.sync0_ns = self.cycle_ns  # SYNC0 armed on the slaves: the loop period, always
+        self.clock = clock  # paces the bring-up and times its waits (the keeper runs on the wall clock)
+        self.sleep = sleep
         if not (math.isfinite(bringup_rate) and bringup_rate > 0):
             raise PrimeError(f"bringup_rate must be a positive number of Hz, got {bringup_rate!r}")
         self.bringup_rate = float(bringup_rate)
@@ -244,6 +258,7 @@ class EthercatMaster(ABC):
         # Ring health kept by the implementation's supervision, in ring order.
         self.slave_ok = np.zeros(0, dtype=bool)
         self.left_op = np.zeros(0, dtype=np.int64)  # times the supervision found each slave out of OP since start
+        self.left_op_code = np.zeros(0, dtype=np.uint16)  # the AL status code each slave gave when it last left OP
         self.al_state = np.zeros(0, dtype=np.uint16)
         self.al_status_code = np.zeros(0, dtype=np.uint16)
         self.health_version = 0
@@ -253,6 +268,7 @@ class EthercatMaster(ABC):
         self.rated_torque_nm = np.zeros(0)
         self.rated_torque_problems: dict[int, str] = {}
         self.kept_cycles = 0  # frames the keeper sent while the owner of the cycle was quiet
+        self.cycles_answered = 0  # cycle frames that came back answered (each carried the ring's time)
         self._io = threading.Lock()  # one send or receive at a time: the owner's and the keeper's
         self._in_flight = False
         self._last_send = 0.0
@@ -268,6 +284,7 @@ class EthercatMaster(ABC):
             n = len(self.slaves)
             self.slave_ok = np.zeros(n, dtype=bool)
             self.left_op = np.zeros(n, dtype=np.int64)
+            self.left_op_code = np.zeros(n, dtype=np.uint16)
             self.al_state = np.array([s.al_state for s in self.slaves], dtype=np.uint16)
             self.al_status_code = np.array([s.al_status_code for s in self.slaves], dtype=np.uint16)
             self.rated_torque_nm = np.full(n, math.nan)
@@ -297,17 +314,31 @@ class EthercatMaster(ABC):
             raise RingError(f"EtherCAT ring on {self.interface} is already in OP; close the master to start again")
         self.open()
         check_ring(self.slaves, expected, self.interface)
-        t0 = time.monotonic()
+        t0 = self.clock()
         self._configure()
         n = len(self.slaves)
         if self.outputs.shape != (n,) or self.inputs.shape != (n,):
             raise RingError(f"{type(self).__name__} configured {self.outputs.shape} outputs for {n} slaves")
         self.outputs[:] = 0
         self.outputs["mode_of_operation"] = MODE_CSP
+        with feeding_priority():
+            cycles = self._bring_to_op(on_cycle, t0)
+        self.operational = True
+        self.slave_ok[:] = True
+        self.health_version += 1
+        self._started()
+        self._stop_keeping.clear()
+        self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
+        self._keeper.start()
+        return BringupReport(self.clock() - t0, cycles, self.bringup_rate, self.sync0_ns)
+
+    def _bring_to_op(self, on_cycle: Callable[[EthercatMaster], None] | None, t0: float) -> int:
+        """The fast loop of ``start`` until every slave is in OP; the cycles it took."""
+        n = len(self.slaves)
         deadline = t0 + self.bringup_timeout_s
         check_every = max(1, round(self.bringup_rate * 0.01))  # read AL states about every 10 ms
         cycles = 0
-        rate = Rate(self.bringup_rate)
+        rate = Rate(self.bringup_rate, clock=self.clock, sleep=self.sleep)
         op_asked = np.full(n, -math.inf)  # when each slave was last asked for OP (-inf: since its last ack)
         while True:
             rate.wait()
@@ -319,23 +350,16 @@ class EthercatMaster(ABC):
             cycles += 1
             if cycles == 1:  # one valid frame first, so the outputs are defined when OP is asked for
                 self._request_op()
-                op_asked[:] = time.monotonic()
+                op_asked[:] = self.clock()
             if wkc == self.expected_wkc or cycles % check_every == 0:
                 states = self._read_states()
                 self._store_states(states)
                 if all(state == AL_OP for state, _ in states):
                     break
-                self._advance(self._to_push(states, op_asked, time.monotonic()))
-            if time.monotonic() > deadline:
+                self._advance(self._to_push(states, op_asked, self.clock()))
+            if self.clock() > deadline:
                 raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
-        self.operational = True
-        self.slave_ok[:] = True
-        self.health_version += 1
-        self._started()
-        self._stop_keeping.clear()
-        self._keeper = threading.Thread(target=self._keep, name=f"ethercat-keep-{self.interface}", daemon=True)
-        self._keeper.start()
-        return BringupReport(time.monotonic() - t0, cycles, self.bringup_rate, self.sync0_ns)
+        return cycles
 
     def close(self) -> None:
         """Stop every thread, leave the slaves in INIT and release the interface."""
@@ -384,6 +408,8 @@ class EthercatMaster(ABC):
         wkc = self._receive()
         self._in_flight = False
         self.wkc = wkc
+        if wkc > 0:
+            self.cycles_answered += 1
         if wkc == self.expected_wkc:
             self.flowing = self.operational
         elif self.operational:
@@ -394,6 +420,10 @@ class EthercatMaster(ABC):
         """Once in OP, every cycle period: when the owner of the cycle has been quiet for two periods, send the
         current outputs, and go on every period until it ticks again, so no slave's output watchdog runs out
         and SYNC0 keeps its frames while controllers load, a tick stalls, or the component is inactive."""
+        with feeding_priority():
+            self._keep_feeding()
+
+    def _keep_feeding(self) -> None:
         rate = Rate(1e9 / self.cycle_ns, sleep=self._stop_keeping.wait)
         quiet_s = 2e-9 * self.cycle_ns
         while True:

@@ -23,6 +23,7 @@ the nominal figure (the C++ stack cannot read it), and are rescaled here once th
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable
@@ -45,11 +46,13 @@ from humanoid_prime.drivers.erob.cia402 import (
     FAULT_RESET,
     OPERATION_ENABLED_PATTERN,
     describe_al_state,
+    describe_al_status_code,
     describe_error,
     drive_state,
     enable_step,
 )
 from humanoid_prime.drivers.erob.constants import MODE_CSP, RATED_TORQUE_NM
+from humanoid_prime.drivers.erob.drive_state import Drive, Event, after, apply_event, frame_table
 from humanoid_prime.drivers.erob.objects import (
     POSITION_ACTUAL,
     TARGET_POSITION,
@@ -68,6 +71,7 @@ from humanoid_prime.drivers.ethercat.master import (
     EthercatMaster,
     ExpectedSlave,
     check_ring,
+    feeding_priority,
 )
 from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, parse_slave_config
 from humanoid_prime.errors import ConfigError, PrimeError
@@ -123,41 +127,37 @@ class EthercatSystem(HardwareComponent):
         self.slave_configs: dict[str, SlaveConfig] = {}
         self.expected: tuple[ExpectedSlave, ...] = ()
         self.bringup: BringupReport | None = None
-        n = len(self.joints)
-        # factor/offset per MIT interface (rows position, velocity, effort), joint order
-        self.state_factor = np.ones((3, n))
-        self.state_offset = np.zeros((3, n))
-        self.command_factor = np.ones((3, n))
-        self.command_offset = np.zeros((3, n))
+        self.on_restore_needed: Callable[[], None] | None = None
+        self._allocate(len(self.joints))
+
+    def _allocate(self, n: int) -> None:
+        """The per-joint arrays, joint order, preallocated for the tick (the compiled kernel is bound to them)."""
+        # factor/offset per MIT interface (rows position, velocity, effort)
+        self.state_factor, self.state_offset = np.ones((3, n)), np.zeros((3, n))
+        self.command_factor, self.command_offset = np.ones((3, n)), np.zeros((3, n))
         # the rated torque each drive reported (0x6076), NaN where it could not be read and the fold's
         # nominal figure scales the efforts instead
         self.rated_torque_nm = np.full(n, math.nan)
         self._fold_effort = (np.ones(n), np.ones(n))  # the fold's effort factors (state, command), nominal torque
         self._cw_table = _controlword_table(False)  # a fault latches (see _enable for the one exception)
         self._reset_requested = False
-        # raw process values in joint order
-        self._rec = np.zeros(n, TX_DTYPE)  # the inputs of this component's slaves, joint order
+        self._rec = np.zeros(n, TX_DTYPE)  # the inputs of this component's slaves
         self._rec_sw, self._rec_err = self._rec["statusword"], self._rec["error_code"]
         self._raw = np.zeros((3, n))  # position, velocity, effort as raw counts / per mille
         self._cw_prev = np.zeros(n, np.uint16)  # the controlword last sent
-        self._enabled = np.zeros(n, dtype=bool)
-        self._was_enabled = np.zeros(n, dtype=bool)  # in the last frame read
-        # Drives that left operation enabled mid-run without a fault (their slave lost power or link and came
-        # back in switch-on disabled): held disabled until the operator's reset, because enabling one on its own
-        # would drive the joint, which hung limp meanwhile, straight to the active mode's target.
-        self._held_off = np.zeros(n, dtype=bool)
-        self._held_off_seen = np.zeros(n, dtype=bool)
-        # So is a drive that leaves a fault by itself once running: it lost power, and its fault with it.
-        self._was_fault = np.zeros(n, dtype=bool)
-        self._reset_grace = np.zeros(n, np.uint16)  # frames left in which a fault reset of ours may take effect
-        # A slave that lost power came back with every setting made over SDO gone (the impedance gate, window
-        # and gains): with ``on_restore_needed`` (the impedance manager is there to restore them, and is woken by
-        # it), a drive held disabled is released by a reset only after ``settings_restored`` for its slave.
-        self.on_restore_needed: Callable[[], None] | None = None
-        self._restore_pending = np.zeros(n, dtype=bool)
-        self._left_op_seen = np.zeros(n, dtype=np.int64)  # each slave's departures from OP, when the loop last looked
-        self._held_text_stale = False
+        self._enabled = np.zeros(n, dtype=bool)  # in the last frame read
         self._fault = np.zeros(n, dtype=bool)
+        # Each drive's state (drivers/erob/drive_state.py), moved by every frame and by the operator's reset. A drive
+        # that drops out (its slave lost power or link and came back) is held disabled until the operator's reset:
+        # enabling it on its own would drive the joint, which hung limp meanwhile, straight to the mode's target.
+        # With ``on_restore_needed`` (the impedance manager restores what a power loss clears, and is woken by it)
+        # a held drive is RESTORING until ``settings_restored`` for its slave, and no reset releases it before.
+        self._state = np.full(n, Drive.ENABLING, dtype=np.uint8)
+        self._grace = np.zeros(n, np.uint16)  # frames left in which a fault reset of ours may take effect
+        self._held_seen = np.zeros(n, dtype=bool)  # held, when the flags were last worded
+        self._restored: collections.deque[tuple[int, int]] = collections.deque()  # (joint, left OP count) told
+        self._came_back: list[str] = []  # lost flags of slaves that were back in OP when the loop looked
+        self._left_op_seen = np.zeros(n, dtype=np.int64)  # each slave's departures from OP, when the loop last looked
         self._held = np.zeros(n)  # the last CSP target sent (raw), what a NaN position command keeps
         self._tick: EcTick | None = None  # the compiled read and write, bound to the process image at start
         self._wkc_flagged = False
@@ -272,13 +272,12 @@ class EthercatSystem(HardwareComponent):
         self._out_vel = outputs["velocity_offset"]
         self._out_tq = outputs["torque_offset"]
         self._out_mode = outputs["mode_of_operation"]
-        flags = (self._enabled, self._fault, self._was_enabled, self._held_off, self._held_off_seen)
         self._tick = EcTick(inputs, outputs, self._rec, self.ring, self.indices, self._raw, self.state_factor,
                             self.state_offset, self.command_factor, self.command_offset, self._held,
-                            *(flag.view(np.uint8) for flag in flags), self._cw_table, self._cw_prev,
+                            self._enabled.view(np.uint8), self._fault.view(np.uint8), self._state, frame_table(),
+                            (Drive.FAULT, Drive.RESETTING, Drive.HELD), self._cw_table, self._cw_prev,
                             OPERATION_ENABLED_PATTERN, FAULT_PATTERN, FAULT_RESET, DISABLE_VOLTAGE, MODE_CSP,
-                            _TARGET_LIMITS, _VELOCITY_OFFSET_LIMITS, _TORQUE_OFFSET_LIMITS,
-                            self._was_fault.view(np.uint8), self._reset_grace)
+                            _TARGET_LIMITS, _VELOCITY_OFFSET_LIMITS, _TORQUE_OFFSET_LIMITS, self._grace)
         self._tick.grace_ticks = max(3, round(FAULT_RESET_GRACE_S * self.update_rate))
 
     def _enable(self) -> None:
@@ -287,6 +286,10 @@ class EthercatSystem(HardwareComponent):
         A fault latches (it waits for the operator's reset), with one exception: the EtherCAT communication
         fault (0xA000) a drive may raise while DC locks during bring-up is reset here, so it clears by itself.
         Enabling ends when every drive is enabled or latched in another fault (flagged by ``read``)."""
+        with feeding_priority():
+            self._enable_drives()
+
+    def _enable_drives(self) -> None:
         master = self._master()
         deadline = time.monotonic() + self.enable_timeout_s
         rate = Rate(self.bringup_rate)
@@ -300,7 +303,6 @@ class EthercatSystem(HardwareComponent):
             np.logical_not(transient, out=latched)
             np.logical_and(latched, self._fault, out=latched)
             if (self._enabled | latched).all():
-                np.copyto(self._was_enabled, self._enabled)
                 self._held[:] = self._out_target[self.ring]  # a NaN command holds the position enabled at
                 return
             np.copyto(self._out_target, self._in_pos)
@@ -327,45 +329,58 @@ class EthercatSystem(HardwareComponent):
         """Raw inputs into joint order, and which drives are enabled or faulted."""
         self._tick.gather()
 
-    def _take_reset(self) -> bool:
-        """Whether the operator asked for a reset since the last controlwords. A drive held disabled after
-        dropping out is released by it only once its slave is back in OP and its settings are restored: until
-        then it cannot be reset."""
+    def _take_reset(self) -> np.ndarray | None:
+        """The drives the operator's reset, if one was asked for since the last controlwords, resets (those in
+        fault; None: no reset). It also releases the held drives whose slave is back in OP (a RESTORING one is
+        not released: its settings are not back yet)."""
         if not self._reset_requested:
-            return False
+            return None
         self._reset_requested = False
-        self._held_off &= ~(self.master.slave_ok[self.ring] & ~self._restore_pending)
-        return True
+        self._apply_restored()
+        if apply_event(self._state, Event.RESET, where=self.master.slave_ok[self.ring]).any():
+            self._update_held_flags()
+        return self._fault.view(np.uint8)
 
     def awaiting_restore(self) -> list[tuple[int, int]]:
         """Held drives whose slave is back in OP and whose settings wait to be restored: (ring position, how often
         the slave has left OP so far, to hand back to ``settings_restored``)."""
         master = self.master
-        waiting = np.flatnonzero(self._restore_pending & master.slave_ok[self.ring])
+        waiting = np.flatnonzero((self._state == Drive.RESTORING) & master.slave_ok[self.ring])
         return [(int(self.ring[k]), int(master.left_op[self.ring[k]])) for k in waiting]
 
     def restore_pending(self) -> list[int]:
         """Ring positions of held drives whose settings are not restored yet (their slave in OP or not)."""
-        return [int(self.ring[k]) for k in np.flatnonzero(self._restore_pending)]
+        return [int(self.ring[k]) for k in np.flatnonzero(self._state == Drive.RESTORING)]
 
     def settings_restored(self, position: int, left_op: int) -> None:
-        """The settings of the drive at ring ``position`` are back: the operator's reset may release it now. Not
-        if its slave left OP again since ``awaiting_restore`` said ``left_op``: it may have lost them again, and
-        waits, back in OP, for another restore."""
-        master = self.master
-        if master.left_op[position] != left_op or not master.slave_ok[position]:
-            return
+        """The settings of the drive at ring ``position`` are back (called from the restoring thread): the
+        operator's reset may release it once the loop's thread has taken this in. Not if its slave left OP again
+        since ``awaiting_restore`` said ``left_op``: it may have lost them again, and waits for another restore."""
         k = int(np.flatnonzero(self.ring == position)[0])
-        self._restore_pending[k] = False
-        if master.left_op[position] != left_op:  # it left OP meanwhile, after the loop marked it pending again
-            self._restore_pending[k] = True
-        self._held_text_stale = True  # the loop's thread rewords the flag: it alone sets and clears it
+        self._restored.append((k, left_op))
+
+    def _apply_restored(self) -> bool:
+        """In the loop's thread (the only one that moves the drives' states): the restores reported meanwhile."""
+        applied = False
+        master = self.master
+        while self._restored:
+            k, left_op = self._restored.popleft()
+            position = int(self.ring[k])
+            if master.left_op[position] == left_op and master.slave_ok[position]:
+                self._state[k] = after(Drive(self._state[k]), Event.RESTORED)
+                applied = True
+        return applied
 
     def _step_controlwords(self, reset: np.ndarray | None = None) -> None:
         """Per drive, the controlword one step toward enabled; drives in ``reset`` that are in fault get a
         fault reset (as does every faulted drive once after ``reset_faults``). A fault reset is a rising edge,
         so it alternates."""
-        self._tick.controlwords(None if reset is None else reset.view(np.uint8), self._take_reset())
+        operator = self._take_reset()
+        if reset is not None and operator is not None:
+            reset = reset | operator.view(bool)
+        elif operator is not None:
+            reset = operator.view(bool)
+        self._tick.controlwords(None if reset is None else reset.view(np.uint8))
 
     def read(self, now: float, state: StateArrays) -> None:
         master = self.master
@@ -383,11 +398,15 @@ class EthercatSystem(HardwareComponent):
         if (self._wkc_bad_cycles >= self.wkc_tolerance_cycles) != self._wkc_flagged or (
                 self._wkc_flagged and (wkc <= 0) != self._wkc_silent):
             self._update_wkc_flag(wkc)
+        while self._came_back:  # said for one tick (_update_health_flags says it again if it left OP again)
+            self.clear_flag(self._came_back.pop())
         if master.health_version != self._health_seen:
             self._update_health_flags()
         if self._fault_seen or faulted:
             self._update_fault_flags()
-        if held_changed or self._held_text_stale:
+        if self._restored and self._apply_restored():
+            held_changed = True
+        if held_changed:
             self._update_held_flags()
 
     def write(self, now: float, command: CommandArrays) -> None:
@@ -423,26 +442,36 @@ class EthercatSystem(HardwareComponent):
         master = self._master()
         self._health_seen = master.health_version
         lost = getattr(master, "lost", None)
+        left = master.left_op[self.ring]
+        again = left != self._left_op_seen
         for k, joint in enumerate(self.joints):
             position = int(self.ring[k])
             key = f"ethercat/ring{position}/lost"
             if master.slave_ok[position]:
-                self.clear_flag(key)
+                if again[k] and key not in self.flags:
+                    # out of OP and back between two looks of the loop (a loop kept off the CPU while the keeper and
+                    # the supervision went on): said for one tick, with why it left, never passed over
+                    code = int(master.left_op_code[position])
+                    why = f" (AL status 0x{code:04X} {describe_al_status_code(code)})" if code else ""
+                    self.set_flag(key, f"{joint} (ring {position}): slave left OP{why} and came back")
+                    self._came_back.append(key)
+                else:
+                    self.clear_flag(key)
                 continue
-            state = int(master.al_state[position])
+            state, code = int(master.al_state[position]), int(master.al_status_code[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
+            if code and not (lost is not None and lost[position]):  # why it left OP, as its ESC says
+                why += f", AL status 0x{code:04X} {describe_al_status_code(code)}"
             problem = master.recovery_problems.get(position)
             if problem:
                 why += f"; {problem}"
             self.set_flag(key, f"{joint} (ring {position}): slave lost ({why}); recovering")
         # A held drive whose slave left OP again may have lost its settings again, restored or not: restore anew
-        left = master.left_op[self.ring]
-        again = self._held_off & (left != self._left_op_seen)
         np.copyto(self._left_op_seen, left)
-        if self.on_restore_needed is not None and again.any():
-            self._restore_pending |= again
-            self._held_text_stale = True
-        if self.on_restore_needed is not None and self._restore_pending.any():  # a held drive's slave may be back
+        if self.on_restore_needed is not None and again.any() and \
+                apply_event(self._state, Event.LEFT_OP, where=again).any():
+            self._update_held_flags()
+        if self.on_restore_needed is not None and (self._state == Drive.RESTORING).any():  # its slave may be back
             self.on_restore_needed()
 
     def _update_fault_flags(self) -> None:
@@ -459,28 +488,25 @@ class EthercatSystem(HardwareComponent):
         self._fault_seen = faulted
 
     def _update_held_flags(self) -> None:
-        if self._held_text_stale:
-            self._held_text_stale = False
-            for k in np.flatnonzero(self._held_off & self._held_off_seen):
-                self.set_flag(f"ethercat/ring{int(self.ring[k])}/disabled", self._held_text(k))
+        """The flags of the held drives, worded again (the loop's thread only). A drive newly held waits for its
+        settings (RESTORING) when somebody restores them, and that somebody is woken."""
+        held = self._state >= Drive.HELD
         wake = self.on_restore_needed
-        for k in np.flatnonzero(self._held_off != self._held_off_seen):
-            key = f"ethercat/ring{int(self.ring[k])}/disabled"
-            if self._held_off[k]:
-                self._restore_pending[k] = wake is not None
-                self.set_flag(key, self._held_text(k))
-            else:
-                self._restore_pending[k] = False
-                self.clear_flag(key)
-        np.copyto(self._held_off_seen, self._held_off)
-        if wake is not None and self._restore_pending.any():
+        if wake is not None:
+            apply_event(self._state, Event.RESTORE_NEEDED, where=held & ~self._held_seen)
+        for k in np.flatnonzero(held):
+            self.set_flag(f"ethercat/ring{int(self.ring[k])}/disabled", self._held_text(k))
+        for k in np.flatnonzero(self._held_seen & ~held):
+            self.clear_flag(f"ethercat/ring{int(self.ring[k])}/disabled")
+        np.copyto(self._held_seen, held)
+        if wake is not None and (self._state == Drive.RESTORING).any():
             wake()
 
     def _held_text(self, k: int) -> str:
         text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left "
                 "operation, or its fault, by itself) and is held disabled, so it cannot snap to the target when it "
                 "comes back")
-        if self._restore_pending[k]:
+        if self._state[k] == Drive.RESTORING:
             return f"{text}; its impedance settings are restored once it is back in OP, then r in the live table, " \
                    "or `prime reset`, enables it"
         return f"{text} (latched: r in the live table, or `prime reset`, once it is in OP)"

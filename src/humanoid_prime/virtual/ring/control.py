@@ -99,6 +99,20 @@ class RingControl:
         """Hold the replies to the next ``count`` frames back by ``seconds``."""
         self.call("delay", seconds=seconds, count=count)
 
+    def late_replies(self, count: int, seconds: float, position: int | None = None) -> None:
+        """The next ``count`` mailbox replies (of ring ``position``, or of any slave) come ``seconds`` later than
+        the mailbox latency says: past a master's timeout, a reply that arrives after it gave up."""
+        self.call("late_replies", count=count, seconds=seconds, position=position)
+
+    def hold_reply_frames(self, count: int, seconds: float, position: int | None = None) -> None:
+        """The next ``count`` frames that take a mailbox reply out of a slave (``position``, or any) come back
+        ``seconds`` late: the slave has let the reply go, and the master sees it only after its frame timeout."""
+        self.call("hold_reply_frames", count=count, seconds=seconds, position=position)
+
+    def stall(self, seconds: float) -> None:
+        """Answer no frame for ``seconds``, then every frame that waited (a host that did not schedule us)."""
+        self.call("stall", seconds=seconds)
+
     def garbage_frames(self, count: int) -> None:
         """Send a junk EtherCAT frame (random command and payload, index 0x80-0xFF) ahead of each of the next
         ``count`` replies."""
@@ -125,8 +139,9 @@ class RingControl:
         self.call("clear_latched", position=position)
 
     def set_options(self, **options: Any) -> None:
-        """Change tunables at run time: dc_lock_cycles, sync_tolerance, sync_fault_cycles,
-        mailbox_latency_s."""
+        """Change tunables at run time: dc_lock_cycles, sync_tolerance, sync_fault_cycles, state_change_s, the
+        mailbox latency model (mailbox_latency_s, mailbox_jitter_s, mailbox_burst_*) and random stalls
+        (stall_interval_s, stall_s)."""
         self.call("set_options", **options)
 
     def stop(self) -> None:

@@ -15,7 +15,7 @@ The object dictionary follows ZeroErr's EDS V1.5: the loop gains 0x2381:01/:02 a
 UNSIGNED16 (``gain_bytes`` 4 presents the u32 variant one public host reads), sizes are enforced as a CoE
 stack that checks them does (a write of another length aborts 0x06070010), 0x1003 keeps 4 errors, 0x6502
 reads 0x38D, 0x6076 (rated torque, u32 mN*m) is read-only and PDO-mappable, 0x60B2 takes +-3000 per mille,
-0x6065 is INTEGER32. At power up 0x1600 maps 607A/60FE:01/6040 and 0x1A00 6064/60FD/6041 (ZeroErr's
+0x6065 is INTEGER32. At power up 0x1600 maps 607A/60FE/6040 and 0x1A00 6064/60FD/6041 (ZeroErr's
 description); a master maps its own layout in PRE-OP. The gate 0x2383 is not in the EDS; it is UDINT here,
 as ZeroErr's parameter table lists it.
 
@@ -125,7 +125,6 @@ OBJECT_NAMES = (
     (obj.SM_COMM_TYPE, "Sync manager communication type", OBJECT_ARRAY),
     (obj.SYNC_OUTPUT, "SM output parameter", OBJECT_RECORD),
     (obj.SYNC_INPUT, "SM input parameter", OBJECT_RECORD),
-    (obj.DIGITAL_OUTPUTS[0], "Digital outputs", OBJECT_ARRAY),
     (obj.VEL_LOOP_GAIN[0], "Velocity Loop Gains", OBJECT_ARRAY),
     (obj.POS_LOOP_GAIN[0], "Position Loop Gains", OBJECT_ARRAY),
     (obj.RXPDO_MAP, "RxPDO 1 mapping", OBJECT_RECORD),
@@ -218,9 +217,7 @@ class ErobDrive:
         self.torque_offset = add(Entry(obj.TORQUE_OFFSET, 0, "torque offset", "h", 0, pdo=PDO_RX,
                                        minimum=-limit, maximum=limit))
         add(Entry(obj.DIGITAL_INPUTS, 0, "digital inputs", "I", 0, READ_ONLY, pdo=PDO_TX))
-        add(Entry(obj.DIGITAL_OUTPUTS[0], 0, "digital outputs entries", "B", 2, READ_ONLY))
-        add(Entry(*obj.DIGITAL_OUTPUTS, "physical outputs", "I", 0, pdo=PDO_RX))
-        add(Entry(obj.DIGITAL_OUTPUTS[0], 2, "bit mask", "I", 0))
+        add(Entry(*obj.DIGITAL_OUTPUTS, "digital outputs", "I", 0, pdo=PDO_RX))
         add(Entry(obj.SUPPORTED_DRIVE_MODES, 0, "supported drive modes", "I", SUPPORTED_MODES, READ_ONLY))
 
         gain = self.gain_format  # names as ZeroErr's EDS V1.5 gives them

@@ -112,6 +112,7 @@ class EscApplication(Protocol):
     def al_control(self, value: int) -> None: ...
     def mailbox_received(self, message: bytes) -> bool: ...
     def mailbox_read(self) -> None: ...
+    def mailbox_changed(self) -> None: ...
     def outputs_written(self) -> None: ...
     def sync_activation_changed(self) -> None: ...
 
@@ -135,6 +136,10 @@ class Esc:
         self.sync0_missed = False
         self.output_watchdog_ns = 0  # SM watchdog period; 0 = disabled
         self.dc_offset_ns = 0
+        # quirks of some ESCs: bit 31 of 0x092C read the other way round (ESC documents disagree on it), and a
+        # clock whose difference stays this far off whatever offset it is given (it never comes into step)
+        self.difference_reversed = False
+        self.difference_error_ns = 0
         self.sync_activation = 0
         self.sync0_start_ns = 0
         self.sync0_cycle_ns = 0
@@ -333,8 +338,10 @@ class Esc:
         diff = (received - (own & mask)) & mask
         if diff >= 1 << (8 * width - 1):
             diff -= 1 << (8 * width)
+        diff = self.difference_error_ns or diff
         magnitude = min(abs(diff), 0x7FFFFFFF)
-        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (DC_DIFFERENCE_LOCAL_SMALLER if diff > 0 else 0))
+        smaller = (diff > 0) != self.difference_reversed
+        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (DC_DIFFERENCE_LOCAL_SMALLER if smaller else 0))
         self.dc_difference_ns = diff
         self.dc_sample_ns = self.frame_time_ns
         self.dc_samples += 1
@@ -477,6 +484,8 @@ class Esc:
                         self._forget_reply()  # a fresh configuration, not a repeat request
                     elif read_mailbox:
                         self._repeat_request(n)
+            if _overlaps(touched, REG_SM, 16):  # SM0/SM1, the mailboxes the SII describes
+                self.app.mailbox_changed()
         if _overlaps(touched, REG_DC_OFFSET, 8) or _overlaps(touched, REG_DC_ACTIVATION, 0x27):
             self._update_dc()
         if _overlaps(touched, REG_DC_RECEIVE_TIME, 4):

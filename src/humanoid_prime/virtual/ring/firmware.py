@@ -26,6 +26,11 @@ yet locked (the activation phase) faults the drive with 0xA000 and restarts the 
 
 Watchdog: in OP, no output write for the ESC's SM watchdog time (100 ms by default) -> SAFE-OP with AL
 code 0x001B. Leaving OP while the drive is enabled faults it with 0xA000.
+
+Mailbox SyncManagers: a master that switches SM0 or SM1 off, or moves them, in PRE-OP or above drops the slave
+to INIT with AL code 0x0016 (invalid mailbox configuration), as Beckhoff's slave stack does on the SM change
+event; its reply mailbox is gone until the master configures it again. How long replies take is the ring's
+``MailboxLatency``.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, PRODUCT_CODE, VEN
 from humanoid_prime.virtual.ring import sii
 from humanoid_prime.virtual.ring.drive import ERROR_COMMUNICATION, REVISION, ErobDrive
 from humanoid_prime.virtual.ring.esc import Esc
+from humanoid_prime.virtual.ring.latency import MailboxLatency
 from humanoid_prime.virtual.ring.mailbox import CoeServer
 from humanoid_prime.virtual.ring.od import (
     ABORT_DEVICE_STATE,
@@ -138,10 +144,11 @@ class ErobFirmware:
     """Glue between one ESC and one drive model. ``tick(now)`` runs the time-driven parts."""
 
     def __init__(self, position: int, options: RingOptions, *, clock_origin_ns: int,
-                 log: SdoLogSink | None = None) -> None:
+                 log: SdoLogSink | None = None, latency: MailboxLatency | None = None) -> None:
         self.position = position
         self.options = options
         self.log = log
+        self.latency = latency if latency is not None else MailboxLatency(options)
         serial = 0x00E20000 + position
         self.drive = self._new_drive(serial)
         self.esc = Esc(sii.build_image(sii_content(options, serial)), self, clock_origin_ns=clock_origin_ns)
@@ -163,6 +170,7 @@ class ErobFirmware:
         self._outputs_at = 0
         self._inputs_at = 0
         self.mailbox_faults = 0
+        self.replies_taken = 0  # replies the master read out of the read mailbox (a repeated one counts again)
         self._replies: deque[tuple[int, bytes]] = deque()
         self._guard_pdo_objects()
         self._enter(AlState.INIT)
@@ -196,13 +204,19 @@ class ErobFirmware:
             self.mailbox_faults += 1
             self.locked = False
             self.lock_count = 0
-        due = now + round(self.options.mailbox_latency_s * 1e9)
-        self._replies.extend((due, reply) for reply in self.coe.handle(message))  # each posted once SM1 is free
+        self._replies.extend((now + self.latency.delay_ns(self.position), reply)  # each posted once SM1 is free
+                             for reply in self.coe.handle(message))
         self._post_reply(now)
         return True
 
     def mailbox_read(self) -> None:
+        self.replies_taken += 1
         self._post_reply(self.esc.frame_time_ns)
+
+    def mailbox_changed(self) -> None:
+        """The master wrote SM0 or SM1: above INIT, a mailbox switched off or moved drops the slave to INIT."""
+        if not self.silent and self.state != AlState.INIT and not self._mailbox_config_ok():
+            self._fail(AL_INVALID_MAILBOX_CONFIG, AlState.INIT)
 
     def outputs_written(self) -> None:
         self.outputs_pending = True

@@ -31,6 +31,18 @@ class RingOptions:
     sync_fault_cycles: int = _option(5, "consecutive too-long frame intervals, or frames off the ring's time, that "
                                         "fault a drive in OP")
     mailbox_latency_s: float = _option(0.0005, "time from an SDO request to its reply in the read mailbox")
+    mailbox_jitter_s: float = _option(0.0, "each reply waits up to this much longer still, uniformly at random (a "
+                                           "drive whose firmware is busy)")
+    mailbox_burst_s: float = _option(0.0, "how much later each reply of a burst comes (a drive, or a host, stalled "
+                                          "for a while)")
+    mailbox_burst_chance: float = _option(0.0, "chance that a reply starts a burst of mailbox_burst_replies slow "
+                                               "replies")
+    mailbox_burst_replies: int = _option(5, "replies in a burst")
+    stall_interval_s: float = _option(0.0, "mean time between stalls of the whole emulator, drawn at random (0: "
+                                           "none): it answers no frame for stall_s, then every frame that waited, "
+                                           "as a process a busy host did not schedule")
+    stall_s: float = _option(0.02, "how long each of those stalls lasts")
+    seed: int = _option(0, "seed of the random draws (jitter, bursts, stalls)")
     mailbox_size: int = _option(128, "bytes of each mailbox (SM0/SM1)")
     state_change_s: float = _option(0.0, "time the firmware takes to carry out a request for PRE-OP or SAFE-OP from a "
                                          "lower state (its AL status shows the old state meanwhile)")
@@ -57,6 +69,15 @@ class RingOptions:
             raise ValueError(f"sync_fault_cycles must be >= 1, got {self.sync_fault_cycles}")
         if not 0 <= self.mailbox_latency_s < 1:
             raise ValueError(f"mailbox_latency_s must be in [0, 1), got {self.mailbox_latency_s}")
+        for name in ("mailbox_jitter_s", "mailbox_burst_s", "stall_s"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+        if not 0 <= self.mailbox_burst_chance <= 1:
+            raise ValueError(f"mailbox_burst_chance must be in [0, 1], got {self.mailbox_burst_chance}")
+        if not 1 <= self.mailbox_burst_replies <= 1000:
+            raise ValueError(f"mailbox_burst_replies must be 1..1000, got {self.mailbox_burst_replies}")
+        if not (self.stall_interval_s == 0 or 0.01 <= self.stall_interval_s <= 3600):
+            raise ValueError(f"stall_interval_s must be 0 (no stalls) or 0.01..3600, got {self.stall_interval_s}")
         if not 0 <= self.state_change_s <= 10:
             raise ValueError(f"state_change_s must be in [0, 10], got {self.state_change_s}")
         if not 32 <= self.mailbox_size <= 1024:

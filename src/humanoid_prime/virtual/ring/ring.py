@@ -29,6 +29,7 @@ from humanoid_prime.virtual.ring.frames import (
     FrameError,
     iter_datagrams,
 )
+from humanoid_prime.virtual.ring.latency import MailboxLatency
 from humanoid_prime.virtual.ring.options import RingOptions
 
 _U16 = struct.Struct("<H")
@@ -53,7 +54,9 @@ class Ring:
         self.clock = clock
         now = clock()
         self.sdo_log: list[tuple[float, int, int, int, int, bool]] = []
-        self.slaves = [ErobFirmware(i, options, clock_origin_ns=now - 1_000_003 * (i + 1), log=self._log)
+        self.latency = MailboxLatency(options)
+        self.slaves = [ErobFirmware(i, options, clock_origin_ns=now - 1_000_003 * (i + 1), log=self._log,
+                                    latency=self.latency)
                        for i in range(options.slaves)]
         self.plant = (plant if plant is not None
                       else make_ring_plant(options.plant, options.slaves, options.physics_dt_s))
@@ -198,8 +201,8 @@ class Ring:
     def advance(self, now_ns: int, max_steps: int | None = None) -> bool:
         """Integrate drives and plant up to ``now_ns`` (at most ``max_steps`` physics steps of it), run the
         slaves' timed checks and refresh their inputs; True when the physics has caught up with ``now_ns``.
-        Frames that arrive meanwhile are answered between the drives' step and the plant's, and after the plant's
-        (``serve_waiting``)."""
+        Frames that arrive meanwhile are answered between the drives' step and the plant's, after the plant's, and
+        before the timed checks (``serve_waiting``)."""
         self.finish_frame()
         dt_ns = self._dt_ns
         if now_ns - self._sim_ns > _MAX_CATCH_UP_NS:
@@ -231,6 +234,9 @@ class Ring:
             if serve is not None:
                 serve()
                 self.finish_frame()
+        if serve is not None:  # frames that came while this process was not running have reached the ESCs by now:
+            serve()  # they count before the timed checks (an output watchdog must not run out on a frame in the queue)
+            self.finish_frame()
         q = plant.q.tolist()
         qd = plant.qd.tolist()
         checked_ns = max(now_ns, self._frame_ns)  # never before a frame these slaves have already answered

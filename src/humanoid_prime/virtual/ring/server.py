@@ -6,6 +6,11 @@ SOEM waits 2 ms for a frame before it gives up on it (EC_TIMEOUTRET), so the loo
 the garbage collector is frozen after start-up and disabled while serving (generation-0 collections run
 only when the ring has been idle for a while), the reply is sent before the plant is advanced, and a plant
 that fell behind catches up one physics step between two looks at the sockets.
+
+Slowness on purpose, as a busy host or a slow drive shows it to a master: frames held back (``delay``), a reply
+frame that comes back after the master gave up on it (``hold_reply_frames``: the frames that take a mailbox
+reply out of a slave), and stalls in which nothing is answered and every frame waits (``stall``, and at random
+with ``stall_interval_s``). Slow mailbox replies are the ring's ``MailboxLatency``.
 """
 
 from __future__ import annotations
@@ -58,6 +63,11 @@ class EmulatorServer:
         self._delay_ns = 0
         self._delay_count = 0
         self._garbage = 0
+        self._hold_replies: tuple[int, int, int | None] = (0, 0, None)  # (frames left, delay ns, ring position)
+        self._stall_ns = 0  # a stall asked for over the control channel, to begin at the next look
+        self._next_stall_ns = 0  # when the next random stall begins (0: none)
+        self.stalls = 0
+        self.held_reply_frames = 0
         self._delayed: list[tuple[int, bytes]] = []
         self._turnaround_ns = array("q", bytes(8 * _TURNAROUND_SAMPLES))
         self._turnaround_count = 0
@@ -102,8 +112,10 @@ class EmulatorServer:
         self.running = True
         caught_up = True
         ring.serve_waiting = lambda: self._serve_frames(buffer, view)
+        self._schedule_stall(self.clock())
         try:
             while self.running:
+                self._stall_if_due()
                 timeout_ms = 1
                 if not caught_up or (self._delayed and min(t for t, _frame in self._delayed) <= self.clock()):
                     timeout_ms = 0
@@ -128,6 +140,30 @@ class EmulatorServer:
             gc.enable()
             gc.unfreeze()
 
+    def _schedule_stall(self, now: int) -> None:
+        interval = self.ring.options.stall_interval_s
+        self._next_stall_ns = now + round(self._random.expovariate(1.0 / interval) * 1e9) if interval else 0
+
+    def _stall_if_due(self) -> None:
+        """Answer nothing for a while (frames queue in the socket), as a process the host did not schedule."""
+        if self._stall_ns:
+            seconds, self._stall_ns = self._stall_ns / 1e9, 0
+        elif self._next_stall_ns and self.clock() >= self._next_stall_ns:
+            seconds = self.ring.options.stall_s
+        else:
+            return
+        time.sleep(seconds)
+        self.stalls += 1
+        self._schedule_stall(self.clock())
+
+    def _takes_reply(self) -> list[int] | None:
+        """Replies taken so far by the slaves a reply-frame hold watches; None when no hold is armed."""
+        left, _delay, position = self._hold_replies
+        if not left:
+            return None
+        slaves = self.ring.slaves if position is None else [self.ring.slaves[position]]
+        return [slave.replies_taken for slave in slaves]
+
     def _serve_frames(self, buffer: bytearray, view: memoryview) -> None:
         raw = self._raw
         ring = self.ring
@@ -143,6 +179,7 @@ class EmulatorServer:
                 self._drop_requests -= 1
                 continue
             frame = bytearray(view[:size])
+            taken = self._takes_reply()
             if not ring.process(frame, start):
                 continue
             frame[6] |= 0x02  # the first ESC marks the source MAC as locally administered
@@ -152,6 +189,12 @@ class EmulatorServer:
             if self._garbage:
                 self._garbage -= 1
                 self._send_garbage()
+            if taken is not None and taken != self._takes_reply():  # this frame took a mailbox reply out
+                left, delay_ns, position = self._hold_replies
+                self._hold_replies = (left - 1, delay_ns, position)
+                self.held_reply_frames += 1
+                self._delayed.append((start + delay_ns, bytes(frame)))
+                continue
             if self._delay_count:
                 self._delay_count -= 1
                 self._delayed.append((start + self._delay_ns, bytes(frame)))
@@ -297,7 +340,8 @@ class EmulatorServer:
         samples = sorted(self._turnaround_ns[:count])
         def percentile(p: float) -> float | None:
             return samples[min(count - 1, int(p * count))] / 1000.0 if count else None
-        return {"frames": self.ring.frames, "malformed": self.ring.dropped_malformed,
+        return {"frames": self.ring.frames, "malformed": self.ring.dropped_malformed, "stalls": self.stalls,
+                "held_reply_frames": self.held_reply_frames, "slow_replies": self.ring.latency.slowed,
                 "replies_timed": self._turnaround_count, "turnaround_median_us": percentile(0.5),
                 "turnaround_p99_us": percentile(0.99), "turnaround_max_us": samples[-1] / 1000.0 if count else None}
 
@@ -321,6 +365,23 @@ class EmulatorServer:
         self._delay_ns = round(float(seconds) * 1e9)
         self._delay_count = int(count)
 
+    def _op_late_replies(self, count: int, seconds: float, position: int | None = None) -> None:
+        if position is not None:
+            position = self._slave(position).position
+        self.ring.latency.script(int(count), float(seconds), position)
+
+    def _op_hold_reply_frames(self, count: int, seconds: float, position: int | None = None) -> None:
+        if position is not None:
+            position = self._slave(position).position
+        if int(count) < 0 or not 0 <= float(seconds) < 10:
+            raise ValueError(f"count must be >= 0 and seconds in [0, 10), got {count} and {seconds}")
+        self._hold_replies = (int(count), round(float(seconds) * 1e9), position)
+
+    def _op_stall(self, seconds: float) -> None:
+        if not 0 < float(seconds) < 10:
+            raise ValueError(f"a stall lasts more than 0 and less than 10 s, got {seconds}")
+        self._stall_ns = round(float(seconds) * 1e9)
+
     def _op_garbage(self, count: int) -> None:
         self._garbage = int(count)
 
@@ -340,13 +401,23 @@ class EmulatorServer:
         self._slave(position).drive.clear_latched()
 
     def _op_set_options(self, **options: Any) -> None:
-        allowed = {"dc_lock_cycles", "sync_tolerance", "sync_fault_cycles", "mailbox_latency_s", "state_change_s"}
+        allowed = {"dc_lock_cycles", "sync_tolerance", "sync_fault_cycles", "mailbox_latency_s", "state_change_s",
+                   "mailbox_jitter_s", "mailbox_burst_s", "mailbox_burst_chance", "mailbox_burst_replies",
+                   "stall_interval_s", "stall_s"}
         unknown = set(options) - allowed
         if unknown:
             raise ValueError(f"cannot change {sorted(unknown)} at run time; changeable: {sorted(allowed)}")
+        previous = {name: getattr(self.ring.options, name) for name in options}
         for name, value in options.items():
             setattr(self.ring.options, name, type(getattr(self.ring.options, name))(value))
-        self.ring.options.check()
+        try:
+            self.ring.options.check()
+        except ValueError:
+            for name, value in previous.items():
+                setattr(self.ring.options, name, value)
+            raise
+        if "stall_interval_s" in options:
+            self._schedule_stall(self.clock())
 
     def _op_stop(self) -> None:
         self.running = False

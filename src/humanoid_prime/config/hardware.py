@@ -41,6 +41,10 @@ class HardwareConfig:
     erob_kt: dict[str, float]
     erob_gear: dict[str, float]
     torque_efficiency: float
+    # Per eRob joint, realised/nominal stiffness: ``joints.erob_torque_efficiency``, else ``torque_efficiency``.
+    erob_torque_efficiency: dict[str, float]
+    # Per joint given in ``joints.contact_effort_cap`` (Nm): what `prime calibrate --auto` may push a stop with.
+    contact_effort_cap: dict[str, float]
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -180,6 +184,19 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     efficiency = _positive_float(data.get("torque_efficiency", 1.0), path, "torque_efficiency")
     if efficiency > 1.0:
         raise ConfigError(path, "torque_efficiency", f"{efficiency} is above 1", "use realised/nominal, 0 < e <= 1")
+    erob_efficiency = per_erob("erob_torque_efficiency", efficiency)
+    for joint, value in erob_efficiency.items():
+        if value > 1.0:
+            raise ConfigError(path, f"joints.erob_torque_efficiency.{joint}", f"{value} is above 1",
+                              "use realised/nominal, 0 < e <= 1")
+    caps = joints.get("contact_effort_cap") or {}
+    if not isinstance(caps, dict):
+        raise ConfigError(path, "joints.contact_effort_cap", "expected a mapping joint -> Nm")
+    for joint in caps:
+        if joint not in seen:
+            raise ConfigError(path, f"joints.contact_effort_cap.{joint}", f"joint {joint!r} is not in "
+                              "joints.all_joints", "fix the name or remove the entry")
+    contact_effort_cap = {j: _positive_float(v, path, f"joints.contact_effort_cap.{j}") for j, v in caps.items()}
 
     return HardwareConfig(
         path=path,
@@ -191,4 +208,6 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         erob_kt=per_erob("erob_kt", DEFAULT_KT_NM_PER_MA),
         erob_gear=per_erob("erob_gear", DEFAULT_GEAR),
         torque_efficiency=efficiency,
+        erob_torque_efficiency=erob_efficiency,
+        contact_effort_cap=contact_effort_cap,
     )

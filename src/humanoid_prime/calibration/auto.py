@@ -1,0 +1,1130 @@
+"""Hands-free calibration (DESIGN §5): Prime drives each joint into its mechanical stops itself, gently, finds its
+offset from both stops and measures what its impedance really is.
+
+One joint moves at a time, distal to proximal, the others holding (eRob on their own drive gains, per-tick joints
+on the standby gains with the model's gravity). For the joint that moves:
+
+- impedance: the approach gains follow from its contact-effort cap (``approach_gains``); an eRob on a ring gets
+  them through its loop-gain registers (gate, changed-only writes, a widened following-error window and the
+  drive's own torque limit where it has one, all restored as found: ``calibration.limp.GainOverride``); every
+  other joint (a Sito wrist, a simulated joint) gets them in its per-tick MIT command;
+- effort feed-forward: the holding torque measured before it moves, plus the change of the model's gravity
+  torque since (``calibration.gravity``), so the cap is the force at the stop, not the arm's weight;
+- motion: the target moves at the speed cap (after a short ramp) toward one stop, and never leads the joint by
+  more than its free-motion lag plus ``leash`` (the cap over the largest stiffness the drive can realise, less
+  what stopping the motion costs): the effort at a stop cannot exceed the cap;
+- contact: the joint stops following (position error beyond its free-motion baseline), stops moving and its
+  measured effort rises toward the cap, all three for ``DEBOUNCE_S``; then the target holds at the leash, the
+  stop's position is recorded while it presses with the cap, the effort is measured at several depths (and,
+  pushing with a velocity command, at several speeds) for the realised stiffness and damping, and it backs off;
+- budgets: the target never travels more than the joint's range plus a margin toward a stop, and a stop not
+  found within its time budget fails the joint;
+- then the other stop, then back to where it started.
+
+The offsets come from both stops with the sweep's formula (``calibration.math``). The direction comes from the
+physics where it can tell: the limits (an asymmetric range leaves one plausible offset) and the gravity torque
+measured along the sweep (which side of the range the arm hangs); where neither tells (a symmetric, unloaded
+wrist), at the end one small prompted motion and a plain question, or the prior's direction with
+``assume_direction``. A flip is written only when the evidence says so, and always reported.
+
+Any fault or lost device (an ERROR on ``/safety_status``), a held joint that moves, or ``abort()`` (a key
+press) stops the moving joint where it is, restores its gains and ends the run.
+
+The per-tick part runs in the control loop (a ``/prime/joint_states`` subscriber, between read and write, in a
+broadcaster-only run that leaves the commands to it); the sequence (drive settings over SDO, the operator)
+runs in ``run`` and waits for ticks through ``Ticks``: the loop's, or in virtual time a stepper it drives itself.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from humanoid_prime.calibration.gravity import GravityModel
+from humanoid_prime.calibration.limp import GainOverride, GainSnapshot
+from humanoid_prime.calibration.math import flip_direction, mirror_check, offset_from_sweep
+from humanoid_prime.config.calibration import Calibration, JointCalibration
+from humanoid_prime.config.robot import JointSpec, Robot
+from humanoid_prime.control.flags import Level
+from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.control.topics import JOINT_STATES, SAFETY_STATUS, JointState, SafetyStatus
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
+from humanoid_prime.drivers.erob.gains import ErobRegisters, gains_to_registers, registers_to_gains
+from humanoid_prime.drivers.erob.objects import FOLLOWING_ERROR_WINDOW, RATED_TORQUE
+from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
+from humanoid_prime.drivers.sito.protocol import sito_model
+from humanoid_prime.errors import ConfigError, PrimeError
+from humanoid_prime.modes import Mode
+
+MAX_SPEED_RAD_S = 0.2  # the speed cap: its default and its ceiling (DESIGN §5)
+CONTACT_FRACTION = 0.1  # default contact-effort cap: this fraction of the joint's effort limit
+CAP_SHARE = 0.7  # the leash spends this share of the cap; the rest is margin (friction, the baseline's lag)
+DAMPING_SHARE = 0.2  # of the cap, what stopping a joint moving at the speed cap may cost (kd * speed)
+LEASH_RAD = 0.05  # how far beyond its free-motion lag the target may lead the joint at full cap
+ACCEL_S = 0.5  # the target reaches the speed cap after this long
+BASELINE_S = 0.1  # time constant of the free-motion baseline (lag and effort)
+ADAPT_S = 0.5  # time constant with which free motion corrects the feed-forward (what the model got wrong)
+DEBOUNCE_S = 0.06  # contact is every sign for this long, never one sample
+EXCESS_SHARE = 0.5  # contact: the lag beyond its baseline exceeds this share of the leash,
+STALL_SHARE = 0.25  # the joint moves at less than this share of the speed,
+EFFORT_SHARE = 0.25  # and its effort rose by this share of the cap
+SETTLE_S = 0.2  # at a stop, pressing with the full leash, before its position is averaged
+AVERAGE_S = 0.1
+DEPTH_RAMP = (1.0, 0.1)  # the press eases from and to these shares of the leash while the stiffness is measured,
+DEPTH_RAMP_S = 0.6
+SPEED_RAMP_S = 0.4  # then, at the lighter press, a velocity command into the stop rises to the speed cap
+BACKOFF_RAD = 0.05
+TRAVEL_MARGIN_RAD = 0.1  # beyond the joint's range (plus 5 %), the most the target travels toward a stop
+TIME_MARGIN_S = 10.0
+SPAN_TOLERANCE = 0.05  # the stops' spacing must be the described range within this share
+HOLD_TOLERANCE_RAD = 0.05  # a held joint that moves further has been pushed: stop
+ANCHOR_S = 0.2  # the holding torque is averaged this long before a joint moves
+PROMPT_RAD = 0.15  # the prompted motion that asks the operator for a direction
+MIN_ASYMMETRY_RAD = 0.5  # limits whose sum is at least this tell the direction by themselves
+GRAVITY_MIN_SEPARATION_NM = 0.15  # the two directions' gravity curves must differ this much (RMS) to tell
+GRAVITY_RESIDUAL_RATIO = 2.0  # and the wrong one must fit this much worse
+GRAVITY_SAMPLES = 60
+TICK_TIMEOUT_S = 5.0  # wall seconds without a control tick: the loop is gone
+DRIVE_LIMIT_MARGIN = 1.25  # the drive's own torque limit over the most the approach asks of it
+
+# CiA402 0x6072 max torque, UNSIGNED16 per mille of 0x6076. ZeroErr's EDS V1.5 does not list it, so it is probed.
+MAX_TORQUE = (0x6072, 0x00)
+WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
+
+
+class Aborted(PrimeError):
+    """The run was stopped: a fault, a lost device, a held joint that moved, a key press or a signal."""
+
+
+class JointFailed(PrimeError):
+    """This joint could not be calibrated (no stop within the budgets, a span that is not its range, ...)."""
+
+
+def contact_cap(robot: Robot, joint: str) -> float:
+    """The joint's contact-effort cap (Nm): ``joints.contact_effort_cap`` of the hardware file, else
+    ``CONTACT_FRACTION`` of its effort limit. ConfigError if the file asks for more than the effort limit."""
+    spec = robot.joints[robot.index(joint)]
+    cap = robot.hardware.contact_effort_cap.get(joint)
+    if cap is None:
+        return CONTACT_FRACTION * spec.effort_limit
+    if cap > spec.effort_limit:
+        raise ConfigError(robot.hardware.path, f"joints.contact_effort_cap.{joint}",
+                          f"{cap:g} Nm is above the joint's effort limit of {spec.effort_limit:g} Nm",
+                          f"use a small fraction of it (the default is {CONTACT_FRACTION * spec.effort_limit:g} Nm)")
+    return cap
+
+
+def approach_gains(cap: float) -> tuple[float, float]:
+    """(kp, kd) a joint approaches its stops with: kd such that stopping from the speed cap costs
+    ``DAMPING_SHARE`` of the cap, kp such that the rest of ``CAP_SHARE`` is spent over ``LEASH_RAD``."""
+    kd = DAMPING_SHARE * cap / MAX_SPEED_RAD_S
+    kp = (CAP_SHARE - DAMPING_SHARE) * cap / LEASH_RAD
+    return kp, kd
+
+
+def distal_first(robot: Robot, joints: Sequence[str]) -> list[str]:
+    """``joints`` in the order they are calibrated: arm by arm (left first), from the hand to the shoulder."""
+    def key(joint: str) -> tuple[int, int]:
+        return (0 if joint.startswith("left_") else 1, -robot.index(joint))
+    return sorted(joints, key=key)
+
+
+# ---- the operator -------------------------------------------------------------------------------------------
+
+VIEWS = {(0, 1): "in front of the robot", (0, -1): "behind the robot", (1, 1): "at the robot's left side",
+         (1, -1): "at the robot's right side", (2, 1): "above the robot", (2, -1): "below the robot"}
+
+
+def view_of(axis: np.ndarray) -> tuple[np.ndarray, str]:
+    """The world axis a person looks along to see a rotation about ``axis`` best, pointing at them (a positive
+    rotation turns counter-clockwise for them), and where they stand, in words."""
+    k = int(np.argmax(np.abs(axis)))
+    sign = 1 if axis[k] >= 0 else -1
+    view = np.zeros(3)
+    view[k] = sign
+    return view, VIEWS[(k, sign)]
+
+
+class Operator(Protocol):
+    """The person (or the virtual robot's scripted operator) at the robot."""
+
+    def begin(self, joints: Sequence[str]) -> None:
+        """Before anything moves (on the robot: the e-stop reminder)."""
+
+    def confirm(self, joint: str) -> bool:
+        """May ``joint`` move now? (On the robot: Enter moves it, anything else skips it.)"""
+
+    def watch(self, joint: str) -> None:
+        """``joint`` is about to make the prompted motion."""
+
+    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
+        """Seen from ``where`` (looking along -``view``), did ``joint`` just turn counter-clockwise? None: cannot
+        tell."""
+
+
+class Unattended:
+    """No one at the robot: every joint may move, no question can be answered."""
+
+    def begin(self, joints: Sequence[str]) -> None:
+        pass
+
+    def confirm(self, joint: str) -> bool:
+        return True
+
+    def watch(self, joint: str) -> None:
+        pass
+
+    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
+        return None
+
+
+# ---- waiting for ticks ----------------------------------------------------------------------------------------
+
+class Ticks(Protocol):
+    def until(self, done: Callable[[], bool]) -> None:
+        """Return once ``done()`` holds, checked after each control tick."""
+
+
+class LoopTicks:
+    """The control loop runs in another thread (``run_loop``); ``ticked`` is called at the end of each tick."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._condition = threading.Condition()
+        self._count = 0
+        self.clock = clock
+        self.stopped = threading.Event()  # the loop is ending: nothing waits for its ticks any more
+
+    def ticked(self) -> None:
+        with self._condition:
+            self._count += 1
+            self._condition.notify_all()
+
+    def until(self, done: Callable[[], bool]) -> None:
+        with self._condition:
+            seen, last = self._count, self.clock()
+            while not done():
+                if self.stopped.is_set():
+                    raise Aborted("the control loop stopped")
+                self._condition.wait(0.1)
+                if self._count != seen:
+                    seen, last = self._count, self.clock()
+                elif self.clock() - last > TICK_TIMEOUT_S:
+                    raise Aborted(f"no control tick for {TICK_TIMEOUT_S:g} s")
+
+
+class SteppedTicks:
+    """Virtual time: ``step()`` runs one control tick (and the physics of one period); nothing runs between."""
+
+    def __init__(self, step: Callable[[], None]) -> None:
+        self.step = step
+
+    def until(self, done: Callable[[], bool]) -> None:
+        while not done():
+            self.step()
+
+
+# ---- results ------------------------------------------------------------------------------------------------
+
+@dataclass
+class Stiffness:
+    """The impedance a joint realised against its stops: torque over position error, and over speed error."""
+
+    family: str
+    kp_asked: float  # what the host asked for (eRob: the registers' nominal stiffness)
+    kd_asked: float
+    kp: float
+    kd: float
+    points: int
+
+    @property
+    def kp_ratio(self) -> float:
+        return self.kp / self.kp_asked
+
+    @property
+    def kd_ratio(self) -> float:
+        return self.kd / self.kd_asked
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"kp_asked": self.kp_asked, "kp_realised": self.kp, "kp_ratio": self.kp_ratio,
+                               "kd_asked": self.kd_asked, "kd_realised": self.kd, "kd_ratio": self.kd_ratio,
+                               "points": self.points}
+        if self.family == "erob":
+            out["torque_efficiency"] = self.kp_ratio  # realised/nominal: the hardware file's correction
+        else:
+            model = sito_model("TA40-50")
+            out["kp_divisor"] = model.kp_divisor * self.kp_ratio  # what the firmware divides by, measured
+            out["kd_divisor"] = model.kd_divisor * self.kd_ratio
+        return out
+
+
+@dataclass
+class JointOutcome:
+    joint: str
+    status: str  # done | skipped | failed | aborted | direction_unknown | not_reached
+    message: str = ""
+    prior: JointCalibration = field(default_factory=JointCalibration)
+    calibration: JointCalibration | None = None  # what is written (None: the prior is kept)
+    stops: tuple[float, float] | None = None  # identity frame (prior direction, offset 0), lower reading first
+    first_side: int = 0
+    direction_source: str = ""
+    stiffness: Stiffness | None = None
+    peak_contact_nm: float = 0.0
+    cap_nm: float = 0.0
+    seconds: float = 0.0  # robot time the joint took
+    drive_torque_limit: str = ""  # what became of the drive's own torque limit
+
+    @property
+    def done(self) -> bool:
+        return self.status == "done"
+
+    @property
+    def flipped(self) -> bool:
+        return self.calibration is not None and self.calibration.direction != self.prior.direction
+
+    def as_dict(self) -> dict[str, Any]:
+        cal = self.calibration
+        return {"status": self.status, "message": self.message,
+                "direction": cal.direction if cal else self.prior.direction,
+                "homing_offset": cal.homing_offset if cal else self.prior.homing_offset,
+                "prior_direction": self.prior.direction, "prior_offset": self.prior.homing_offset,
+                "flipped": self.flipped, "direction_source": self.direction_source,
+                "stops": list(self.stops) if self.stops else None, "cap_nm": self.cap_nm,
+                "peak_contact_nm": self.peak_contact_nm, "seconds": self.seconds,
+                "drive_torque_limit": self.drive_torque_limit,
+                "stiffness": self.stiffness.as_dict() if self.stiffness else None}
+
+
+@dataclass
+class Trace:
+    """What the moving joint did, tick by tick, for the plot: time, position, commanded position, effort, and the
+    contacts (time, position) and stops (time, position) found."""
+
+    t: list[float] = field(default_factory=list)
+    q: list[float] = field(default_factory=list)
+    target: list[float] = field(default_factory=list)
+    effort: list[float] = field(default_factory=list)
+    contacts: list[tuple[float, float]] = field(default_factory=list)
+    stops: list[tuple[float, float]] = field(default_factory=list)
+
+
+@dataclass
+class AutoResult:
+    calibration: Calibration  # every joint: the new one where done, the prior elsewhere
+    outcomes: dict[str, JointOutcome]
+    traces: dict[str, Trace]
+    asked: tuple[str, ...]
+    aborted: str | None
+    robot: Robot
+
+    @property
+    def complete(self) -> bool:
+        """Every joint asked for was calibrated and nothing stopped the run."""
+        return self.aborted is None and all(self.outcomes[j].done for j in self.asked)
+
+    def as_dict(self) -> dict[str, Any]:
+        mirror = mirror_check(self.calibration, self.robot)
+        return {"complete": self.complete, "aborted": self.aborted,
+                "joints": {j: self.outcomes[j].as_dict() for j in self.asked},
+                "mirror": [{"left": m.left, "right": m.right, "left_offset": m.left_offset,
+                            "right_offset": m.right_offset, "relation": m.relation, "residual": m.residual,
+                            "ok": m.ok} for m in mirror]}
+
+
+# ---- direction ----------------------------------------------------------------------------------------------
+
+def direction_from_limits(prior_direction: int, stops: tuple[float, float], spec: JointSpec
+                          ) -> tuple[JointCalibration, JointCalibration, int | None]:
+    """The calibration the stops give with the prior direction and flipped, and which one an asymmetric range
+    picks: +1 the prior's, -1 the flipped one, None when the range cannot tell (its limits are too symmetric,
+    or neither offset is plausible)."""
+    same = JointCalibration(prior_direction, offset_from_sweep(stops[0], stops[1], spec.lower, spec.upper,
+                                                               prior_direction))
+    flipped = flip_direction(same, spec.lower, spec.upper)
+    asymmetry = abs(spec.lower + spec.upper)
+    if asymmetry < MIN_ASYMMETRY_RAD:
+        return same, flipped, None
+    # The two offsets differ by the asymmetry: an offset under half of it leaves the other beyond half of it.
+    for verdict, cal in ((1, same), (-1, flipped)):
+        if abs(cal.homing_offset) < 0.5 * asymmetry - TRAVEL_MARGIN_RAD:
+            return same, flipped, verdict
+    return same, flipped, None
+
+
+def direction_from_gravity(samples: np.ndarray, measured: np.ndarray, predicted: Mapping[int, np.ndarray]
+                           ) -> tuple[int | None, str]:
+    """Which hypothesis (+1 the prior's direction, -1 flipped) the effort measured along a sweep fits: each
+    prediction is fitted with a scale and an offset (friction); None when the two predictions hardly differ or
+    neither fits clearly better. ``samples`` only sizes the fit."""
+    if samples.size < 10:
+        return None, "too few free-motion samples"
+    plus, minus = predicted[1], predicted[-1]
+    separation = float(np.std((plus - plus.mean()) - (minus - minus.mean())))
+    if separation < GRAVITY_MIN_SEPARATION_NM:
+        return None, f"gravity cannot tell (the two directions differ by {separation:.3f} Nm RMS along the sweep)"
+    residuals = {}
+    for hypothesis, prediction in predicted.items():
+        design = np.stack([prediction, np.ones_like(prediction)], axis=1)
+        (scale, _), *_ = np.linalg.lstsq(design, measured, rcond=None)
+        fitted = design @ np.linalg.lstsq(design, measured, rcond=None)[0]
+        residual = float(np.sqrt(np.mean((measured - fitted) ** 2)))
+        residuals[hypothesis] = residual if scale > 0 else math.inf
+    best = min(residuals, key=residuals.__getitem__)
+    other = residuals[-best]
+    if other < GRAVITY_RESIDUAL_RATIO * max(residuals[best], 1e-3):
+        return None, (f"gravity unclear (residuals {residuals[1]:.3f} and {residuals[-1]:.3f} Nm for the prior and "
+                      "the flipped direction)")
+    return best, f"gravity fits {'the prior' if best == 1 else 'the flipped'} direction ({residuals[best]:.3f} " \
+                 f"vs {other:.3f} Nm RMS)"
+
+
+# ---- the per-tick motion ------------------------------------------------------------------------------------
+
+@dataclass
+class _Tick:
+    t: float
+    dt: float
+    q: float
+    qd: float
+    effort: float
+    ff: float
+
+
+class _Segment:
+    """One motion of the moving joint; ``update`` runs once per tick and sets ``target`` and ``velocity``."""
+
+    finished = False
+    failure: str | None = None
+
+    def __init__(self, run: _JointRun) -> None:
+        self.run = run
+
+    def update(self, tick: _Tick) -> None:
+        raise NotImplementedError
+
+
+class _Hold(_Segment):
+    """Stay at ``target`` for ``average_s`` while the effort is averaged. ``passive``: the joint stays held the way
+    the others are (its drive's own gains, or the standby gains), as before it moves."""
+
+    def __init__(self, run: _JointRun, target: float, average_s: float = 0.0, *, passive: bool = False) -> None:
+        super().__init__(run)
+        self.target = target
+        self.velocity = 0.0
+        self.average_s = average_s
+        self.passive = passive
+        self.efforts: list[float] = []
+        self._since: float | None = None
+
+    def update(self, tick: _Tick) -> None:
+        if self._since is None:
+            self._since = tick.t
+        self.efforts.append(tick.effort)
+        self.finished = tick.t - self._since >= self.average_s
+
+
+class _Move(_Segment):
+    """Ramp the target to ``goal`` at the speed cap with the leash on; a contact on the way is a failure."""
+
+    def __init__(self, run: _JointRun, goal: float, start: float) -> None:
+        super().__init__(run)
+        self.goal = goal
+        self.target = start
+        self.side = 1 if goal >= start else -1
+        self.velocity = 0.0
+        self.detector = _ContactDetector(run, self.side)
+        self._t0: float | None = None
+        self._reached: float | None = None
+
+    def update(self, tick: _Tick) -> None:
+        run = self.run
+        if self._t0 is None:
+            self._t0 = tick.t
+            self.detector.start(tick, self.target)
+        speed = run.speed * min(1.0, (tick.t - self._t0 + tick.dt) / ACCEL_S)
+        remaining = self.side * (self.goal - self.target)
+        step = min(speed * tick.dt, max(remaining, 0.0))
+        limited = self.detector.leash(tick, self.target + self.side * step)
+        self.velocity = self.side * speed if limited == self.target + self.side * step and remaining > 0 else 0.0
+        self.target = limited
+        if self.detector.update(tick, self.target, free=self.velocity != 0.0):
+            self.failure = f"touched something at {tick.q:+.3f} rad while moving to {self.goal:+.3f} rad"
+            return
+        if self._reached is None and self.side * (self.goal - self.target) <= 1e-9:
+            self._reached = tick.t
+        if self._reached is not None:
+            settled = abs(tick.q - self.goal) < 0.25 * run.leash + 0.01 and abs(tick.qd) < 0.25 * run.speed
+            self.finished = settled or tick.t - self._reached > 2.0
+
+
+class _ContactDetector:
+    """The free-motion baseline of the moving joint's lag and effort, the leash on its target, and contact:
+    lag beyond the baseline, no motion and a rise of effort, all together for ``DEBOUNCE_S``."""
+
+    def __init__(self, run: _JointRun, side: int) -> None:
+        self.run = run
+        self.side = side
+        self.lag_base = 0.0
+        self.effort_base = 0.0
+        self.count = 0
+        self.needed = max(3, math.ceil(DEBOUNCE_S * run.rate - 1e-9))
+
+    def start(self, tick: _Tick, target: float) -> None:
+        s = self.side
+        self.lag_base = s * (target - tick.q)
+        self.effort_base = s * (tick.effort - tick.ff)
+
+    def leash(self, tick: _Tick, wanted: float) -> float:
+        """``wanted``, held back so the target leads the joint by at most its baseline lag plus the leash."""
+        s = self.side
+        most = s * tick.q + self.lag_base + self.run.leash
+        return wanted if s * wanted <= most else s * most
+
+    def update(self, tick: _Tick, target: float, *, free: bool) -> bool:
+        """Take this tick's measurements; True once contact has held for the debounce time."""
+        run, s = self.run, self.side
+        lag = s * (target - tick.q)
+        effort = s * (tick.effort - tick.ff)
+        excess = lag - self.lag_base
+        rise = effort - self.effort_base
+        if free and excess < 0.5 * EXCESS_SHARE * run.leash:
+            alpha = min(1.0, tick.dt / BASELINE_S)
+            self.lag_base += alpha * (lag - self.lag_base)
+            self.effort_base += alpha * (effort - self.effort_base)
+            run.adapt(tick, target)
+        touching = (excess >= EXCESS_SHARE * run.leash and s * tick.qd <= STALL_SHARE * run.speed
+                    and rise >= EFFORT_SHARE * run.cap)
+        self.count = self.count + 1 if touching else 0
+        return self.count >= self.needed
+
+    def rise(self, tick: _Tick) -> float:
+        return self.side * (tick.effort - tick.ff) - self.effort_base
+
+
+class _Approach(_Segment):
+    """Toward the stop on ``side`` until contact (within the travel and time budgets), then press it with the
+    leash while its position is recorded and the effort is measured at several depths and speeds."""
+
+    def __init__(self, run: _JointRun, side: int, start: float, budget_rad: float, measure: bool) -> None:
+        super().__init__(run)
+        self.side = side
+        self.target = start
+        self.start_target = start
+        self.velocity = 0.0
+        self.budget_rad = budget_rad
+        self.budget_s = budget_rad / run.speed + ACCEL_S + TIME_MARGIN_S
+        self.measure = measure
+        self.detector = _ContactDetector(run, side)
+        self.phase = "moving"  # then settling (its position recorded), easing and pushing (measured), done
+        self.stop: float | None = None
+        self.points: list[tuple[float, float, float]] = []  # (lag, speed command, effort) into the stop, per tick
+        self.peak = 0.0
+        self._t0: float | None = None
+        self._phase_t = 0.0
+        self._positions: list[float] = []
+        self._last: tuple[float, float] | None = None
+        self.free: list[tuple[float, float]] = []  # (q, effort) in free motion, for the gravity fit
+
+    def update(self, tick: _Tick) -> None:
+        run, s = self.run, self.side
+        if self._t0 is None:
+            self._t0 = tick.t
+            self.detector.start(tick, self.target)
+        if tick.t - self._t0 > self.budget_s:
+            self.failure = (f"no stop on the {'upper' if s > 0 else 'lower'} side within {self.budget_s:.0f} s "
+                            f"({run.speed:g} rad/s)")
+            return
+        if self.phase == "moving":
+            speed = run.speed * min(1.0, (tick.t - self._t0 + tick.dt) / ACCEL_S)
+            wanted = self.target + s * speed * tick.dt
+            if s * (wanted - self.start_target) > self.budget_rad:
+                wanted = self.start_target + s * self.budget_rad
+                if s * (self.target - self.start_target) >= self.budget_rad - 1e-9 and abs(tick.qd) < 0.01:
+                    self.failure = (f"no stop within {self.budget_rad:.2f} rad toward the "
+                                    f"{'upper' if s > 0 else 'lower'} side (the range plus a margin)")
+                    return
+            limited = self.detector.leash(tick, wanted)
+            free = limited == wanted
+            self.velocity = s * speed if free else 0.0
+            self.target = limited
+            if free and tick.t - self._t0 > ACCEL_S:
+                self.free.append((tick.q, tick.effort))
+            if self.detector.update(tick, self.target, free=free):
+                self.phase = "settling"
+                self._phase_t = tick.t
+                run.trace.contacts.append((tick.t, tick.q))
+            return
+        self.peak = max(self.peak, self.detector.rise(tick))
+        if self.phase == "settling":
+            self._press(tick, DEPTH_RAMP[0], 0.0)
+            if tick.t - self._phase_t >= SETTLE_S:
+                self._positions.append(tick.q)
+            if tick.t - self._phase_t >= SETTLE_S + AVERAGE_S - 1e-9:
+                self.stop = float(np.mean(self._positions))
+                run.trace.stops.append((tick.t, self.stop))
+                self._next("easing" if self.measure else "done", tick)
+        elif self.phase == "easing":
+            share = min(1.0, (tick.t - self._phase_t) / DEPTH_RAMP_S)
+            self._press(tick, DEPTH_RAMP[0] + share * (DEPTH_RAMP[1] - DEPTH_RAMP[0]), 0.0)
+            if share >= 1.0:
+                self._next("pushing", tick)
+        elif self.phase == "pushing":
+            share = min(1.0, (tick.t - self._phase_t) / SPEED_RAMP_S)
+            self._press(tick, DEPTH_RAMP[1], share * run.speed)
+            if share >= 1.0:
+                self._next("done", tick)
+        if self.phase == "done":
+            self.velocity = 0.0
+            self.finished = True
+
+    def _press(self, tick: _Tick, depth: float, speed: float) -> None:
+        """Press with ``depth`` of the leash and ``speed`` into the stop; the effort measured now answers the
+        command of the last tick, so it is paired with that (lag taken at the position now)."""
+        run, s = self.run, self.side
+        if self._last is not None and self.phase != "settling":
+            target, velocity = self._last
+            self.points.append((s * (target - tick.q), s * velocity, s * (tick.effort - tick.ff)))
+        self.target = tick.q + s * (self.detector.lag_base + depth * run.leash)
+        self.velocity = s * speed
+        self._last = (self.target, self.velocity)
+
+    def _next(self, phase: str, tick: _Tick) -> None:
+        self.phase = phase
+        self._phase_t = tick.t
+        self._last = None
+
+    def unloaded(self, q: float) -> float:
+        """The target that stops pressing the joint at ``q``: its free-motion lag, no more."""
+        return q + self.side * self.detector.lag_base
+
+
+# ---- one joint's run ----------------------------------------------------------------------------------------
+
+class _JointRun:
+    """The moving joint's settings and its per-tick command (loop thread)."""
+
+    def __init__(self, index: int, name: str, *, cap: float, gains: tuple[float, float],
+                 leash_gains: tuple[float, float], speed: float, rate: float, effort_limit: float) -> None:
+        self.index = index
+        self.name = name
+        self.cap = cap
+        self.kp, self.kd = gains
+        kp_leash, kd_leash = leash_gains
+        self.speed = speed
+        self.rate = rate
+        self.effort_limit = effort_limit
+        self.kp_leash = kp_leash
+        self.leash = (CAP_SHARE * cap - kd_leash * speed) / kp_leash
+        self.trace = Trace()
+        self.segment: _Segment | None = None
+        self.anchor = 0.0  # holding effort measured before moving
+        self.gravity0 = 0.0  # the model's gravity torque there (host frame)
+        self.correction = 0.0  # what free motion has taught the feed-forward (Nm)
+        self.bounds = (-math.inf, math.inf)  # where the target may go (the travel budget around the start)
+
+    def adapt(self, tick: _Tick, target: float) -> None:
+        """In free motion, move the steady lag into the feed-forward: the model's gravity is only as good as the
+        calibration it is evaluated with, which is what is being found (a flipped joint's is mirrored)."""
+        step = tick.dt / ADAPT_S * self.kp_leash * (target - tick.q)
+        self.correction = min(max(self.correction + step, -self.effort_limit), self.effort_limit)
+
+
+# ---- the procedure ------------------------------------------------------------------------------------------
+
+class AutoCalibration:
+    """Calibrates ``joints`` of the running broadcaster-only ``manager`` (module docstring).
+
+    ``prior``: the calibration the run's host frame is built from (its directions, offsets 0) and the one kept
+    for joints not done. ``rings``: joint -> (SDO client, ring position) for every joint whose impedance is its
+    drive's registers (eRob on a ring); every other joint takes gains per tick. ``config``: the controllers file
+    (the standby gains hold the per-tick joints).
+    """
+
+    def __init__(self, manager: ControllerManager, prior: Calibration, joints: Sequence[str], *,
+                 rings: Mapping[str, tuple[SdoClient, int]] | None = None, operator: Operator | None = None,
+                 ticks: Ticks, speed: float = MAX_SPEED_RAD_S, assume_direction: bool = False,
+                 measure: bool = True) -> None:
+        robot = manager.robot
+        if not 0 < speed <= MAX_SPEED_RAD_S:
+            raise PrimeError(f"speed {speed:g} rad/s: the hands-free calibration moves a joint at most "
+                             f"{MAX_SPEED_RAD_S:g} rad/s; give 0 < speed <= {MAX_SPEED_RAD_S:g}")
+        if not manager.broadcaster_only:
+            raise PrimeError("the hands-free calibration commands the joints itself: it needs a broadcaster-only run")
+        for joint in joints:
+            robot.index(joint)  # KeyError names the known joints
+        self.manager = manager
+        self.robot = robot
+        self.prior = prior
+        self.joints = tuple(distal_first(robot, joints))
+        self.rings = dict(rings or {})
+        self.operator = operator or Unattended()
+        self.ticks = ticks
+        self.speed = speed
+        self.assume_direction = assume_direction
+        self.measure = measure
+        self.caps = {j: contact_cap(robot, j) for j in self.joints}
+        self.gravity = GravityModel(robot)  # the loop's
+        self.model = GravityModel(robot)  # the sequence's (the two threads never share one)
+        self.hold_gains = manager.config.mode_gains()[Mode.STANDBY]
+        n = robot.n
+        self.prior_direction = prior.direction_array(robot.names)
+        self.prior_offset = prior.offset_array(robot.names)
+        self.direction = self.prior_direction.copy()  # best knowledge: the prior, the new values where done
+        self.offset = self.prior_offset.copy()
+        self.per_tick = np.array([j not in self.rings for j in robot.names])
+        self.hold = np.full(n, np.nan)
+        self.outcomes: dict[str, JointOutcome] = {
+            j: JointOutcome(j, "not_reached", prior=prior.joints[j], cap_nm=self.caps[j]) for j in self.joints}
+        self.traces: dict[str, Trace] = {}
+        self.moving: _JointRun | None = None
+        self.aborted: str | None = None
+        self._abort_request: str | None = None
+        self._status: SafetyStatus | None = None
+        self._running = False
+        self._last_t: float | None = None
+
+    # -- the loop side --------------------------------------------------------------------------------------
+    def attach(self) -> None:
+        topics = self.manager.topics
+        topics.subscribe(SAFETY_STATUS, self._on_status, latched=True)
+        topics.subscribe(JOINT_STATES, self._on_joint_states)
+
+    def detach(self) -> None:
+        topics = self.manager.topics
+        topics.unsubscribe(JOINT_STATES, self._on_joint_states)
+        topics.unsubscribe(SAFETY_STATUS, self._on_status)
+
+    def abort(self, reason: str) -> None:
+        """Stop the run as soon as possible (any thread): the moving joint holds where it is."""
+        if self._abort_request is None:
+            self._abort_request = reason
+
+    def _on_status(self, status: SafetyStatus) -> None:
+        self._status = status
+
+    def _errors(self) -> list[str]:
+        status = self._status
+        if status is None:
+            return []
+        return [f"{key}: {status.flags[key]}" for key, level in status.levels.items() if level is Level.ERROR]
+
+    def description_angles(self, q: np.ndarray, direction: np.ndarray | None = None,
+                           offset: np.ndarray | None = None) -> np.ndarray:
+        """The joints' description angles from host-frame ``q``, with the best calibration known (or the one given)."""
+        direction = self.direction if direction is None else direction
+        offset = self.offset if offset is None else offset
+        return direction * (self.prior_direction * q - offset)
+
+    def host_gravity(self, q: np.ndarray, model: GravityModel | None = None, direction: np.ndarray | None = None,
+                     offset: np.ndarray | None = None) -> np.ndarray:
+        """The model's holding torque of every joint at host-frame ``q``, in the host frame (``model``: the loop's
+        unless given; the calibration: the best known unless given)."""
+        direction = self.direction if direction is None else direction
+        torques = (model or self.gravity).torques(self.description_angles(q, direction, offset))
+        return self.prior_direction * direction * torques
+
+    def _on_joint_states(self, msg: JointState) -> None:
+        if not self._running:
+            return
+        resources = self.manager.resources
+        state, command = resources.state, resources.command
+        q = state.position
+        t = msg.stamp
+        dt = 1.0 / self.manager.update_rate if self._last_t is None else max(t - self._last_t, 1e-6)
+        self._last_t = t
+        if self._abort_request is not None and self.aborted is None:
+            self.aborted = self._abort_request
+        if self.aborted is None:
+            errors = self._errors()
+            if errors:
+                self.aborted = "fault: " + "; ".join(errors)
+        moving = self.moving
+        segment = moving.segment if moving is not None else None
+        active = moving is not None and not (isinstance(segment, _Hold) and segment.passive)
+        held = np.isfinite(self.hold)
+        if active:
+            held[moving.index] = False
+        if self.aborted is None:
+            drift = np.abs(q - self.hold)
+            drift[~held] = 0.0
+            if drift.max(initial=0.0) > HOLD_TOLERANCE_RAD:
+                k = int(np.argmax(drift))
+                self.aborted = (f"{self.robot.names[k]} moved {drift[k]:.3f} rad while it was held (pushed, or "
+                                "its drive let go)")
+        gravity = self.host_gravity(q)
+        kp, kd = self.hold_gains
+        hold = held & self.per_tick
+        command.position[hold] = self.hold[hold]
+        command.velocity[hold] = 0.0
+        command.effort[hold] = gravity[hold]
+        command.stiffness[hold] = kp
+        command.damping[hold] = kd
+        release = ~self.per_tick  # drives holding on their own gains: no command
+        if active:
+            release[moving.index] = False
+        command.data[:, release] = 0.0
+        command.position[release] = np.nan
+        if moving is None:
+            return
+        i = moving.index
+        ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction
+        ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
+        if self.aborted is not None and not isinstance(segment, _Hold):
+            segment = moving.segment = _Hold(moving, float(q[i]))  # stop here, at once
+        if segment is not None and not segment.finished and segment.failure is None:
+            segment.update(_Tick(t, dt, float(q[i]), float(state.velocity[i]), float(state.effort[i]), ff))
+        if not active or segment is None:
+            return
+        low, high = moving.bounds
+        command.position[i] = min(max(segment.target, low), high)
+        command.velocity[i] = min(max(segment.velocity, -moving.speed), moving.speed)
+        command.effort[i] = ff
+        command.stiffness[i] = moving.kp
+        command.damping[i] = moving.kd
+        trace = moving.trace
+        trace.t.append(t)
+        trace.q.append(float(q[i]))
+        trace.target.append(float(command.position[i]))
+        trace.effort.append(float(state.effort[i]))
+
+    # -- the sequence ---------------------------------------------------------------------------------------
+    def run(self) -> AutoResult:
+        """Calibrate every joint asked for, then ask for the directions the physics could not tell."""
+        self._start()
+        try:
+            self.operator.begin(self.joints)
+            for joint in self.joints:
+                if self.aborted is not None:
+                    break
+                if not self.operator.confirm(joint):
+                    self.outcomes[joint].status = "skipped"
+                    self.outcomes[joint].message = "skipped by the operator"
+                    continue
+                self._joint(joint)
+            if self.aborted is None:
+                self._ask_directions()
+        except Aborted as exc:
+            if self.aborted is None:
+                self.aborted = str(exc)
+        finally:
+            self._finish()
+        return self.result()
+
+    def _start(self) -> None:
+        errors = self._errors()
+        if errors:
+            raise PrimeError("the robot reports problems; nothing was moved: " + "; ".join(errors))
+        state = self.manager.resources.state
+        self.hold[:] = state.position
+        self._running = True
+        self._wait(lambda: True)  # one tick: the per-tick joints hold from here on
+
+    def _finish(self) -> None:
+        self._running = False
+
+    def _wait(self, done: Callable[[], bool]) -> None:
+        seen = self.manager.tick_count
+        self.ticks.until(lambda: self.aborted is not None or (self.manager.tick_count > seen and done()))
+        if self.aborted is not None:
+            raise Aborted(self.aborted)
+
+    def _segment(self, run: _JointRun, segment: _Segment) -> _Segment:
+        run.segment = segment
+        self._wait(lambda: segment.finished or segment.failure is not None)
+        if segment.failure is not None:
+            raise JointFailed(segment.failure)
+        return segment
+
+    def result(self) -> AutoResult:
+        joints = dict(self.prior.joints)
+        for joint, outcome in self.outcomes.items():
+            if outcome.done and outcome.calibration is not None:
+                joints[joint] = outcome.calibration
+        return AutoResult(Calibration(joints), self.outcomes, self.traces, self.joints, self.aborted, self.robot)
+
+    @contextmanager
+    def _moving(self, joint: str) -> Iterator[_JointRun]:
+        """``joint`` anchored where it is (its holding effort measured), on its approach impedance, for the
+        block; afterwards anchored where it ended, on the impedance it had, and held there."""
+        robot = self.robot
+        i = robot.index(joint)
+        spec = robot.joints[i]
+        cap = self.caps[joint]
+        gains = approach_gains(cap)
+        ring = self.rings.get(joint)
+        leash_gains = gains
+        registers = None
+        if ring is not None:
+            hw = robot.hardware
+            registers = gains_to_registers(*gains, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
+                                           efficiency=hw.erob_torque_efficiency[joint])
+            # The leash assumes the most stiffness the registers can give (a drive realises at most its nominal).
+            leash_gains = registers_to_gains(registers, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint])
+        run = _JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=self.speed,
+                        rate=self.manager.update_rate, effort_limit=spec.effort_limit)
+        if run.leash <= 0:
+            raise JointFailed(f"the speed {self.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
+        self.traces[joint] = run.trace
+        state = self.manager.resources.state
+        start = float(state.position[i])
+        span = spec.upper - spec.lower
+        budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
+        run.bounds = (start - budget, start + budget)
+        hold = _Hold(run, start, ANCHOR_S, passive=True)
+        run.segment = hold
+        run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
+        self.moving = run
+        try:
+            self._wait(lambda: hold.finished)
+            run.anchor = float(np.mean(hold.efforts))
+            run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
+            with self._impedance(joint, run, registers, ring, start, budget):
+                yield run
+                end = _Hold(run, run.segment.target if run.segment is not None else start, ANCHOR_S)
+                self._segment(run, end)
+        finally:
+            self.hold[i] = float(state.position[i])
+            self.moving = None
+
+    @contextmanager
+    def _impedance(self, joint: str, run: _JointRun, registers: ErobRegisters | None,
+                   ring: tuple[SdoClient, int] | None, start: float, budget: float) -> Iterator[None]:
+        if ring is None or registers is None:
+            yield
+            return
+        sdo, position = ring
+        objects = SizedSdo(sdo)
+        kp_nominal, _ = registers_to_gains(registers, kt=self.robot.hardware.erob_kt[joint],
+                                           gear=self.robot.hardware.erob_gear[joint])
+        # The most effort the approach asks: the gravity along the travel, the anchor's offset from it, the cap.
+        q = self.manager.resources.state.position.copy()
+        reach = []
+        for value in np.linspace(start - budget, start + budget, 17):
+            q[run.index] = value
+            reach.append(abs(float(self.host_gravity(q, self.model)[run.index])))
+        most = max(reach) + abs(run.anchor - run.gravity0) + run.cap
+        window = math.ceil(2.0 * most / kp_nominal * COUNTS_PER_RAD)
+        try:
+            rated = objects.read(position, (RATED_TORQUE, 0)) / 1000.0 or RATED_TORQUE_NM
+        except PrimeError:
+            rated = RATED_TORQUE_NM
+        limit = math.ceil(DRIVE_LIMIT_MARGIN * most / rated * 1000.0)
+
+        def wanted(snapshot: GainSnapshot) -> ErobRegisters:
+            return registers
+
+        override = _ApproachOverride(sdo, position, wanted, window, limit)
+        with override:
+            outcome = self.outcomes[joint]
+            if MAX_TORQUE in override.missing:
+                outcome.drive_torque_limit = "none: the drive has no 0x6072 (" + override.missing[MAX_TORQUE] + ")"
+            else:
+                outcome.drive_torque_limit = (f"0x6072 {override.torque_limit} per mille of {rated:g} Nm "
+                                              f"({override.torque_limit * rated / 1000.0:.2f} Nm) while it moved, "
+                                              f"then {override.extra_snapshot[MAX_TORQUE]} again")
+            yield
+
+    def _joint(self, joint: str) -> None:
+        robot, outcome = self.robot, self.outcomes[joint]
+        i = robot.index(joint)
+        spec = robot.joints[i]
+        began = self.manager.resources.state.stamp
+        try:
+            with self._moving(joint) as run:
+                start = float(self.manager.resources.state.position[i])
+                # The nearer stop first (by the prior's estimate of where the joint is).
+                here = self.description_angles(self.manager.resources.state.position)[i]
+                first = -1 if here - spec.lower <= spec.upper - here else 1
+                span = spec.upper - spec.lower
+                budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
+                a = self._segment(run, _Approach(run, first, start, budget, self.measure))
+                assert isinstance(a, _Approach) and a.stop is not None
+                position = self.manager.resources.state.position
+                backed = self._segment(run, _Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i])))
+                b = _Approach(run, -first, backed.target, budget, self.measure)
+                self._segment(run, b)
+                assert b.stop is not None
+                self._segment(run, _Move(run, start, b.unloaded(position[i])))
+                outcome.seconds = self.manager.resources.state.stamp - began
+                outcome.peak_contact_nm = max(a.peak, b.peak)
+                outcome.first_side = first
+                self._conclude(joint, run, a, b)
+            if outcome.calibration is not None:  # the joint has stopped: the loop's model may take it now
+                self._know(i, outcome.calibration)  # (direction unknown: the offset is the same either way)
+        except JointFailed as exc:
+            outcome.status, outcome.message = "failed", str(exc)
+            outcome.seconds = self.manager.resources.state.stamp - began
+        except Aborted as exc:
+            outcome.status, outcome.message = "aborted", str(exc)
+            outcome.seconds = self.manager.resources.state.stamp - began
+            raise
+
+    def _conclude(self, joint: str, run: _JointRun, a: _Approach, b: _Approach) -> None:
+        robot, outcome = self.robot, self.outcomes[joint]
+        i = robot.index(joint)
+        spec = robot.joints[i]
+        low, high = sorted((a.stop, b.stop))
+        outcome.stops = (low, high)
+        outcome.stiffness = self._stiffness(joint, run, (a, b))
+        span, described = high - low, spec.upper - spec.lower
+        if abs(span - described) > SPAN_TOLERANCE * described:
+            outcome.status = "failed"
+            outcome.message = (f"the stops are {span:.3f} rad apart, the description says {described:.3f}: something "
+                               "stopped the joint short of a stop, or this is not the joint the file says")
+            return
+        prior_direction = int(self.prior_direction[i])
+        same, flipped, by_limits = direction_from_limits(prior_direction, (low, high), spec)
+        by_gravity, gravity_text = self._gravity_verdict(joint, b, same, flipped)
+        verdicts = {v for v in (by_limits, by_gravity) if v is not None}
+        if len(verdicts) > 1:
+            outcome.status, outcome.calibration = "direction_unknown", None
+            outcome.message = f"the limits and gravity disagree about the direction ({gravity_text})"
+            return
+        sources = [name for name, v in (("limits", by_limits), ("gravity", by_gravity)) if v is not None]
+        outcome.calibration = same
+        if verdicts:
+            verdict = verdicts.pop()
+            outcome.calibration = same if verdict == 1 else flipped
+            outcome.direction_source = " and ".join(sources)
+            outcome.status = "done"
+            outcome.message = f"direction from the {outcome.direction_source}; {gravity_text}"
+        else:
+            outcome.status = "direction_unknown"
+            outcome.message = f"the physics cannot tell the direction ({gravity_text})"
+
+    def _know(self, i: int, cal: JointCalibration) -> None:
+        self.direction[i] = cal.direction
+        self.offset[i] = cal.homing_offset
+
+    def _gravity_verdict(self, joint: str, sweep: _Approach, same: JointCalibration, flipped: JointCalibration
+                         ) -> tuple[int | None, str]:
+        """Fit the effort measured along the sweep between the stops with the model's gravity under either
+        direction."""
+        if len(sweep.free) < 10:
+            return None, "too few free-motion samples"
+        i = self.robot.index(joint)
+        samples = np.array(sweep.free)
+        take = np.linspace(0, len(samples) - 1, min(GRAVITY_SAMPLES, len(samples))).astype(int)
+        samples = samples[take]
+        q = self.manager.resources.state.position.copy()
+        predicted: dict[int, np.ndarray] = {}
+        for hypothesis, cal in ((1, same), (-1, flipped)):
+            direction, offset = self.direction.copy(), self.offset.copy()
+            direction[i], offset[i] = cal.direction, cal.homing_offset
+            values = []
+            for position in samples[:, 0]:
+                q[i] = position
+                values.append(float(self.host_gravity(q, self.model, direction, offset)[i]))
+            predicted[hypothesis] = np.array(values)
+        return direction_from_gravity(samples[:, 0], samples[:, 1], predicted)
+
+    def _stiffness(self, joint: str, run: _JointRun, stops: Sequence[_Approach]) -> Stiffness | None:
+        """Realised stiffness and damping: the effort pressed into both stops against the lag and the velocity
+        command, ``effort = kp * lag + kd * speed + (one constant per stop)``, by least squares."""
+        pressed = [stop for stop in stops if len(stop.points) >= 5]
+        if not pressed:
+            return None
+        rows, efforts = [], []
+        for k, stop in enumerate(pressed):
+            for lag, speed, effort in stop.points:
+                rows.append([lag, speed, *(1.0 if m == k else 0.0 for m in range(len(pressed)))])
+                efforts.append(effort)
+        (kp, kd, *_), *_ = np.linalg.lstsq(np.array(rows), np.array(efforts), rcond=None)
+        hw = self.robot.hardware
+        if joint in self.rings:
+            registers = gains_to_registers(run.kp, run.kd, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
+                                           efficiency=hw.erob_torque_efficiency[joint])
+            kp_asked, kd_asked = registers_to_gains(registers, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint])
+            family = "erob"
+        else:
+            kp_asked, kd_asked = run.kp, run.kd
+            family = "erob" if joint in hw.erob_slaves else "sito"
+        return Stiffness(family, kp_asked, kd_asked, float(kp), float(kd), len(efforts))
+
+    # -- directions the physics could not tell --------------------------------------------------------------
+    def _ask_directions(self) -> None:
+        """Proximal first (so every axis is known when its question comes): one small motion toward the middle
+        of the range, the question, and back; or the prior's direction with ``assume_direction``."""
+        unknown = [j for j in self.joints if self.outcomes[j].status == "direction_unknown"
+                   and self.outcomes[j].calibration is not None]
+        unknown.sort(key=lambda j: (0 if j.startswith("left_") else 1, self.robot.index(j)))
+        for joint in unknown:
+            outcome = self.outcomes[joint]
+            if self.assume_direction:
+                outcome.status = "done"
+                outcome.direction_source = "assumed (--assume-direction)"
+                outcome.message = "direction as in the prior file (assumed); " + outcome.message
+                continue
+            if isinstance(self.operator, Unattended):
+                outcome.message += "; nobody to ask: give --assume-direction or run at the robot"
+                continue
+            self._ask(joint)
+            if self.aborted is not None:
+                return
+
+    def _ask(self, joint: str) -> None:
+        outcome = self.outcomes[joint]
+        i = self.robot.index(joint)
+        assert outcome.calibration is not None and outcome.stops is not None
+        try:
+            with self._moving(joint) as run:
+                start = float(self.manager.resources.state.position[i])
+                middle = 0.5 * (outcome.stops[0] + outcome.stops[1])
+                side = 1 if middle >= start else -1
+                desc = self.description_angles(self.manager.resources.state.position).copy()
+                view, where = view_of(self.model.axis(joint, desc))
+                self.operator.watch(joint)
+                moved = self._segment(run, _Move(run, start + side * PROMPT_RAD, start))
+                answer = self.operator.turned_counter_clockwise(joint, view, where)
+                self._segment(run, _Move(run, start, moved.target))
+        except JointFailed as exc:
+            outcome.status, outcome.message = "failed", f"while asking for its direction: {exc}"
+            return
+        if answer is None:
+            outcome.message += "; the direction question was not answered"
+            return
+        # With the prior's direction, a positive host motion turns the joint positive: counter-clockwise here.
+        same = answer == (side > 0)
+        if not same:
+            spec = self.robot.joints[i]
+            outcome.calibration = flip_direction(outcome.calibration, spec.lower, spec.upper)
+        outcome.status = "done"
+        outcome.direction_source = "operator"
+        outcome.message = ("direction from the operator's answer"
+                           + ("" if same else ": it is wired the other way round, the flip is written"))
+        self._know(i, outcome.calibration)
+
+
+class _ApproachOverride(GainOverride):
+    """The approach gains with a following-error window wide enough for them and the drive's own torque limit
+    lowered to what the approach needs (never raised)."""
+
+    def __init__(self, sdo: SdoClient, position: int, wanted: Callable[[GainSnapshot], ErobRegisters],
+                 window: int, torque_limit: int) -> None:
+        super().__init__(sdo, position, wanted, objects={WINDOW: window}, optional={MAX_TORQUE: torque_limit})
+        self.window = window
+        self.torque_limit = torque_limit
+
+    def __enter__(self) -> _ApproachOverride:
+        # Widen the window only, and lower the torque limit only, from what the drive holds.
+        self.snapshot = None
+        objects = self.objects
+        try:
+            found = objects.read(self.position, WINDOW)
+            self.extra[WINDOW] = max(found, self.window)
+        except PrimeError:
+            pass
+        try:
+            found = objects.read(self.position, MAX_TORQUE)
+            self.torque_limit = min(found, self.torque_limit)
+            self.optional[MAX_TORQUE] = self.torque_limit
+        except PrimeError:
+            pass
+        super().__enter__()
+        return self

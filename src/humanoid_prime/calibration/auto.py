@@ -649,7 +649,7 @@ class AutoCalibration:
     def __init__(self, manager: ControllerManager, prior: Calibration, joints: Sequence[str], *,
                  rings: Mapping[str, tuple[SdoClient, int]] | None = None, operator: Operator | None = None,
                  ticks: Ticks, speed: float = MAX_SPEED_RAD_S, assume_direction: bool = False,
-                 measure: bool = True) -> None:
+                 measure: bool = True, report: Callable[[str], None] | None = None) -> None:
         robot = manager.robot
         if not 0 < speed <= MAX_SPEED_RAD_S:
             raise PrimeError(f"speed {speed:g} rad/s: the hands-free calibration moves a joint at most "
@@ -668,6 +668,7 @@ class AutoCalibration:
         self.speed = speed
         self.assume_direction = assume_direction
         self.measure = measure
+        self.report = report or (lambda text: None)
         self.caps = {j: contact_cap(robot, j) for j in self.joints}
         self.gravity = GravityModel(robot)  # the loop's
         self.model = GravityModel(robot)  # the sequence's (the two threads never share one)
@@ -870,7 +871,7 @@ class AutoCalibration:
                         rate=self.manager.update_rate, effort_limit=spec.effort_limit)
         if run.leash <= 0:
             raise JointFailed(f"the speed {self.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
-        self.traces[joint] = run.trace
+        run.trace = self.traces.setdefault(joint, run.trace)  # the question's motion goes on the same trace
         state = self.manager.resources.state
         start = float(state.position[i])
         span = spec.upper - spec.lower
@@ -943,13 +944,17 @@ class AutoCalibration:
                 first = -1 if here - spec.lower <= spec.upper - here else 1
                 span = spec.upper - spec.lower
                 budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
+                self.report(f"{joint}: toward its {'upper' if first > 0 else 'lower'} stop "
+                            f"(at most {self.caps[joint]:.2f} Nm into it)")
                 a = self._segment(run, _Approach(run, first, start, budget, self.measure))
                 assert isinstance(a, _Approach) and a.stop is not None
+                self.report(f"{joint}: stop at {a.stop:+.4f} rad; now the other one")
                 position = self.manager.resources.state.position
                 backed = self._segment(run, _Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i])))
                 b = _Approach(run, -first, backed.target, budget, self.measure)
                 self._segment(run, b)
                 assert b.stop is not None
+                self.report(f"{joint}: stop at {b.stop:+.4f} rad; back to where it started")
                 self._segment(run, _Move(run, start, b.unloaded(position[i])))
                 outcome.seconds = self.manager.resources.state.stamp - began
                 outcome.peak_contact_nm = max(a.peak, b.peak)
@@ -964,6 +969,8 @@ class AutoCalibration:
             outcome.status, outcome.message = "aborted", str(exc)
             outcome.seconds = self.manager.resources.state.stamp - began
             raise
+        finally:
+            self.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
     def _conclude(self, joint: str, run: _JointRun, a: _Approach, b: _Approach) -> None:
         robot, outcome = self.robot, self.outcomes[joint]

@@ -44,6 +44,7 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
+from humanoid_prime.cli.calibrate_auto import add_auto_options, check_auto_options, run_auto
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.robot import Robot
@@ -95,6 +96,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_web_option(p)
     p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
     add_json_option(p)
+    add_auto_options(p)
     p.set_defaults(func=run)
 
 
@@ -111,6 +113,7 @@ PHASE_NAMES = {"ec": "the eRob arms on EtherCAT", "can": "the Sito wrists on CAN
 def run(args: argparse.Namespace) -> int:
     emulator = ring_options(args, **{"--scripted": args.scripted})
     check_web(args)
+    check_auto_options(args)
     if args.plot and args.verify:
         raise PrimeError("--plot draws a calibration run's sweeps; it does not go with --verify")
     hardware = load_hardware(args.hardware)
@@ -127,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
         from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()
+    if args.auto is not None:
+        return run_auto(args, prior, emulator)
     if args.verify:
         return _verify(args, checked, emulator)
     return _calibrate(args, prior, emulator)

@@ -211,3 +211,54 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         erob_torque_efficiency=erob_efficiency,
         contact_effort_cap=contact_effort_cap,
     )
+
+
+def write_erob_torque_efficiency(path: str | Path, values: dict[str, float]) -> None:
+    """Set ``joints.erob_torque_efficiency`` of ``values``' joints in the hardware file at ``path``, keeping every
+    other line (and comment) as it is and the joints' earlier values; atomic, and checked by loading the result
+    before it replaces the file."""
+    import tempfile
+
+    import yaml
+
+    from humanoid_prime.files import atomic_write_text
+
+    path = config_path(path)
+    current = load_hardware(path)
+    unknown = sorted(set(values) - set(current.erob_slaves))
+    if unknown:
+        raise ConfigError(path, "joints.erob_torque_efficiency", f"{', '.join(unknown)} is not an eRob joint")
+    data = load_yaml(path)
+    merged = dict((data.get("joints") or {}).get("erob_torque_efficiency") or {})
+    merged.update(values)
+    lines = path.read_text().splitlines(keepends=True)
+    top = next((k for k, line in enumerate(lines) if line.rstrip() == "joints:"), None)
+    if top is None:
+        raise ConfigError(path, "joints", "no top-level 'joints:' line to add erob_torque_efficiency under",
+                          "write the joints section in block style")
+    section = [k for k in range(top + 1, len(lines)) if lines[k].strip() and not lines[k].lstrip().startswith("#")]
+    end = next((k for k in section if not lines[k][0].isspace()), len(lines))
+    children = [k for k in section if k < end]
+    indent = (len(lines[children[0]]) - len(lines[children[0]].lstrip())) if children else 2
+    pad = " " * indent
+    block = [f"{pad}erob_torque_efficiency:\n"] + [f"{pad}  {joint}: {value!r}\n" for joint, value in merged.items()]
+    found = next((k for k in children if lines[k].startswith(f"{pad}erob_torque_efficiency:")), None)
+    if found is None:
+        lines[top + 1:top + 1] = block
+    else:
+        stop = found + 1
+        while stop < end and (not lines[stop].strip() or len(lines[stop]) - len(lines[stop].lstrip()) > indent):
+            stop += 1
+        while stop > found + 1 and not lines[stop - 1].strip():  # blank lines after the block stay
+            stop -= 1
+        lines[found:stop] = block
+    text = "".join(lines)
+    check = yaml.safe_load(text)["joints"]["erob_torque_efficiency"]
+    if check != merged:
+        raise ConfigError(path, "joints.erob_torque_efficiency", "could not be rewritten in place",
+                          "set the values by hand")
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=True) as trial:
+        trial.write(text)
+        trial.flush()
+        load_hardware(trial.name)  # the whole file still loads, or nothing is written
+    atomic_write_text(path, text)

@@ -109,7 +109,7 @@ class LockstepPrime(HardwareComponent):
                                   torque_limit=robot.joints[robot.index(j)].effort_limit)
                      for k, j in enumerate(hw.sito_joints)}
         self._sito_index = [(robot.index(j), k, motor) for k, (j, motor) in enumerate(self.sito.items())]
-        self._gains_sent: dict[int, tuple[float, float]] = {}
+        self._sent: dict[int, tuple[tuple[float, float], Command]] = {}  # per Sito joint: the last gains and command
         self._erob = np.array([i for i, _ in self._erob_index], dtype=np.intp)
         self._sito = np.array([i for i, _, _ in self._sito_index], dtype=np.intp)
         self._joint_of = {hw.erob_slaves[j]: robot.index(j) for j in hw.erob_joints}
@@ -151,6 +151,7 @@ class LockstepPrime(HardwareComponent):
             drive.state = Cia402State.SWITCH_ON_DISABLED
         for _, _, motor in self._sito_index:
             motor.receive(*pack(Disable()))
+        self._sent.clear()
         self._dirty[:] = True
 
     # ---- faults a test injects -----------------------------------------------------------------------------
@@ -209,26 +210,28 @@ class LockstepPrime(HardwareComponent):
 
     def write(self, now: float, command: CommandArrays) -> None:
         data, last = command.data, self._last_command
-        changed = np.any((data != last) & ~(np.isnan(data) & np.isnan(last)), axis=0)
+        changed = (np.any((data != last) & ~(np.isnan(data) & np.isnan(last)), axis=0) | self._dirty).tolist()
         np.copyto(last, data)
-        q_counts = np.round(self.raw_q * COUNTS_PER_RAD)
+        q_counts = np.round(self.raw_q * COUNTS_PER_RAD).tolist()
+        raw_q, raw_qd = self.raw_q.tolist(), self.raw_qd.tolist()
+        braked = self._braked
         for k, (i, drive) in enumerate(self._erob_index):
             follows = command.stiffness[i] == 0.0 and math.isfinite(command.position[i])  # moves with the joint
-            if changed[i] or self._dirty[i] or drive.braked != self._braked[k] or follows:
+            if changed[i] or drive.braked != braked[k] or follows:
                 self._erob_command(i, drive, command, int(q_counts[i]))
                 self._erob_law(k, i, drive)
-            drive.step(self.raw_q[i], self.raw_qd[i], self.period)  # its state machine and following error
-            if drive.braked != self._braked[k]:
+            drive.step(raw_q[i], raw_qd[i], self.period)  # its state machine and following error
+            if drive.braked != braked[k]:
                 self._erob_law(k, i, drive)
         for i, k, motor in self._sito_index:
-            if changed[i] or self._dirty[i]:
-                self._sito_command(i, k, motor, command)
+            if changed[i] and self._sito_command(i, k, motor, command):
                 self._sito_law(k, i, motor)
         self._dirty[:] = False
         self._step(now)
         self._sense()
-        for i, drive in self._erob_index:
-            drive.torque_nm = 0.0 if drive.braked else float(self.raw_torque[i])
+        torque = self.raw_torque.tolist()
+        for k, (i, drive) in enumerate(self._erob_index):
+            drive.torque_nm = 0.0 if braked[k] else torque[i]
 
     def _erob_law(self, k: int, i: int, drive: ErobDrive) -> None:
         """The drive's loop as a joint impedance in the true frame, with its torque limit."""
@@ -281,8 +284,8 @@ class LockstepPrime(HardwareComponent):
         drive.torque_offset.value = int(_clamp(round(d * effort / drive.rated_torque_nm * 1000.0), -limit, limit)) \
             if math.isfinite(effort) else 0
 
-    def _sito_command(self, i: int, k: int, motor: SitoMotor, command: CommandArrays) -> None:
-        """The gains (when they change) and the MIT command frames ``SitoSystem`` sends."""
+    def _sito_command(self, i: int, k: int, motor: SitoMotor, command: CommandArrays) -> bool:
+        """The gains and the MIT command frames ``SitoSystem`` sends; False when they carry what the motor holds."""
         d, o = self.host_direction[i], self.host_offset[i]
         position, velocity, effort = command.position[i], command.velocity[i], command.effort[i]
         kp, kd = command.stiffness[i], command.damping[i]
@@ -291,12 +294,16 @@ class LockstepPrime(HardwareComponent):
             position = velocity = effort = kp = kd = 0.0
         self._wrists.q[k] = self.raw_q[i]
         gains = (kp_to_firmware(kp, motor.model), kd_to_firmware(kd, motor.model))
-        if self._gains_sent.get(i) != gains:
-            motor.receive(*pack(Gains(*gains)))
-            self._gains_sent[i] = gains
         current, _ = torque_to_current_mA(d * effort, motor.model)
         speed, _ = velocity_to_counts(d * velocity)
-        motor.receive(*pack(Command(current, speed, position_to_counts(d * position + o))))
+        frame = Command(current, speed, position_to_counts(d * position + o))
+        if self._sent.get(i) == (gains, frame):
+            return False
+        if self._sent.get(i, (None,))[0] != gains:
+            motor.receive(*pack(Gains(*gains)))
+        motor.receive(*pack(frame))
+        self._sent[i] = (gains, frame)
+        return True
 
     def _step(self, now: float) -> None:
         """One control period of physics; one step at a time near a stop, recording the contact effort."""

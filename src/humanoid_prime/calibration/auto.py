@@ -37,11 +37,11 @@ runs in ``run`` and waits for ticks through ``Ticks``: the loop's, or in virtual
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -81,10 +81,14 @@ DEPTH_RAMP = (1.0, 0.1)  # the press eases from and to these shares of the leash
 DEPTH_RAMP_S = 0.6
 SPEED_RAMP_S = 0.4  # then, at the lighter press, a velocity command into the stop rises to the speed cap
 BACKOFF_RAD = 0.05
+LIFT_RAD = 0.003  # a joint moving away from a stop has left it once it moved this far
+RESTING_RAD = 0.02  # a stop found this close to where the joint started: it rested on it
+RESTING_BACKOFF_RAD = 0.15  # then it moves this far off before it approaches again
 TRAVEL_MARGIN_RAD = 0.1  # beyond the joint's range (plus 5 %), the most the target travels toward a stop
 TIME_MARGIN_S = 10.0
 SPAN_TOLERANCE = 0.05  # the stops' spacing must be the described range within this share
 HOLD_TOLERANCE_RAD = 0.05  # a held joint that moves further has been pushed: stop
+HOLD_INTEGRAL_S = 0.5  # time constant with which a per-tick hold takes up a changing load
 ANCHOR_S = 0.2  # the holding torque is averaged this long before a joint moves
 PROMPT_RAD = 0.15  # the prompted motion that asks the operator for a direction
 MIN_ASYMMETRY_RAD = 0.5  # limits whose sum is at least this tell the direction by themselves
@@ -410,10 +414,12 @@ class _Segment:
 
 
 class _Hold(_Segment):
-    """Stay at ``target`` for ``average_s`` while the effort is averaged. ``passive``: the joint stays held the way
-    the others are (its drive's own gains, or the standby gains), as before it moves."""
+    """Stay for ``average_s`` while the effort is averaged: where the joint is (``target`` None), taking the effort
+    it applies now as the feed-forward, so holding moves nothing; or at ``target``. ``passive``: the joint stays
+    held the way the others are (its drive's own gains, or the standby gains), as before it moves."""
 
-    def __init__(self, run: _JointRun, target: float, average_s: float = 0.0, *, passive: bool = False) -> None:
+    def __init__(self, run: _JointRun, target: float | None = None, average_s: float = 0.0, *,
+                 passive: bool = False) -> None:
         super().__init__(run)
         self.target = target
         self.velocity = 0.0
@@ -425,35 +431,58 @@ class _Hold(_Segment):
     def update(self, tick: _Tick) -> None:
         if self._since is None:
             self._since = tick.t
+            if self.target is None:
+                self.target = tick.q
+                self.run.correction += tick.effort - tick.ff
         self.efforts.append(tick.effort)
         self.finished = tick.t - self._since >= self.average_s
 
 
 class _Move(_Segment):
-    """Ramp the target to ``goal`` at the speed cap with the leash on; a contact on the way is a failure."""
+    """Ramp the target to ``goal`` at the speed cap with the leash on; a contact on the way is a failure.
 
-    def __init__(self, run: _JointRun, goal: float, start: float) -> None:
+    ``leaving`` a stop, its baseline is taken, and contacts watched for, once the joint has lifted off by
+    ``LIFT_RAD``: until then the effort only falls from pressing the stop, which is no contact, and the target
+    leads the joint by at most twice the leash (away from the stop: enough to lift it, never more)."""
+
+    def __init__(self, run: _JointRun, goal: float, start: float, *, leaving: bool = False) -> None:
         super().__init__(run)
         self.goal = goal
         self.target = start
         self.side = 1 if goal >= start else -1
         self.velocity = 0.0
         self.detector = _ContactDetector(run, self.side)
+        self.budget_s = abs(goal - start) / run.speed + ACCEL_S + TIME_MARGIN_S
+        self._leaving = leaving
+        self._from: float | None = None
         self._t0: float | None = None
         self._reached: float | None = None
 
     def update(self, tick: _Tick) -> None:
         run = self.run
         if self._t0 is None:
-            self._t0 = tick.t
+            self._t0, self._from = tick.t, tick.q
             self.detector.start(tick, self.target)
+        if tick.t - self._t0 > self.budget_s:
+            self.failure = f"did not reach {self.goal:+.3f} rad within {self.budget_s:.0f} s (at {tick.q:+.3f})"
+            return
+        if self._leaving and self.side * (tick.q - self._from) >= LIFT_RAD:
+            self._leaving = False
+            self.detector.start(tick, self.target)  # free of the stop: the baseline from here
         speed = run.speed * min(1.0, (tick.t - self._t0 + tick.dt) / ACCEL_S)
         remaining = self.side * (self.goal - self.target)
         step = min(speed * tick.dt, max(remaining, 0.0))
-        limited = self.detector.leash(tick, self.target + self.side * step)
-        self.velocity = self.side * speed if limited == self.target + self.side * step and remaining > 0 else 0.0
+        wanted = self.target + self.side * step
+        if self._leaving:
+            most = self.side * tick.q + 2.0 * run.leash
+            limited = wanted if self.side * wanted <= most else self.side * most
+        else:
+            limited = self.detector.leash(tick, wanted)
+        self.velocity = self.side * speed if limited == wanted and remaining > 0 else 0.0
         self.target = limited
-        if self.detector.update(tick, self.target, free=self.velocity != 0.0):
+        if self._leaving:
+            return
+        if self.detector.update(tick, self.target, free=limited == wanted):
             self.failure = f"touched something at {tick.q:+.3f} rad while moving to {self.goal:+.3f} rad"
             return
         if self._reached is None and self.side * (self.goal - self.target) <= 1e-9:
@@ -640,6 +669,7 @@ class _JointRun:
 class AutoCalibration:
     """Calibrates ``joints`` of the running broadcaster-only ``manager`` (module docstring).
 
+    ``model``: the gravity model to use (its compiled model is shared; build it before the buses run).
     ``prior``: the calibration the run's host frame is built from (its directions, offsets 0) and the one kept
     for joints not done. ``rings``: joint -> (SDO client, ring position) for every joint whose impedance is its
     drive's registers (eRob on a ring); every other joint takes gains per tick. ``config``: the controllers file
@@ -649,7 +679,8 @@ class AutoCalibration:
     def __init__(self, manager: ControllerManager, prior: Calibration, joints: Sequence[str], *,
                  rings: Mapping[str, tuple[SdoClient, int]] | None = None, operator: Operator | None = None,
                  ticks: Ticks, speed: float = MAX_SPEED_RAD_S, assume_direction: bool = False,
-                 measure: bool = True, report: Callable[[str], None] | None = None) -> None:
+                 measure: bool = True, report: Callable[[str], None] | None = None,
+                 model: GravityModel | None = None) -> None:
         robot = manager.robot
         if not 0 < speed <= MAX_SPEED_RAD_S:
             raise PrimeError(f"speed {speed:g} rad/s: the hands-free calibration moves a joint at most "
@@ -670,8 +701,8 @@ class AutoCalibration:
         self.measure = measure
         self.report = report or (lambda text: None)
         self.caps = {j: contact_cap(robot, j) for j in self.joints}
-        self.gravity = GravityModel(robot)  # the loop's
-        self.model = GravityModel(robot)  # the sequence's (the two threads never share one)
+        self.gravity = model or GravityModel(robot)  # the loop's
+        self.model = GravityModel(robot, self.gravity.model)  # the sequence's (the threads never share data)
         self.hold_gains = manager.config.mode_gains()[Mode.STANDBY]
         n = robot.n
         self.prior_direction = prior.direction_array(robot.names)
@@ -679,7 +710,12 @@ class AutoCalibration:
         self.direction = self.prior_direction.copy()  # best knowledge: the prior, the new values where done
         self.offset = self.prior_offset.copy()
         self.per_tick = np.array([j not in self.rings for j in robot.names])
-        self.hold = np.full(n, np.nan)
+        self.hold = np.full(n, np.nan)  # where each joint is held (NaN until the run's first tick)
+        # A per-tick joint holds with the effort it applied when its hold began plus what a slow integral of its sag
+        # adds since (as the arm moves, gravity on it changes): no push where it rests, no model needed.
+        self.hold_effort = np.zeros(n)
+        self.effort_limit = robot.effort_limit
+        self._capture: set[int] = set()  # joints whose hold is taken afresh at the next tick
         self.outcomes: dict[str, JointOutcome] = {
             j: JointOutcome(j, "not_reached", prior=prior.joints[j], cap_nm=self.caps[j]) for j in self.joints}
         self.traces: dict[str, Trace] = {}
@@ -739,6 +775,14 @@ class AutoCalibration:
         t = msg.stamp
         dt = 1.0 / self.manager.update_rate if self._last_t is None else max(t - self._last_t, 1e-6)
         self._last_t = t
+        gravity = self.host_gravity(q)
+        if not np.isfinite(self.hold).any():  # the first tick of the run: hold every joint where it is now
+            self._capture.update(range(self.robot.n))
+        if self._capture:
+            taken = list(self._capture)
+            self._capture.clear()
+            self.hold[taken] = q[taken]
+            self.hold_effort[taken] = state.effort[taken]
         if self._abort_request is not None and self.aborted is None:
             self.aborted = self._abort_request
         if self.aborted is None:
@@ -758,12 +802,14 @@ class AutoCalibration:
                 k = int(np.argmax(drift))
                 self.aborted = (f"{self.robot.names[k]} moved {drift[k]:.3f} rad while it was held (pushed, or "
                                 "its drive let go)")
-        gravity = self.host_gravity(q)
         kp, kd = self.hold_gains
         hold = held & self.per_tick
+        sag = np.where(hold, self.hold - q, 0.0)
+        self.hold_effort += min(1.0, dt / HOLD_INTEGRAL_S) * kp * sag
+        np.clip(self.hold_effort, -self.effort_limit, self.effort_limit, out=self.hold_effort)
         command.position[hold] = self.hold[hold]
         command.velocity[hold] = 0.0
-        command.effort[hold] = gravity[hold]
+        command.effort[hold] = self.hold_effort[hold]
         command.stiffness[hold] = kp
         command.damping[hold] = kd
         release = ~self.per_tick  # drives holding on their own gains: no command
@@ -777,10 +823,12 @@ class AutoCalibration:
         ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction
         ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
         if self.aborted is not None and not isinstance(segment, _Hold):
-            segment = moving.segment = _Hold(moving, float(q[i]))  # stop here, at once
+            segment = moving.segment = _Hold(moving)  # stop here, at once
         if segment is not None and not segment.finished and segment.failure is None:
             segment.update(_Tick(t, dt, float(q[i]), float(state.velocity[i]), float(state.effort[i]), ff))
-        if not active or segment is None:
+            ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction  # what the update taught it
+            ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
+        if not active or segment is None or segment.target is None:
             return
         low, high = moving.bounds
         command.position[i] = min(max(segment.target, low), high)
@@ -821,10 +869,8 @@ class AutoCalibration:
         errors = self._errors()
         if errors:
             raise PrimeError("the robot reports problems; nothing was moved: " + "; ".join(errors))
-        state = self.manager.resources.state
-        self.hold[:] = state.position
         self._running = True
-        self._wait(lambda: True)  # one tick: the per-tick joints hold from here on
+        self._wait(lambda: True)  # one tick: the joints hold from here on, where that tick found them
 
     def _finish(self) -> None:
         self._running = False
@@ -849,7 +895,7 @@ class AutoCalibration:
                 joints[joint] = outcome.calibration
         return AutoResult(Calibration(joints), self.outcomes, self.traces, self.joints, self.aborted, self.robot)
 
-    @contextmanager
+    @contextlib.contextmanager
     def _moving(self, joint: str) -> Iterator[_JointRun]:
         """``joint`` anchored where it is (its holding effort measured), on its approach impedance, for the
         block; afterwards anchored where it ended, on the impedance it had, and held there."""
@@ -886,14 +932,21 @@ class AutoCalibration:
             run.anchor = float(np.mean(hold.efforts))
             run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
             with self._impedance(joint, run, registers, ring, start, budget):
-                yield run
-                end = _Hold(run, run.segment.target if run.segment is not None else start, ANCHOR_S)
-                self._segment(run, end)
+                try:
+                    yield run
+                finally:  # however it ended: held where it is, with the effort it applies, before the gains go
+                    if self.aborted is None:
+                        self._segment(run, _Hold(run, None, ANCHOR_S))
         finally:
-            self.hold[i] = float(state.position[i])
+            self._capture.add(i)  # held from here where it ended, with the effort it applies there
+            with contextlib.suppress(Aborted):
+                self.ticks.until(lambda: i not in self._capture)
+            if i in self._capture:  # no tick came: take it here
+                self._capture.discard(i)
+                self.hold[i], self.hold_effort[i] = float(state.position[i]), float(state.effort[i])
             self.moving = None
 
-    @contextmanager
+    @contextlib.contextmanager
     def _impedance(self, joint: str, run: _JointRun, registers: ErobRegisters | None,
                    ring: tuple[SdoClient, int] | None, start: float, budget: float) -> Iterator[None]:
         if ring is None or registers is None:
@@ -948,14 +1001,24 @@ class AutoCalibration:
                             f"(at most {self.caps[joint]:.2f} Nm into it)")
                 a = self._segment(run, _Approach(run, first, start, budget, self.measure))
                 assert isinstance(a, _Approach) and a.stop is not None
+                if abs(a.stop - start) < RESTING_RAD:
+                    # It rested on that stop: its weight there was the stop's, not in its feed-forward. Off the stop
+                    # (where free motion teaches the feed-forward what gravity asks) and onto it again.
+                    self.report(f"{joint}: it rested on that stop; again, from {RESTING_BACKOFF_RAD:g} rad off it")
+                    position = self.manager.resources.state.position
+                    off = self._segment(run, _Move(run, a.stop - first * RESTING_BACKOFF_RAD, a.unloaded(position[i]),
+                                                   leaving=True))
+                    a = self._segment(run, _Approach(run, first, off.target, budget, self.measure))
+                    assert isinstance(a, _Approach) and a.stop is not None
                 self.report(f"{joint}: stop at {a.stop:+.4f} rad; now the other one")
                 position = self.manager.resources.state.position
-                backed = self._segment(run, _Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i])))
+                backed = self._segment(run, _Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i]),
+                                                  leaving=True))
                 b = _Approach(run, -first, backed.target, budget, self.measure)
                 self._segment(run, b)
                 assert b.stop is not None
                 self.report(f"{joint}: stop at {b.stop:+.4f} rad; back to where it started")
-                self._segment(run, _Move(run, start, b.unloaded(position[i])))
+                self._segment(run, _Move(run, start, b.unloaded(position[i]), leaving=True))
                 outcome.seconds = self.manager.resources.state.stamp - began
                 outcome.peak_contact_nm = max(a.peak, b.peak)
                 outcome.first_side = first
@@ -969,6 +1032,11 @@ class AutoCalibration:
             outcome.status, outcome.message = "aborted", str(exc)
             outcome.seconds = self.manager.resources.state.stamp - began
             raise
+        except PrimeError as exc:  # a drive setting that could not be made or restored: nothing more moves
+            outcome.status, outcome.message = "aborted", str(exc)
+            outcome.seconds = self.manager.resources.state.stamp - began
+            self.abort(str(exc))
+            raise Aborted(str(exc)) from None
         finally:
             self.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
@@ -1087,12 +1155,19 @@ class AutoCalibration:
                 desc = self.description_angles(self.manager.resources.state.position).copy()
                 view, where = view_of(self.model.axis(joint, desc))
                 self.operator.watch(joint)
-                moved = self._segment(run, _Move(run, start + side * PROMPT_RAD, start))
+                moved = self._segment(run, _Move(run, start + side * PROMPT_RAD, start, leaving=True))  # it may rest
                 answer = self.operator.turned_counter_clockwise(joint, view, where)
                 self._segment(run, _Move(run, start, moved.target))
         except JointFailed as exc:
             outcome.status, outcome.message = "failed", f"while asking for its direction: {exc}"
             return
+        except Aborted as exc:
+            outcome.status, outcome.message = "aborted", f"while asking for its direction: {exc}"
+            raise
+        except PrimeError as exc:
+            outcome.status, outcome.message = "aborted", f"while asking for its direction: {exc}"
+            self.abort(str(exc))
+            raise Aborted(str(exc)) from None
         if answer is None:
             outcome.message += "; the direction question was not answered"
             return

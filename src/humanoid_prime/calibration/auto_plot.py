@@ -34,7 +34,7 @@ def plot_auto(path: str | Path, result: AutoResult) -> None:
         effort = ax.twinx()
         effort.plot(t, trace.effort, color="tab:orange", linewidth=0.8, label="effort")
         effort.set_ylabel("Nm")
-        for when, q in trace.contacts:
+        for when, _ in trace.contacts:
             ax.axvline(when - t0, color="tab:red", linewidth=0.8, alpha=0.6)
         for when, q in trace.stops:
             ax.plot([when - t0], [q], marker="o", color="tab:red", markersize=6)

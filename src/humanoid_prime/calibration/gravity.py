@@ -15,9 +15,12 @@ from humanoid_prime.drivers.mujoco.system import load_model
 
 
 class GravityModel:
-    def __init__(self, robot: Robot) -> None:
+    """``model``: a compiled model of ``robot`` to share (compiling one takes a while; a running loop's keeper
+    should not wait for it); default: compile the package's."""
+
+    def __init__(self, robot: Robot, model: mujoco.MjModel | None = None) -> None:
         self.robot = robot
-        self.model = load_model(robot)
+        self.model = model if model is not None else load_model(robot)
         self.data = mujoco.MjData(self.model)
         ids = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, name) for name in robot.names]
         self.joint_ids = np.array(ids, dtype=np.intp)

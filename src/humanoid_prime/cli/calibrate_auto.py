@@ -35,6 +35,7 @@ from humanoid_prime.calibration.auto import (
     LoopTicks,
     SteppedTicks,
 )
+from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import print_json, real
@@ -130,15 +131,18 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
                           initial_pose=START_POSE)
     manager = ControllerManager(robot, [system], config, update_rate=config.update_rate, broadcaster_only=True)
     manager.start(now=system.sim_time)
+    model = GravityModel(robot)
     try:
+        _settle_held(manager, system, model)
         def angles() -> dict[str, float]:
             return {j: float(system.data.qpos[system.qpos_adr[k]]) for k, j in enumerate(robot.names)}
 
         # The simulated joints are in the model's own frame: the run's prior is the identity.
         identity = Calibration({j: JointCalibration() for j in prior.joints})
         auto = AutoCalibration(manager, identity, joints, ticks=SteppedTicks(lambda: manager.tick(now=system.sim_time)),
-                               operator=WatchingOperator(robot, angles), speed=args.speed or MAX_SPEED_RAD_S,
-                               assume_direction=args.assume_direction, report=None if args.json else console.print)
+                               operator=WatchingOperator(robot, angles, model), speed=args.speed or MAX_SPEED_RAD_S,
+                               assume_direction=args.assume_direction, report=None if args.json else console.print,
+                               model=model)
         auto.attach()
         try:
             return auto.run()
@@ -146,6 +150,23 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
             auto.detach()
     finally:
         manager.shutdown()
+
+
+def _settle_held(manager: Any, system: Any, model: GravityModel, seconds: float = 1.0) -> None:
+    """The simulated arms held where they start, on the standby gains and the model's gravity, until they rest:
+    as a robot's arms are when a calibration begins (its drives hold them)."""
+    from humanoid_prime.modes import Mode
+
+    kp, kd = manager.config.mode_gains()[Mode.STANDBY]
+    state, command = manager.resources.state, manager.resources.command
+    here = state.position.copy()
+    for _ in range(round(seconds * manager.update_rate)):
+        command.position[:] = here
+        command.velocity[:] = 0.0
+        command.effort[:] = model.torques(state.position)
+        command.stiffness[:] = kp
+        command.damping[:] = kd
+        manager.tick(now=system.sim_time)
 
 
 def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any], console: Console) -> AutoResult:
@@ -174,6 +195,7 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         if virtual is None and not sys.stdin.isatty():
             raise PrimeError("--auto on the robot waits for the operator at each joint: run it at a terminal at the "
                              "robot (stdin is not one)")
+        model = GravityModel(robot)  # compiled before the buses run: their keeper must never wait for it
         session = open_session(plan, stack)
         if args.record is not None:
             from humanoid_prime.record.mcap import Recorder
@@ -191,12 +213,12 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         if virtual is not None:
             from humanoid_prime.virtual.operator import WatchingOperator
 
-            operator: Any = WatchingOperator(robot, lambda: virtual.control.call("joints"))
+            operator: Any = WatchingOperator(robot, lambda: virtual.control.call("joints"), model)
         else:
             operator = stack.enter_context(TerminalOperator(console))
         auto = AutoCalibration(manager, prior, joints, rings=rings, operator=operator, ticks=ticks,
                                speed=args.speed or MAX_SPEED_RAD_S, assume_direction=args.assume_direction,
-                               report=report)
+                               report=report, model=model)
         if isinstance(operator, TerminalOperator):
             operator.on_key = auto.abort
         auto.attach()

@@ -26,15 +26,19 @@ contact-effort cap is checked against.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import mujoco
 import numpy as np
 
+from humanoid_prime.calibration.auto import AutoCalibration, AutoResult, SteppedTicks
+from humanoid_prime.calibration.workflow import identity_from
 from humanoid_prime.config.calibration import Calibration
+from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.drivers.erob import objects as obj
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, MODE_CSP
 from humanoid_prime.drivers.ethercat.master import SdoError
@@ -55,12 +59,15 @@ from humanoid_prime.drivers.sito.protocol import (
     torque_to_current_mA,
     velocity_to_counts,
 )
+from humanoid_prime.sim.demo import START_POSE
+from humanoid_prime.virtual.operator import WatchingOperator
 from humanoid_prime.virtual.plant import Plant
 from humanoid_prime.virtual.ring.drive import Cia402State, ErobDrive
 from humanoid_prime.virtual.ring.od import SdoAbort
 from humanoid_prime.virtual.sito import SitoMotor
 
 NEAR_STOP_RAD = 0.02
+SETTLE_S = 1.0  # after activation, before a calibration starts: the arms sag onto their drives' factory gains
 BRAKE_KP = 2000.0  # Nm/rad: a closed holding brake
 BRAKE_KD = 20.0
 _I32 = (-0x80000000, 0x7FFFFFFF)
@@ -337,3 +344,35 @@ class LockstepPrime(HardwareComponent):
     def true_positions(self) -> dict[str, float]:
         """Every joint's true angle (description frame)."""
         return {j: float(self.true_state.position[i]) for i, j in enumerate(self.robot.names)}
+
+
+def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibration, truth: Calibration,
+                          joints: Sequence[str], *, physics_rate: float = 250.0,
+                          initial_pose: Mapping[str, float] | None = None, assume_direction: bool = False,
+                          each_tick: Callable[[LockstepPrime, AutoCalibration], None] | None = None,
+                          ) -> tuple[AutoResult, LockstepPrime]:
+    """``prime calibrate --auto`` of ``joints`` on a ``LockstepPrime`` with the virtual robot's ``truth``, in
+    virtual time: the host frame is ``prior``'s (its directions, offsets 0), the operator watches the virtual
+    robot, ``each_tick`` runs after every tick (a test injecting a fault). Returns the result and the rig, shut
+    down (drives disabled, wrists off)."""
+    rig = LockstepPrime(robot, identity_from(prior), truth, update_rate=config.update_rate,
+                        physics_rate=physics_rate, initial_pose=START_POSE if initial_pose is None else initial_pose)
+    manager = ControllerManager(robot, [rig], config, update_rate=config.update_rate, broadcaster_only=True)
+    manager.start(now=rig.sim_time)
+    try:
+        auto: AutoCalibration | None = None
+
+        def step() -> None:
+            manager.tick(now=rig.sim_time)
+            if each_tick is not None and auto is not None:
+                each_tick(rig, auto)
+
+        for _ in range(round(SETTLE_S * config.update_rate)):  # the arms settle on their drives' own gains first
+            manager.tick(now=rig.sim_time)
+        rings = {j: (rig, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints}
+        auto = AutoCalibration(manager, prior, joints, rings=rings, ticks=SteppedTicks(step),
+                               operator=WatchingOperator(robot, rig.true_positions), assume_direction=assume_direction)
+        auto.attach()
+        return auto.run(), rig
+    finally:
+        manager.shutdown()

@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.limp import DampedLimp
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.erob.gains import vel_reg_exact
@@ -145,12 +146,11 @@ class WatchingOperator:
     move, and answers the direction question as a person watching the robot does, from the joint's true motion
     (``true_angles()``: every joint's true angle, description frame) seen along the axis the question names."""
 
-    def __init__(self, robot: Robot, true_angles: Callable[[], Mapping[str, float]]) -> None:
-        from humanoid_prime.calibration.gravity import GravityModel
-
+    def __init__(self, robot: Robot, true_angles: Callable[[], Mapping[str, float]],
+                 model: GravityModel | None = None) -> None:
         self.robot = robot
         self.true_angles = true_angles
-        self.model = GravityModel(robot)
+        self.model = GravityModel(robot, model.model if model is not None else None)
         self._before: Mapping[str, float] = {}
 
     def begin(self, joints: Sequence[str]) -> None:

@@ -93,7 +93,9 @@ ANCHOR_S = 0.2  # the holding torque is averaged this long before a joint moves
 PROMPT_RAD = 0.15  # the prompted motion that asks the operator for a direction
 MIN_ASYMMETRY_RAD = 0.5  # limits whose sum is at least this tell the direction by themselves
 GRAVITY_MIN_SEPARATION_NM = 0.15  # the two directions' gravity curves must differ this much (RMS) to tell
-GRAVITY_RESIDUAL_RATIO = 2.0  # and the wrong one must fit this much worse
+GRAVITY_RESIDUAL_RATIO = 2.0  # and the wrong one must fit this much worse,
+GRAVITY_SCALE = (0.6, 1.6)  # the right one's amplitude near the model's,
+GRAVITY_UNEXPLAINED = 0.3  # leaving at most this share of the measured spread unexplained
 GRAVITY_SAMPLES = 60
 TICK_TIMEOUT_S = 5.0  # wall seconds without a control tick: the loop is gone
 DRIVE_LIMIT_MARGIN = 1.25  # the drive's own torque limit over the most the approach asks of it
@@ -364,28 +366,42 @@ def direction_from_limits(prior_direction: int, stops: tuple[float, float], spec
 def direction_from_gravity(samples: np.ndarray, measured: np.ndarray, predicted: Mapping[int, np.ndarray]
                            ) -> tuple[int | None, str]:
     """Which hypothesis (+1 the prior's direction, -1 flipped) the effort measured along a sweep fits: each
-    prediction is fitted with a scale and an offset (friction); None when the two predictions hardly differ or
-    neither fits clearly better. ``samples`` only sizes the fit."""
+    prediction is fitted with a scale and an offset (friction). A verdict needs the two predictions to differ,
+    the better one to fit well (its scale near 1, most of the measured variation explained: the model's
+    configuration of the other joints is right) and the other to fit clearly worse; otherwise None.
+    ``samples`` only sizes the fit."""
     if samples.size < 10:
         return None, "too few free-motion samples"
     plus, minus = predicted[1], predicted[-1]
     separation = float(np.std((plus - plus.mean()) - (minus - minus.mean())))
     if separation < GRAVITY_MIN_SEPARATION_NM:
         return None, f"gravity cannot tell (the two directions differ by {separation:.3f} Nm RMS along the sweep)"
-    residuals = {}
+    residuals, good = {}, {}
+    spread = float(np.std(measured))
     for hypothesis, prediction in predicted.items():
         design = np.stack([prediction, np.ones_like(prediction)], axis=1)
-        (scale, _), *_ = np.linalg.lstsq(design, measured, rcond=None)
-        fitted = design @ np.linalg.lstsq(design, measured, rcond=None)[0]
-        residual = float(np.sqrt(np.mean((measured - fitted) ** 2)))
-        residuals[hypothesis] = residual if scale > 0 else math.inf
+        solution, *_ = np.linalg.lstsq(design, measured, rcond=None)
+        residual = float(np.sqrt(np.mean((measured - design @ solution) ** 2)))
+        residuals[hypothesis] = residual
+        good[hypothesis] = (GRAVITY_SCALE[0] <= solution[0] <= GRAVITY_SCALE[1]
+                            and residual <= GRAVITY_UNEXPLAINED * spread)
     best = min(residuals, key=residuals.__getitem__)
-    other = residuals[-best]
-    if other < GRAVITY_RESIDUAL_RATIO * max(residuals[best], 1e-3):
-        return None, (f"gravity unclear (residuals {residuals[1]:.3f} and {residuals[-1]:.3f} Nm for the prior and "
-                      "the flipped direction)")
-    return best, f"gravity fits {'the prior' if best == 1 else 'the flipped'} direction ({residuals[best]:.3f} " \
-                 f"vs {other:.3f} Nm RMS)"
+    text = f"{residuals[1]:.3f} and {residuals[-1]:.3f} Nm RMS for the prior and the flipped direction"
+    if not good[best] or residuals[-best] < GRAVITY_RESIDUAL_RATIO * max(residuals[best], 1e-3):
+        return None, f"gravity unclear ({text})"
+    return best, f"gravity fits {'the prior' if best == 1 else 'the flipped'} direction ({text})"
+
+
+@dataclass
+class _Sweep:
+    """What a joint's stops and its sweep between them left for its direction: the calibration either way, the
+    limits' verdict, where every joint was meanwhile (host frame) and (position, effort) in free motion."""
+
+    same: JointCalibration
+    flipped: JointCalibration
+    by_limits: int | None
+    config: np.ndarray
+    samples: np.ndarray
 
 
 # ---- the per-tick motion ------------------------------------------------------------------------------------
@@ -443,7 +459,8 @@ class _Move(_Segment):
 
     ``leaving`` a stop, its baseline is taken, and contacts watched for, once the joint has lifted off by
     ``LIFT_RAD``: until then the effort only falls from pressing the stop, which is no contact, and the target
-    leads the joint by at most twice the leash (away from the stop: enough to lift it, never more)."""
+    leads the joint (away from the stop) by at most twice the leash and what lifts its weight off a stop it rests
+    on, never more."""
 
     def __init__(self, run: _JointRun, goal: float, start: float, *, leaving: bool = False) -> None:
         super().__init__(run)
@@ -474,7 +491,7 @@ class _Move(_Segment):
         step = min(speed * tick.dt, max(remaining, 0.0))
         wanted = self.target + self.side * step
         if self._leaving:
-            most = self.side * tick.q + 2.0 * run.leash
+            most = self.side * tick.q + 2.0 * run.leash + run.weight / run.kp_leash  # it may have to lift its weight
             limited = wanted if self.side * wanted <= most else self.side * most
         else:
             limited = self.detector.leash(tick, wanted)
@@ -655,6 +672,7 @@ class _JointRun:
         self.anchor = 0.0  # holding effort measured before moving
         self.gravity0 = 0.0  # the model's gravity torque there (host frame)
         self.correction = 0.0  # what free motion has taught the feed-forward (Nm)
+        self.weight = 0.0  # the most gravity the model puts on the joint over its travel (Nm)
         self.bounds = (-math.inf, math.inf)  # where the target may go (the travel budget around the start)
 
     def adapt(self, tick: _Tick, target: float) -> None:
@@ -719,6 +737,7 @@ class AutoCalibration:
         self.outcomes: dict[str, JointOutcome] = {
             j: JointOutcome(j, "not_reached", prior=prior.joints[j], cap_nm=self.caps[j]) for j in self.joints}
         self.traces: dict[str, Trace] = {}
+        self._sweeps: dict[str, _Sweep] = {}
         self.moving: _JointRun | None = None
         self.aborted: str | None = None
         self._abort_request: str | None = None
@@ -857,6 +876,7 @@ class AutoCalibration:
                     continue
                 self._joint(joint)
             if self.aborted is None:
+                self._resolve_directions()
                 self._ask_directions()
         except Aborted as exc:
             if self.aborted is None:
@@ -923,6 +943,12 @@ class AutoCalibration:
         span = spec.upper - spec.lower
         budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
         run.bounds = (start - budget, start + budget)
+        q = state.position.copy()
+        reach = []  # the model's gravity on the joint over its travel: how heavy it can be
+        for value in np.linspace(start - budget, start + budget, 17):
+            q[i] = value
+            reach.append(abs(float(self.host_gravity(q, self.model)[i])))
+        run.weight = max(reach)
         hold = _Hold(run, start, ANCHOR_S, passive=True)
         run.segment = hold
         run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
@@ -957,12 +983,7 @@ class AutoCalibration:
         kp_nominal, _ = registers_to_gains(registers, kt=self.robot.hardware.erob_kt[joint],
                                            gear=self.robot.hardware.erob_gear[joint])
         # The most effort the approach asks: the gravity along the travel, the anchor's offset from it, the cap.
-        q = self.manager.resources.state.position.copy()
-        reach = []
-        for value in np.linspace(start - budget, start + budget, 17):
-            q[run.index] = value
-            reach.append(abs(float(self.host_gravity(q, self.model)[run.index])))
-        most = max(reach) + abs(run.anchor - run.gravity0) + run.cap
+        most = run.weight + abs(run.anchor - run.gravity0) + run.cap
         window = math.ceil(2.0 * most / kp_nominal * COUNTS_PER_RAD)
         try:
             rated = objects.read(position, (RATED_TORQUE, 0)) / 1000.0 or RATED_TORQUE_NM
@@ -1024,7 +1045,7 @@ class AutoCalibration:
                 outcome.first_side = first
                 self._conclude(joint, run, a, b)
             if outcome.calibration is not None:  # the joint has stopped: the loop's model may take it now
-                self._know(i, outcome.calibration)  # (direction unknown: the offset is the same either way)
+                self._know(i, outcome.calibration)  # (its direction may still change at the end)
         except JointFailed as exc:
             outcome.status, outcome.message = "failed", str(exc)
             outcome.seconds = self.manager.resources.state.stamp - began
@@ -1053,43 +1074,56 @@ class AutoCalibration:
             outcome.message = (f"the stops are {span:.3f} rad apart, the description says {described:.3f}: something "
                                "stopped the joint short of a stop, or this is not the joint the file says")
             return
-        prior_direction = int(self.prior_direction[i])
-        same, flipped, by_limits = direction_from_limits(prior_direction, (low, high), spec)
-        by_gravity, gravity_text = self._gravity_verdict(joint, b, same, flipped)
-        verdicts = {v for v in (by_limits, by_gravity) if v is not None}
-        if len(verdicts) > 1:
-            outcome.status, outcome.calibration = "direction_unknown", None
-            outcome.message = f"the limits and gravity disagree about the direction ({gravity_text})"
-            return
-        sources = [name for name, v in (("limits", by_limits), ("gravity", by_gravity)) if v is not None]
-        outcome.calibration = same
-        if verdicts:
-            verdict = verdicts.pop()
-            outcome.calibration = same if verdict == 1 else flipped
-            outcome.direction_source = " and ".join(sources)
-            outcome.status = "done"
-            outcome.message = f"direction from the {outcome.direction_source}; {gravity_text}"
-        else:
-            outcome.status = "direction_unknown"
-            outcome.message = f"the physics cannot tell the direction ({gravity_text})"
+        same, flipped, by_limits = direction_from_limits(int(self.prior_direction[i]), (low, high), spec)
+        # The direction is settled at the end, proximal first, when every other joint's calibration is known and
+        # the model's gravity along this sweep can be trusted; meanwhile the limits' verdict, or the prior's.
+        outcome.status = "direction_unknown"
+        outcome.calibration = flipped if by_limits == -1 else same
+        self._sweeps[joint] = _Sweep(same, flipped, by_limits, self.manager.resources.state.position.copy(),
+                                     np.array(b.free))
 
     def _know(self, i: int, cal: JointCalibration) -> None:
         self.direction[i] = cal.direction
         self.offset[i] = cal.homing_offset
 
-    def _gravity_verdict(self, joint: str, sweep: _Approach, same: JointCalibration, flipped: JointCalibration
-                         ) -> tuple[int | None, str]:
+    def _resolve_directions(self) -> None:
+        """Proximal first: each measured joint's direction from its limits and from the gravity measured along
+        its sweep, fitted with the model in the configuration the other joints had then (their calibration known
+        by now, the proximal ones' directions settled just before)."""
+        for joint in sorted(self._sweeps, key=self._proximal_first):
+            outcome, sweep = self.outcomes[joint], self._sweeps[joint]
+            by_gravity, gravity_text = self._gravity_verdict(joint, sweep)
+            verdicts = {v for v in (sweep.by_limits, by_gravity) if v is not None}
+            if len(verdicts) > 1:
+                outcome.message = f"the limits and gravity disagree about the direction ({gravity_text})"
+                outcome.calibration = sweep.same
+                continue
+            if not verdicts:
+                outcome.message = f"the physics cannot tell the direction ({gravity_text})"
+                continue
+            verdict = verdicts.pop()
+            outcome.calibration = sweep.same if verdict == 1 else sweep.flipped
+            outcome.direction_source = " and ".join(name for name, v in (("limits", sweep.by_limits),
+                                                                          ("gravity", by_gravity)) if v is not None)
+            outcome.status = "done"
+            outcome.message = f"direction from the {outcome.direction_source}; {gravity_text}"
+            self._know(self.robot.index(joint), outcome.calibration)
+
+    def _proximal_first(self, joint: str) -> tuple[int, int]:
+        return (0 if joint.startswith("left_") else 1, self.robot.index(joint))
+
+    def _gravity_verdict(self, joint: str, sweep: _Sweep) -> tuple[int | None, str]:
         """Fit the effort measured along the sweep between the stops with the model's gravity under either
         direction."""
-        if len(sweep.free) < 10:
+        if len(sweep.samples) < 10:
             return None, "too few free-motion samples"
         i = self.robot.index(joint)
-        samples = np.array(sweep.free)
+        samples = sweep.samples
         take = np.linspace(0, len(samples) - 1, min(GRAVITY_SAMPLES, len(samples))).astype(int)
         samples = samples[take]
-        q = self.manager.resources.state.position.copy()
+        q = sweep.config.copy()
         predicted: dict[int, np.ndarray] = {}
-        for hypothesis, cal in ((1, same), (-1, flipped)):
+        for hypothesis, cal in ((1, sweep.same), (-1, sweep.flipped)):
             direction, offset = self.direction.copy(), self.offset.copy()
             direction[i], offset[i] = cal.direction, cal.homing_offset
             values = []
@@ -1128,9 +1162,14 @@ class AutoCalibration:
         of the range, the question, and back; or the prior's direction with ``assume_direction``."""
         unknown = [j for j in self.joints if self.outcomes[j].status == "direction_unknown"
                    and self.outcomes[j].calibration is not None]
-        unknown.sort(key=lambda j: (0 if j.startswith("left_") else 1, self.robot.index(j)))
+        unknown.sort(key=self._proximal_first)
         for joint in unknown:
             outcome = self.outcomes[joint]
+            waiting = [j for j in self.joints if self._proximal_first(j)[0] == self._proximal_first(joint)[0]
+                       and self.robot.index(j) < self.robot.index(joint) and not self.outcomes[j].done]
+            if waiting and not self.assume_direction:  # its axis in the world depends on theirs
+                outcome.message += f"; not asked: {', '.join(waiting)} must be calibrated first"
+                continue
             if self.assume_direction:
                 outcome.status = "done"
                 outcome.direction_source = "assumed (--assume-direction)"

@@ -97,6 +97,7 @@ GRAVITY_RESIDUAL_RATIO = 2.0  # and the wrong one must fit this much worse,
 GRAVITY_SCALE = (0.6, 1.6)  # the right one's amplitude near the model's,
 GRAVITY_UNEXPLAINED = 0.3  # leaving at most this share of the measured spread unexplained
 GRAVITY_SAMPLES = 60
+GRAVITY_STEP_RAD = 0.005  # the loop evaluates the model's gravity again once a joint has moved this far
 TICK_TIMEOUT_S = 5.0  # wall seconds without a control tick: the loop is gone
 DRIVE_LIMIT_MARGIN = 1.25  # the drive's own torque limit over the most the approach asks of it
 
@@ -744,6 +745,7 @@ class AutoCalibration:
         self._status: SafetyStatus | None = None
         self._running = False
         self._last_t: float | None = None
+        self._gravity, self._gravity_at = np.zeros(n), None
 
     # -- the loop side --------------------------------------------------------------------------------------
     def attach(self) -> None:
@@ -782,7 +784,9 @@ class AutoCalibration:
         """The model's holding torque of every joint at host-frame ``q``, in the host frame (``model``: the loop's
         unless given; the calibration: the best known unless given)."""
         direction = self.direction if direction is None else direction
-        torques = (model or self.gravity).torques(self.description_angles(q, direction, offset))
+        angles = self.description_angles(q, direction, offset)
+        angles[~np.isfinite(angles)] = 0.0  # a joint off this run's buses: taken as hanging
+        torques = (model or self.gravity).torques(angles)
         return self.prior_direction * direction * torques
 
     def _on_joint_states(self, msg: JointState) -> None:
@@ -794,7 +798,6 @@ class AutoCalibration:
         t = msg.stamp
         dt = 1.0 / self.manager.update_rate if self._last_t is None else max(t - self._last_t, 1e-6)
         self._last_t = t
-        gravity = self.host_gravity(q)
         if not np.isfinite(self.hold).any():  # the first tick of the run: hold every joint where it is now
             self._capture.update(range(self.robot.n))
         if self._capture:
@@ -839,6 +842,9 @@ class AutoCalibration:
         if moving is None:
             return
         i = moving.index
+        if self._gravity_at is None or np.abs(q - self._gravity_at).max() > GRAVITY_STEP_RAD:
+            self._gravity, self._gravity_at = self.host_gravity(q), q.copy()  # the model, when it has changed
+        gravity = self._gravity
         ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction
         ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
         if self.aborted is not None and not isinstance(segment, _Hold):
@@ -1059,7 +1065,11 @@ class AutoCalibration:
             self.abort(str(exc))
             raise Aborted(str(exc)) from None
         finally:
-            self.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
+            if outcome.status == "direction_unknown":  # measured; its direction is settled at the end
+                low, high = outcome.stops or (math.nan, math.nan)
+                self.report(f"{joint}: stops {high - low:.3f} rad apart; its direction is settled at the end")
+            else:
+                self.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
     def _conclude(self, joint: str, run: _JointRun, a: _Approach, b: _Approach) -> None:
         robot, outcome = self.robot, self.outcomes[joint]
@@ -1085,12 +1095,15 @@ class AutoCalibration:
     def _know(self, i: int, cal: JointCalibration) -> None:
         self.direction[i] = cal.direction
         self.offset[i] = cal.homing_offset
+        self._gravity_at = None  # the loop's model is evaluated afresh with it
 
     def _resolve_directions(self) -> None:
         """Proximal first: each measured joint's direction from its limits and from the gravity measured along
         its sweep, fitted with the model in the configuration the other joints had then (their calibration known
         by now, the proximal ones' directions settled just before)."""
         for joint in sorted(self._sweeps, key=self._proximal_first):
+            if self.outcomes[joint].status != "direction_unknown":
+                continue
             outcome, sweep = self.outcomes[joint], self._sweeps[joint]
             by_gravity, gravity_text = self._gravity_verdict(joint, sweep)
             verdicts = {v for v in (sweep.by_limits, by_gravity) if v is not None}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import os
 import queue
 import select
@@ -244,6 +245,11 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
 
         from humanoid_prime.runtime.run import run_loop
 
+        # The procedure allocates as it goes (traces, samples): with the start-up heap frozen a collection looks at
+        # those only, and never holds the loop (and the ring's frames) for the whole heap's worth. No collection here:
+        # one of the whole heap would hold them just so.
+        gc.freeze()
+        stack.callback(gc.unfreeze)
         try:
             run_loop(session, stop, on_tick=on_tick)
         finally:

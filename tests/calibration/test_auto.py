@@ -9,19 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from humanoid_prime.calibration import auto
-from humanoid_prime.calibration.auto import (
-    CAP_SHARE,
-    CONTACT_FRACTION,
-    MAX_SPEED_RAD_S,
-    approach_gains,
-    contact_cap,
-    direction_from_gravity,
-    direction_from_limits,
-    distal_first,
-    view_of,
-)
-from humanoid_prime.calibration.math import offset_from_sweep
+from humanoid_prime.calibration import approach
+from humanoid_prime.calibration.approach import CAP_SHARE, MAX_SPEED_RAD_S, approach_gains
+from humanoid_prime.calibration.auto import CONTACT_FRACTION, contact_cap, distal_first
+from humanoid_prime.calibration.direction import direction_from_gravity, direction_from_limits, view_of
 from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.hardware import load_hardware
@@ -109,19 +100,19 @@ def test_the_question_is_asked_along_the_nearest_world_axis_looking_at_its_tip()
     assert view_of(np.array([0.0, 0.2, 0.95]))[1] == "above the robot"
 
 
-def _tick(q: float, qd: float, effort: float, t: float = 0.0) -> auto._Tick:
-    return auto._Tick(t, 0.02, q, qd, effort, 0.0)
+def _tick(q: float, qd: float, effort: float, t: float = 0.0) -> approach.Tick:
+    return approach.Tick(t, 0.02, q, qd, effort, 0.0)
 
 
-def _run(cap: float = 3.0) -> auto._JointRun:
+def _run(cap: float = 3.0) -> approach.JointRun:
     gains = approach_gains(cap)
-    return auto._JointRun(0, "j", cap=cap, gains=gains, leash_gains=gains, speed=MAX_SPEED_RAD_S, rate=50.0,
+    return approach.JointRun(0, "j", cap=cap, gains=gains, leash_gains=gains, speed=MAX_SPEED_RAD_S, rate=50.0,
                           effort_limit=30.0)
 
 
 def test_contact_needs_every_sign_for_the_debounce_time_never_one_sample():
     run = _run()
-    detector = auto._ContactDetector(run, 1)
+    detector = approach.ContactDetector(run, 1)
     detector.start(_tick(0.0, 0.2, 0.0), 0.0)
     lag, push = run.leash, 0.5 * run.cap
     assert not detector.update(_tick(0.0, 0.0, push), lag, free=False)  # one sample: not yet
@@ -134,7 +125,7 @@ def test_contact_needs_every_sign_for_the_debounce_time_never_one_sample():
 @pytest.mark.parametrize("missing", ["lag", "motion", "effort"])
 def test_two_signs_of_three_are_no_contact(missing):
     run = _run()
-    detector = auto._ContactDetector(run, 1)
+    detector = approach.ContactDetector(run, 1)
     detector.start(_tick(0.0, 0.2, 0.0), 0.0)
     lag = 0.0 if missing == "lag" else run.leash
     qd = run.speed if missing == "motion" else 0.0
@@ -144,7 +135,7 @@ def test_two_signs_of_three_are_no_contact(missing):
 
 def test_the_leash_holds_the_target_to_the_baseline_lag_plus_the_leash():
     run = _run()
-    detector = auto._ContactDetector(run, -1)
+    detector = approach.ContactDetector(run, -1)
     detector.start(_tick(1.0, 0.0, 0.0), 1.0)
     assert detector.leash(_tick(1.0, 0.0, 0.0), 0.5) == pytest.approx(1.0 - run.leash)
     assert detector.leash(_tick(1.0, 0.0, 0.0), 0.99) == 0.99
@@ -162,7 +153,7 @@ def setup(robot):
 def _approaching(auto_run, joint: str, past_rad: float = 0.2) -> bool:
     moving = auto_run.moving
     segment = moving.segment if moving is not None else None
-    return (moving is not None and moving.name == joint and isinstance(segment, auto._Approach)
+    return (moving is not None and moving.name == joint and isinstance(segment, approach.Approach)
             and segment.phase == "moving" and abs(segment.target - segment.start_target) > past_rad)
 
 

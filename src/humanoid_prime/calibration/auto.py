@@ -1,34 +1,34 @@
 """Hands-free calibration (DESIGN §5): Prime drives each joint into its mechanical stops itself, gently, finds its
 offset from both stops and measures what its impedance really is.
 
-One joint moves at a time, distal to proximal, the others holding (eRob on their own drive gains, per-tick joints
-on the standby gains with the model's gravity). For the joint that moves:
+One joint moves at a time, arm by arm from the hand to the shoulder; the others hold where they are (an eRob on
+its drive's own gains, any other joint on the standby gains with the effort it applied when its hold began, plus
+a slow integral of its sag: no push where it rests, no model needed). For the joint that moves
+(``calibration.approach``):
 
-- impedance: the approach gains follow from its contact-effort cap (``approach_gains``); an eRob on a ring gets
-  them through its loop-gain registers (gate, changed-only writes, a widened following-error window and the
-  drive's own torque limit where it has one, all restored as found: ``calibration.limp.GainOverride``); every
+- impedance: approach gains that follow from its contact-effort cap; an eRob on a ring gets them in its loop-gain
+  registers (gate, changed-only writes in the never-stiffer order), with a following-error window wide enough for
+  them and its own torque limit (0x6072) lowered where it has one, all restored as found (``GainOverride``); every
   other joint (a Sito wrist, a simulated joint) gets them in its per-tick MIT command;
-- effort feed-forward: the holding torque measured before it moves, plus the change of the model's gravity
-  torque since (``calibration.gravity``), so the cap is the force at the stop, not the arm's weight;
-- motion: the target moves at the speed cap (after a short ramp) toward one stop, and never leads the joint by
-  more than its free-motion lag plus ``leash`` (the cap over the largest stiffness the drive can realise, less
-  what stopping the motion costs): the effort at a stop cannot exceed the cap;
-- contact: the joint stops following (position error beyond its free-motion baseline), stops moving and its
-  measured effort rises toward the cap, all three for ``DEBOUNCE_S``; then the target holds at the leash, the
-  stop's position is recorded while it presses with the cap, the effort is measured at several depths (and,
-  pushing with a velocity command, at several speeds) for the realised stiffness and damping, and it backs off;
-- budgets: the target never travels more than the joint's range plus a margin toward a stop, and a stop not
-  found within its time budget fails the joint;
-- then the other stop, then back to where it started.
+- effort feed-forward: the holding effort measured before it moves, plus the model's change of gravity since
+  (``calibration.gravity``), plus what free motion teaches (the model is only as good as the calibration it is
+  evaluated with), so the cap is the force at the stop, not the arm's weight;
+- motion: to the nearer stop, then the other, then back to where it started, at the speed cap, the target on a
+  leash and contact seen from three signs together; the stop's position is recorded while it is pressed with the
+  leash, and the effort is logged while the press eases and while it pushes with a velocity command (realised
+  stiffness and damping); a stop it rested on at the start is approached again once free motion has learnt its
+  weight;
+- budgets: the target never leaves the joint's range plus a margin around where it started; a stop not found
+  within its travel or time budget fails the joint.
 
-The offsets come from both stops with the sweep's formula (``calibration.math``). The direction comes from the
-physics where it can tell: the limits (an asymmetric range leaves one plausible offset) and the gravity torque
-measured along the sweep (which side of the range the arm hangs); where neither tells (a symmetric, unloaded
-wrist), at the end one small prompted motion and a plain question, or the prior's direction with
-``assume_direction``. A flip is written only when the evidence says so, and always reported.
+Offsets come from both stops with the sweep's formula (``calibration.math``). Directions are settled at the end,
+proximal first, once every joint's offset is known: from the limits (an asymmetric range) and the gravity measured
+along each sweep (``calibration.direction``); where neither tells, one small motion and a plain question for each
+joint whose proximal joints are known (``Operator``), or the prior's with ``assume_direction``. A flip is written
+only on such evidence, and reported.
 
 Any fault or lost device (an ERROR on ``/safety_status``), a held joint that moves, or ``abort()`` (a key
-press) stops the moving joint where it is, restores its gains and ends the run.
+press) stops the moving joint where it is, restores its drive and ends the run.
 
 The per-tick part runs in the control loop (a ``/prime/joint_states`` subscriber, between read and write, in a
 broadcaster-only run that leaves the commands to it); the sequence (drive settings over SDO, the operator)
@@ -47,11 +47,23 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from humanoid_prime.calibration.approach import (
+    MAX_SPEED_RAD_S,
+    Approach,
+    Hold,
+    JointRun,
+    Move,
+    Segment,
+    Tick,
+    Trace,
+    approach_gains,
+)
+from humanoid_prime.calibration.direction import direction_from_gravity, direction_from_limits, view_of
 from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.limp import GainOverride, GainSnapshot
-from humanoid_prime.calibration.math import flip_direction, mirror_check, offset_from_sweep
+from humanoid_prime.calibration.math import flip_direction, mirror_check
 from humanoid_prime.config.calibration import Calibration, JointCalibration
-from humanoid_prime.config.robot import JointSpec, Robot
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import JOINT_STATES, SAFETY_STATUS, JointState, SafetyStatus
@@ -63,39 +75,16 @@ from humanoid_prime.drivers.sito.protocol import sito_model
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 
-MAX_SPEED_RAD_S = 0.2  # the speed cap: its default and its ceiling (DESIGN §5)
 CONTACT_FRACTION = 0.1  # default contact-effort cap: this fraction of the joint's effort limit
-CAP_SHARE = 0.7  # the leash spends this share of the cap; the rest is margin (friction, the baseline's lag)
-DAMPING_SHARE = 0.2  # of the cap, what stopping a joint moving at the speed cap may cost (kd * speed)
-LEASH_RAD = 0.05  # how far beyond its free-motion lag the target may lead the joint at full cap
-ACCEL_S = 0.5  # the target reaches the speed cap after this long
-BASELINE_S = 0.1  # time constant of the free-motion baseline (lag and effort)
-ADAPT_S = 0.5  # time constant with which free motion corrects the feed-forward (what the model got wrong)
-DEBOUNCE_S = 0.06  # contact is every sign for this long, never one sample
-EXCESS_SHARE = 0.5  # contact: the lag beyond its baseline exceeds this share of the leash,
-STALL_SHARE = 0.25  # the joint moves at less than this share of the speed,
-EFFORT_SHARE = 0.25  # and its effort rose by this share of the cap
-SETTLE_S = 0.2  # at a stop, pressing with the full leash, before its position is averaged
-AVERAGE_S = 0.1
-DEPTH_RAMP = (1.0, 0.1)  # the press eases from and to these shares of the leash while the stiffness is measured,
-DEPTH_RAMP_S = 0.6
-SPEED_RAMP_S = 0.4  # then, at the lighter press, a velocity command into the stop rises to the speed cap
 BACKOFF_RAD = 0.05
-LIFT_RAD = 0.003  # a joint moving away from a stop has left it once it moved this far
 RESTING_RAD = 0.02  # a stop found this close to where the joint started: it rested on it
 RESTING_BACKOFF_RAD = 0.15  # then it moves this far off before it approaches again
 TRAVEL_MARGIN_RAD = 0.1  # beyond the joint's range (plus 5 %), the most the target travels toward a stop
-TIME_MARGIN_S = 10.0
 SPAN_TOLERANCE = 0.05  # the stops' spacing must be the described range within this share
 HOLD_TOLERANCE_RAD = 0.05  # a held joint that moves further has been pushed: stop
 HOLD_INTEGRAL_S = 0.5  # time constant with which a per-tick hold takes up a changing load
 ANCHOR_S = 0.2  # the holding torque is averaged this long before a joint moves
 PROMPT_RAD = 0.15  # the prompted motion that asks the operator for a direction
-MIN_ASYMMETRY_RAD = 0.5  # limits whose sum is at least this tell the direction by themselves
-GRAVITY_MIN_SEPARATION_NM = 0.15  # the two directions' gravity curves must differ this much (RMS) to tell
-GRAVITY_RESIDUAL_RATIO = 2.0  # and the wrong one must fit this much worse,
-GRAVITY_SCALE = (0.6, 1.6)  # the right one's amplitude near the model's,
-GRAVITY_UNEXPLAINED = 0.3  # leaving at most this share of the measured spread unexplained
 GRAVITY_SAMPLES = 60
 GRAVITY_STEP_RAD = 0.005  # the loop evaluates the model's gravity again once a joint has moved this far
 TICK_TIMEOUT_S = 5.0  # wall seconds without a control tick: the loop is gone
@@ -128,14 +117,6 @@ def contact_cap(robot: Robot, joint: str) -> float:
     return cap
 
 
-def approach_gains(cap: float) -> tuple[float, float]:
-    """(kp, kd) a joint approaches its stops with: kd such that stopping from the speed cap costs
-    ``DAMPING_SHARE`` of the cap, kp such that the rest of ``CAP_SHARE`` is spent over ``LEASH_RAD``."""
-    kd = DAMPING_SHARE * cap / MAX_SPEED_RAD_S
-    kp = (CAP_SHARE - DAMPING_SHARE) * cap / LEASH_RAD
-    return kp, kd
-
-
 def distal_first(robot: Robot, joints: Sequence[str]) -> list[str]:
     """``joints`` in the order they are calibrated: arm by arm (left first), from the hand to the shoulder."""
     def key(joint: str) -> tuple[int, int]:
@@ -144,19 +125,6 @@ def distal_first(robot: Robot, joints: Sequence[str]) -> list[str]:
 
 
 # ---- the operator -------------------------------------------------------------------------------------------
-
-VIEWS = {(0, 1): "in front of the robot", (0, -1): "behind the robot", (1, 1): "at the robot's left side",
-         (1, -1): "at the robot's right side", (2, 1): "above the robot", (2, -1): "below the robot"}
-
-
-def view_of(axis: np.ndarray) -> tuple[np.ndarray, str]:
-    """The world axis a person looks along to see a rotation about ``axis`` best, pointing at them (a positive
-    rotation turns counter-clockwise for them), and where they stand, in words."""
-    k = int(np.argmax(np.abs(axis)))
-    sign = 1 if axis[k] >= 0 else -1
-    view = np.zeros(3)
-    view[k] = sign
-    return view, VIEWS[(k, sign)]
 
 
 class Operator(Protocol):
@@ -309,19 +277,6 @@ class JointOutcome:
 
 
 @dataclass
-class Trace:
-    """What the moving joint did, tick by tick, for the plot: time, position, commanded position, effort, and the
-    contacts (time, position) and stops (time, position) found."""
-
-    t: list[float] = field(default_factory=list)
-    q: list[float] = field(default_factory=list)
-    target: list[float] = field(default_factory=list)
-    effort: list[float] = field(default_factory=list)
-    contacts: list[tuple[float, float]] = field(default_factory=list)
-    stops: list[tuple[float, float]] = field(default_factory=list)
-
-
-@dataclass
 class AutoResult:
     calibration: Calibration  # every joint: the new one where done, the prior elsewhere
     outcomes: dict[str, JointOutcome]
@@ -344,55 +299,6 @@ class AutoResult:
                             "ok": m.ok} for m in mirror]}
 
 
-# ---- direction ----------------------------------------------------------------------------------------------
-
-def direction_from_limits(prior_direction: int, stops: tuple[float, float], spec: JointSpec
-                          ) -> tuple[JointCalibration, JointCalibration, int | None]:
-    """The calibration the stops give with the prior direction and flipped, and which one an asymmetric range
-    picks: +1 the prior's, -1 the flipped one, None when the range cannot tell (its limits are too symmetric,
-    or neither offset is plausible)."""
-    same = JointCalibration(prior_direction, offset_from_sweep(stops[0], stops[1], spec.lower, spec.upper,
-                                                               prior_direction))
-    flipped = flip_direction(same, spec.lower, spec.upper)
-    asymmetry = abs(spec.lower + spec.upper)
-    if asymmetry < MIN_ASYMMETRY_RAD:
-        return same, flipped, None
-    # The two offsets differ by the asymmetry: an offset under half of it leaves the other beyond half of it.
-    for verdict, cal in ((1, same), (-1, flipped)):
-        if abs(cal.homing_offset) < 0.5 * asymmetry - TRAVEL_MARGIN_RAD:
-            return same, flipped, verdict
-    return same, flipped, None
-
-
-def direction_from_gravity(samples: np.ndarray, measured: np.ndarray, predicted: Mapping[int, np.ndarray]
-                           ) -> tuple[int | None, str]:
-    """Which hypothesis (+1 the prior's direction, -1 flipped) the effort measured along a sweep fits: each
-    prediction is fitted with a scale and an offset (friction). A verdict needs the two predictions to differ,
-    the better one to fit well (its scale near 1, most of the measured variation explained: the model's
-    configuration of the other joints is right) and the other to fit clearly worse; otherwise None.
-    ``samples`` only sizes the fit."""
-    if samples.size < 10:
-        return None, "too few free-motion samples"
-    plus, minus = predicted[1], predicted[-1]
-    separation = float(np.std((plus - plus.mean()) - (minus - minus.mean())))
-    if separation < GRAVITY_MIN_SEPARATION_NM:
-        return None, f"gravity cannot tell (the two directions differ by {separation:.3f} Nm RMS along the sweep)"
-    residuals, good = {}, {}
-    spread = float(np.std(measured))
-    for hypothesis, prediction in predicted.items():
-        design = np.stack([prediction, np.ones_like(prediction)], axis=1)
-        solution, *_ = np.linalg.lstsq(design, measured, rcond=None)
-        residual = float(np.sqrt(np.mean((measured - design @ solution) ** 2)))
-        residuals[hypothesis] = residual
-        good[hypothesis] = (GRAVITY_SCALE[0] <= solution[0] <= GRAVITY_SCALE[1]
-                            and residual <= GRAVITY_UNEXPLAINED * spread)
-    best = min(residuals, key=residuals.__getitem__)
-    text = f"{residuals[1]:.3f} and {residuals[-1]:.3f} Nm RMS for the prior and the flipped direction"
-    if not good[best] or residuals[-best] < GRAVITY_RESIDUAL_RATIO * max(residuals[best], 1e-3):
-        return None, f"gravity unclear ({text})"
-    return best, f"gravity fits {'the prior' if best == 1 else 'the flipped'} direction ({text})"
-
-
 @dataclass
 class _Sweep:
     """What a joint's stops and its sweep between them left for its direction: the calibration either way, the
@@ -403,284 +309,6 @@ class _Sweep:
     by_limits: int | None
     config: np.ndarray
     samples: np.ndarray
-
-
-# ---- the per-tick motion ------------------------------------------------------------------------------------
-
-@dataclass
-class _Tick:
-    t: float
-    dt: float
-    q: float
-    qd: float
-    effort: float
-    ff: float
-
-
-class _Segment:
-    """One motion of the moving joint; ``update`` runs once per tick and sets ``target`` and ``velocity``."""
-
-    finished = False
-    failure: str | None = None
-
-    def __init__(self, run: _JointRun) -> None:
-        self.run = run
-
-    def update(self, tick: _Tick) -> None:
-        raise NotImplementedError
-
-
-class _Hold(_Segment):
-    """Stay for ``average_s`` while the effort is averaged: where the joint is (``target`` None), taking the effort
-    it applies now as the feed-forward, so holding moves nothing; or at ``target``. ``passive``: the joint stays
-    held the way the others are (its drive's own gains, or the standby gains), as before it moves."""
-
-    def __init__(self, run: _JointRun, target: float | None = None, average_s: float = 0.0, *,
-                 passive: bool = False) -> None:
-        super().__init__(run)
-        self.target = target
-        self.velocity = 0.0
-        self.average_s = average_s
-        self.passive = passive
-        self.efforts: list[float] = []
-        self._since: float | None = None
-
-    def update(self, tick: _Tick) -> None:
-        if self._since is None:
-            self._since = tick.t
-            if self.target is None:
-                self.target = tick.q
-                self.run.correction += tick.effort - tick.ff
-        self.efforts.append(tick.effort)
-        self.finished = tick.t - self._since >= self.average_s
-
-
-class _Move(_Segment):
-    """Ramp the target to ``goal`` at the speed cap with the leash on; a contact on the way is a failure.
-
-    ``leaving`` a stop, its baseline is taken, and contacts watched for, once the joint has lifted off by
-    ``LIFT_RAD``: until then the effort only falls from pressing the stop, which is no contact, and the target
-    leads the joint (away from the stop) by at most twice the leash and what lifts its weight off a stop it rests
-    on, never more."""
-
-    def __init__(self, run: _JointRun, goal: float, start: float, *, leaving: bool = False) -> None:
-        super().__init__(run)
-        self.goal = goal
-        self.target = start
-        self.side = 1 if goal >= start else -1
-        self.velocity = 0.0
-        self.detector = _ContactDetector(run, self.side)
-        self.budget_s = abs(goal - start) / run.speed + ACCEL_S + TIME_MARGIN_S
-        self._leaving = leaving
-        self._from: float | None = None
-        self._t0: float | None = None
-        self._reached: float | None = None
-
-    def update(self, tick: _Tick) -> None:
-        run = self.run
-        if self._t0 is None:
-            self._t0, self._from = tick.t, tick.q
-            self.detector.start(tick, self.target)
-        if tick.t - self._t0 > self.budget_s:
-            self.failure = f"did not reach {self.goal:+.3f} rad within {self.budget_s:.0f} s (at {tick.q:+.3f})"
-            return
-        if self._leaving and self.side * (tick.q - self._from) >= LIFT_RAD:
-            self._leaving = False
-            self.detector.start(tick, self.target)  # free of the stop: the baseline from here
-        speed = run.speed * min(1.0, (tick.t - self._t0 + tick.dt) / ACCEL_S)
-        remaining = self.side * (self.goal - self.target)
-        step = min(speed * tick.dt, max(remaining, 0.0))
-        wanted = self.target + self.side * step
-        if self._leaving:
-            most = self.side * tick.q + 2.0 * run.leash + run.weight / run.kp_leash  # it may have to lift its weight
-            limited = wanted if self.side * wanted <= most else self.side * most
-        else:
-            limited = self.detector.leash(tick, wanted)
-        self.velocity = self.side * speed if limited == wanted and remaining > 0 else 0.0
-        self.target = limited
-        if self._leaving:
-            return
-        if self.detector.update(tick, self.target, free=limited == wanted):
-            self.failure = f"touched something at {tick.q:+.3f} rad while moving to {self.goal:+.3f} rad"
-            return
-        if self._reached is None and self.side * (self.goal - self.target) <= 1e-9:
-            self._reached = tick.t
-        if self._reached is not None:
-            settled = abs(tick.q - self.goal) < 0.25 * run.leash + 0.01 and abs(tick.qd) < 0.25 * run.speed
-            self.finished = settled or tick.t - self._reached > 2.0
-
-
-class _ContactDetector:
-    """The free-motion baseline of the moving joint's lag and effort, the leash on its target, and contact:
-    lag beyond the baseline, no motion and a rise of effort, all together for ``DEBOUNCE_S``."""
-
-    def __init__(self, run: _JointRun, side: int) -> None:
-        self.run = run
-        self.side = side
-        self.lag_base = 0.0
-        self.effort_base = 0.0
-        self.count = 0
-        self.needed = max(3, math.ceil(DEBOUNCE_S * run.rate - 1e-9))
-
-    def start(self, tick: _Tick, target: float) -> None:
-        s = self.side
-        self.lag_base = s * (target - tick.q)
-        self.effort_base = s * (tick.effort - tick.ff)
-
-    def leash(self, tick: _Tick, wanted: float) -> float:
-        """``wanted``, held back so the target leads the joint by at most its baseline lag plus the leash."""
-        s = self.side
-        most = s * tick.q + self.lag_base + self.run.leash
-        return wanted if s * wanted <= most else s * most
-
-    def update(self, tick: _Tick, target: float, *, free: bool) -> bool:
-        """Take this tick's measurements; True once contact has held for the debounce time."""
-        run, s = self.run, self.side
-        lag = s * (target - tick.q)
-        effort = s * (tick.effort - tick.ff)
-        excess = lag - self.lag_base
-        rise = effort - self.effort_base
-        if free and excess < 0.5 * EXCESS_SHARE * run.leash:
-            alpha = min(1.0, tick.dt / BASELINE_S)
-            self.lag_base += alpha * (lag - self.lag_base)
-            self.effort_base += alpha * (effort - self.effort_base)
-            run.adapt(tick, target)
-        touching = (excess >= EXCESS_SHARE * run.leash and s * tick.qd <= STALL_SHARE * run.speed
-                    and rise >= EFFORT_SHARE * run.cap)
-        self.count = self.count + 1 if touching else 0
-        return self.count >= self.needed
-
-    def rise(self, tick: _Tick) -> float:
-        return self.side * (tick.effort - tick.ff) - self.effort_base
-
-
-class _Approach(_Segment):
-    """Toward the stop on ``side`` until contact (within the travel and time budgets), then press it with the
-    leash while its position is recorded and the effort is measured at several depths and speeds."""
-
-    def __init__(self, run: _JointRun, side: int, start: float, budget_rad: float, measure: bool) -> None:
-        super().__init__(run)
-        self.side = side
-        self.target = start
-        self.start_target = start
-        self.velocity = 0.0
-        self.budget_rad = budget_rad
-        self.budget_s = budget_rad / run.speed + ACCEL_S + TIME_MARGIN_S
-        self.measure = measure
-        self.detector = _ContactDetector(run, side)
-        self.phase = "moving"  # then settling (its position recorded), easing and pushing (measured), done
-        self.stop: float | None = None
-        self.points: list[tuple[float, float, float]] = []  # (lag, speed command, effort) into the stop, per tick
-        self.peak = 0.0
-        self._t0: float | None = None
-        self._phase_t = 0.0
-        self._positions: list[float] = []
-        self._last: tuple[float, float] | None = None
-        self.free: list[tuple[float, float]] = []  # (q, effort) in free motion, for the gravity fit
-
-    def update(self, tick: _Tick) -> None:
-        run, s = self.run, self.side
-        if self._t0 is None:
-            self._t0 = tick.t
-            self.detector.start(tick, self.target)
-        if tick.t - self._t0 > self.budget_s:
-            self.failure = (f"no stop on the {'upper' if s > 0 else 'lower'} side within {self.budget_s:.0f} s "
-                            f"({run.speed:g} rad/s)")
-            return
-        if self.phase == "moving":
-            speed = run.speed * min(1.0, (tick.t - self._t0 + tick.dt) / ACCEL_S)
-            wanted = self.target + s * speed * tick.dt
-            if s * (wanted - self.start_target) > self.budget_rad:
-                wanted = self.start_target + s * self.budget_rad
-                if s * (self.target - self.start_target) >= self.budget_rad - 1e-9 and abs(tick.qd) < 0.01:
-                    self.failure = (f"no stop within {self.budget_rad:.2f} rad toward the "
-                                    f"{'upper' if s > 0 else 'lower'} side (the range plus a margin)")
-                    return
-            limited = self.detector.leash(tick, wanted)
-            free = limited == wanted
-            self.velocity = s * speed if free else 0.0
-            self.target = limited
-            if free and tick.t - self._t0 > ACCEL_S:
-                self.free.append((tick.q, tick.effort))
-            if self.detector.update(tick, self.target, free=free):
-                self.phase = "settling"
-                self._phase_t = tick.t
-                run.trace.contacts.append((tick.t, tick.q))
-            return
-        self.peak = max(self.peak, self.detector.rise(tick))
-        if self.phase == "settling":
-            self._press(tick, DEPTH_RAMP[0], 0.0)
-            if tick.t - self._phase_t >= SETTLE_S:
-                self._positions.append(tick.q)
-            if tick.t - self._phase_t >= SETTLE_S + AVERAGE_S - 1e-9:
-                self.stop = float(np.mean(self._positions))
-                run.trace.stops.append((tick.t, self.stop))
-                self._next("easing" if self.measure else "done", tick)
-        elif self.phase == "easing":
-            share = min(1.0, (tick.t - self._phase_t) / DEPTH_RAMP_S)
-            self._press(tick, DEPTH_RAMP[0] + share * (DEPTH_RAMP[1] - DEPTH_RAMP[0]), 0.0)
-            if share >= 1.0:
-                self._next("pushing", tick)
-        elif self.phase == "pushing":
-            share = min(1.0, (tick.t - self._phase_t) / SPEED_RAMP_S)
-            self._press(tick, DEPTH_RAMP[1], share * run.speed)
-            if share >= 1.0:
-                self._next("done", tick)
-        if self.phase == "done":
-            self.velocity = 0.0
-            self.finished = True
-
-    def _press(self, tick: _Tick, depth: float, speed: float) -> None:
-        """Press with ``depth`` of the leash and ``speed`` into the stop; the effort measured now answers the
-        command of the last tick, so it is paired with that (lag taken at the position now)."""
-        run, s = self.run, self.side
-        if self._last is not None and self.phase != "settling":
-            target, velocity = self._last
-            self.points.append((s * (target - tick.q), s * velocity, s * (tick.effort - tick.ff)))
-        self.target = tick.q + s * (self.detector.lag_base + depth * run.leash)
-        self.velocity = s * speed
-        self._last = (self.target, self.velocity)
-
-    def _next(self, phase: str, tick: _Tick) -> None:
-        self.phase = phase
-        self._phase_t = tick.t
-        self._last = None
-
-    def unloaded(self, q: float) -> float:
-        """The target that stops pressing the joint at ``q``: its free-motion lag, no more."""
-        return q + self.side * self.detector.lag_base
-
-
-# ---- one joint's run ----------------------------------------------------------------------------------------
-
-class _JointRun:
-    """The moving joint's settings and its per-tick command (loop thread)."""
-
-    def __init__(self, index: int, name: str, *, cap: float, gains: tuple[float, float],
-                 leash_gains: tuple[float, float], speed: float, rate: float, effort_limit: float) -> None:
-        self.index = index
-        self.name = name
-        self.cap = cap
-        self.kp, self.kd = gains
-        kp_leash, kd_leash = leash_gains
-        self.speed = speed
-        self.rate = rate
-        self.effort_limit = effort_limit
-        self.kp_leash = kp_leash
-        self.leash = (CAP_SHARE * cap - kd_leash * speed) / kp_leash
-        self.trace = Trace()
-        self.segment: _Segment | None = None
-        self.anchor = 0.0  # holding effort measured before moving
-        self.gravity0 = 0.0  # the model's gravity torque there (host frame)
-        self.correction = 0.0  # what free motion has taught the feed-forward (Nm)
-        self.weight = 0.0  # the most gravity the model puts on the joint over its travel (Nm)
-        self.bounds = (-math.inf, math.inf)  # where the target may go (the travel budget around the start)
-
-    def adapt(self, tick: _Tick, target: float) -> None:
-        """In free motion, move the steady lag into the feed-forward: the model's gravity is only as good as the
-        calibration it is evaluated with, which is what is being found (a flipped joint's is mirrored)."""
-        step = tick.dt / ADAPT_S * self.kp_leash * (target - tick.q)
-        self.correction = min(max(self.correction + step, -self.effort_limit), self.effort_limit)
 
 
 # ---- the procedure ------------------------------------------------------------------------------------------
@@ -739,7 +367,7 @@ class AutoCalibration:
             j: JointOutcome(j, "not_reached", prior=prior.joints[j], cap_nm=self.caps[j]) for j in self.joints}
         self.traces: dict[str, Trace] = {}
         self._sweeps: dict[str, _Sweep] = {}
-        self.moving: _JointRun | None = None
+        self.moving: JointRun | None = None
         self.aborted: str | None = None
         self._abort_request: str | None = None
         self._status: SafetyStatus | None = None
@@ -813,7 +441,7 @@ class AutoCalibration:
                 self.aborted = "fault: " + "; ".join(errors)
         moving = self.moving
         segment = moving.segment if moving is not None else None
-        active = moving is not None and not (isinstance(segment, _Hold) and segment.passive)
+        active = moving is not None and not (isinstance(segment, Hold) and segment.passive)
         held = np.isfinite(self.hold)
         if active:
             held[moving.index] = False
@@ -847,10 +475,10 @@ class AutoCalibration:
         gravity = self._gravity
         ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction
         ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
-        if self.aborted is not None and not isinstance(segment, _Hold):
-            segment = moving.segment = _Hold(moving)  # stop here, at once
+        if self.aborted is not None and not isinstance(segment, Hold):
+            segment = moving.segment = Hold(moving)  # stop here, at once
         if segment is not None and not segment.finished and segment.failure is None:
-            segment.update(_Tick(t, dt, float(q[i]), float(state.velocity[i]), float(state.effort[i]), ff))
+            segment.update(Tick(t, dt, float(q[i]), float(state.velocity[i]), float(state.effort[i]), ff))
             ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction  # what the update taught it
             ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
         if not active or segment is None or segment.target is None:
@@ -907,7 +535,7 @@ class AutoCalibration:
         if self.aborted is not None:
             raise Aborted(self.aborted)
 
-    def _segment(self, run: _JointRun, segment: _Segment) -> _Segment:
+    def _segment(self, run: JointRun, segment: Segment) -> Segment:
         run.segment = segment
         self._wait(lambda: segment.finished or segment.failure is not None)
         if segment.failure is not None:
@@ -922,7 +550,7 @@ class AutoCalibration:
         return AutoResult(Calibration(joints), self.outcomes, self.traces, self.joints, self.aborted, self.robot)
 
     @contextlib.contextmanager
-    def _moving(self, joint: str) -> Iterator[_JointRun]:
+    def _moving(self, joint: str) -> Iterator[JointRun]:
         """``joint`` anchored where it is (its holding effort measured), on its approach impedance, for the
         block; afterwards anchored where it ended, on the impedance it had, and held there."""
         robot = self.robot
@@ -939,7 +567,7 @@ class AutoCalibration:
                                            efficiency=hw.erob_torque_efficiency[joint])
             # The leash assumes the most stiffness the registers can give (a drive realises at most its nominal).
             leash_gains = registers_to_gains(registers, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint])
-        run = _JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=self.speed,
+        run = JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=self.speed,
                         rate=self.manager.update_rate, effort_limit=spec.effort_limit)
         if run.leash <= 0:
             raise JointFailed(f"the speed {self.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
@@ -955,7 +583,7 @@ class AutoCalibration:
             q[i] = value
             reach.append(abs(float(self.host_gravity(q, self.model)[i])))
         run.weight = max(reach)
-        hold = _Hold(run, start, ANCHOR_S, passive=True)
+        hold = Hold(run, start, ANCHOR_S, passive=True)
         run.segment = hold
         run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
         self.moving = run
@@ -968,7 +596,7 @@ class AutoCalibration:
                     yield run
                 finally:  # however it ended: held where it is, with the effort it applies, before the gains go
                     if self.aborted is None:
-                        self._segment(run, _Hold(run, None, ANCHOR_S))
+                        self._segment(run, Hold(run, None, ANCHOR_S))
         finally:
             self._capture.add(i)  # held from here where it ended, with the effort it applies there
             with contextlib.suppress(Aborted):
@@ -979,7 +607,7 @@ class AutoCalibration:
             self.moving = None
 
     @contextlib.contextmanager
-    def _impedance(self, joint: str, run: _JointRun, registers: ErobRegisters | None,
+    def _impedance(self, joint: str, run: JointRun, registers: ErobRegisters | None,
                    ring: tuple[SdoClient, int] | None, start: float, budget: float) -> Iterator[None]:
         if ring is None or registers is None:
             yield
@@ -1026,26 +654,26 @@ class AutoCalibration:
                 budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
                 self.report(f"{joint}: toward its {'upper' if first > 0 else 'lower'} stop "
                             f"(at most {self.caps[joint]:.2f} Nm into it)")
-                a = self._segment(run, _Approach(run, first, start, budget, self.measure))
-                assert isinstance(a, _Approach) and a.stop is not None
+                a = self._segment(run, Approach(run, first, start, budget, self.measure))
+                assert isinstance(a, Approach) and a.stop is not None
                 if abs(a.stop - start) < RESTING_RAD:
                     # It rested on that stop: its weight there was the stop's, not in its feed-forward. Off the stop
                     # (where free motion teaches the feed-forward what gravity asks) and onto it again.
                     self.report(f"{joint}: it rested on that stop; again, from {RESTING_BACKOFF_RAD:g} rad off it")
                     position = self.manager.resources.state.position
-                    off = self._segment(run, _Move(run, a.stop - first * RESTING_BACKOFF_RAD, a.unloaded(position[i]),
+                    off = self._segment(run, Move(run, a.stop - first * RESTING_BACKOFF_RAD, a.unloaded(position[i]),
                                                    leaving=True))
-                    a = self._segment(run, _Approach(run, first, off.target, budget, self.measure))
-                    assert isinstance(a, _Approach) and a.stop is not None
+                    a = self._segment(run, Approach(run, first, off.target, budget, self.measure))
+                    assert isinstance(a, Approach) and a.stop is not None
                 self.report(f"{joint}: stop at {a.stop:+.4f} rad; now the other one")
                 position = self.manager.resources.state.position
-                backed = self._segment(run, _Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i]),
+                backed = self._segment(run, Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i]),
                                                   leaving=True))
-                b = _Approach(run, -first, backed.target, budget, self.measure)
+                b = Approach(run, -first, backed.target, budget, self.measure)
                 self._segment(run, b)
                 assert b.stop is not None
                 self.report(f"{joint}: stop at {b.stop:+.4f} rad; back to where it started")
-                self._segment(run, _Move(run, start, b.unloaded(position[i]), leaving=True))
+                self._segment(run, Move(run, start, b.unloaded(position[i]), leaving=True))
                 outcome.seconds = self.manager.resources.state.stamp - began
                 outcome.peak_contact_nm = max(a.peak, b.peak)
                 outcome.first_side = first
@@ -1071,7 +699,7 @@ class AutoCalibration:
             else:
                 self.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
-    def _conclude(self, joint: str, run: _JointRun, a: _Approach, b: _Approach) -> None:
+    def _conclude(self, joint: str, run: JointRun, a: Approach, b: Approach) -> None:
         robot, outcome = self.robot, self.outcomes[joint]
         i = robot.index(joint)
         spec = robot.joints[i]
@@ -1146,7 +774,7 @@ class AutoCalibration:
             predicted[hypothesis] = np.array(values)
         return direction_from_gravity(samples[:, 0], samples[:, 1], predicted)
 
-    def _stiffness(self, joint: str, run: _JointRun, stops: Sequence[_Approach]) -> Stiffness | None:
+    def _stiffness(self, joint: str, run: JointRun, stops: Sequence[Approach]) -> Stiffness | None:
         """Realised stiffness and damping: the effort pressed into both stops against the lag and the velocity
         command, ``effort = kp * lag + kd * speed + (one constant per stop)``, by least squares."""
         pressed = [stop for stop in stops if len(stop.points) >= 5]
@@ -1207,9 +835,9 @@ class AutoCalibration:
                 desc = self.description_angles(self.manager.resources.state.position).copy()
                 view, where = view_of(self.model.axis(joint, desc))
                 self.operator.watch(joint)
-                moved = self._segment(run, _Move(run, start + side * PROMPT_RAD, start, leaving=True))  # it may rest
+                moved = self._segment(run, Move(run, start + side * PROMPT_RAD, start, leaving=True))  # it may rest
                 answer = self.operator.turned_counter_clockwise(joint, view, where)
-                self._segment(run, _Move(run, start, moved.target))
+                self._segment(run, Move(run, start, moved.target))
         except JointFailed as exc:
             outcome.status, outcome.message = "failed", f"while asking for its direction: {exc}"
             return

@@ -29,13 +29,8 @@ import numpy as np
 from rich.console import Console
 from rich.text import Text
 
-from humanoid_prime.calibration.auto import (
-    MAX_SPEED_RAD_S,
-    AutoCalibration,
-    AutoResult,
-    LoopTicks,
-    SteppedTicks,
-)
+from humanoid_prime.calibration.approach import MAX_SPEED_RAD_S
+from humanoid_prime.calibration.auto import AutoCalibration, AutoResult, LoopTicks, SteppedTicks
 from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
 from humanoid_prime.cli._common import console as make_console

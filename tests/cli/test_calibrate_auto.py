@@ -87,7 +87,7 @@ def test_end_to_end_on_the_virtual_prime_through_the_real_drivers_then_apply(rob
     hardware.write_text(bundled("prime_hardware.yaml").read_text())
     proc = prime("calibrate", "--emulate", "--truth", str(truth_file), "--auto", *joints, "--output", str(output),
                  "--hardware", str(hardware), "--apply", "--socket", str(tmp_path / "control.sock"), "--json")
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
     report = json.loads(proc.stdout)
     written = load_calibration(robot.hardware, output)
     for joint in robot.names:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import gc
 import os
 import queue
 import select
@@ -177,8 +176,9 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
 
             virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth,
                                            ring_options=ring)
+        # The loop real-time as in bringup: on a busy machine a loop at normal priority misses the ring's frames.
         options = BringupOptions(backends=args.backends, calibration=identity_from(prior), broadcaster_only=True,
-                                 emulated=virtual is not None, hardware_file=args.hardware,
+                                 realtime=True, emulated=virtual is not None, hardware_file=args.hardware,
                                  controllers_file=args.controllers, control_socket=args.socket)
         if virtual is not None:
             options.interface = virtual.master_interface
@@ -240,13 +240,8 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
 
         from humanoid_prime.runtime.run import run_loop
 
-        # The procedure allocates as it goes (traces, samples): with the start-up heap frozen a collection looks at
-        # those only, and never holds the loop (and the ring's frames) for the whole heap's worth. No collection here:
-        # one of the whole heap would hold them just so.
-        gc.freeze()
-        stack.callback(gc.unfreeze)
-        try:
-            run_loop(session, stop, on_tick=on_tick)
+        try:  # real-time: the start-up heap frozen, collections only between ticks (runtime/realtime.py)
+            run_loop(session, stop, on_tick=on_tick, report=report)
         finally:
             ticks.stopped.set()
             worker.join(JOIN_TIMEOUT_S)

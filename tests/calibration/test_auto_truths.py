@@ -2,7 +2,7 @@
 within +-0.5 rad, any directions, the arms mirrored and not), the emulator's own device models, MuJoCo stepped in
 lockstep with the controller manager.
 
-Twenty truths, each calibrating three of the fourteen joints (every joint four times or more over the set) on a
+Twenty truths, each calibrating two of the fourteen joints (every joint twice or more over the set) on a
 robot whose other joints are calibrated already, and one truth calibrating all fourteen in one run from the bundled
 calibration (every offset unknown, so the gravity model starts out wrong everywhere, as on a new robot). Moving a
 joint through both stops and back at the speed cap takes robot minutes: all fourteen take about eight;
@@ -24,7 +24,7 @@ from humanoid_prime.virtual.lockstep import calibrate_in_lockstep
 from humanoid_prime.virtual.ring.drive import REALISED_EFFICIENCY
 
 TRUTHS = 20
-PER_TRUTH = 3
+PER_TRUTH = 2
 OFFSET_RANGE_RAD = 0.5
 TOLERANCE_RAD = 1e-3
 STIFFNESS_TOLERANCE = 0.05  # realised stiffness within 5 % of what the emulated drive models

@@ -1,16 +1,21 @@
-"""Damped limp of one eRob for a hand sweep, restoring the drive exactly as found on every exit path.
+"""Gain overrides of one eRob, restoring the drive exactly as found on every exit path.
 
-Procedure (DESIGN §5): snapshot the gate and the three gain registers, arm the gate (0x2383 = 1),
-position gain 0, velocity integral 0, keep the velocity gain (damping, so gravity gives a slow
-descent) or set a lower one, read back and show Kp = 0. On leaving — normal, Ctrl-C, SIGTERM, an
-exception, a lost bus — write the snapshot back (gains first, in the never-stiffer order, then the
-gate) and report any register that could not be restored.
+``GainOverride`` is the shared procedure: snapshot the gate, the three gain registers and any further objects
+it is asked to set, arm the gate (0x2383 = 1), write the wanted registers (only those that change, in the
+never-stiffer order), and on leaving — normal, Ctrl-C, SIGTERM, an exception, a lost bus — write the snapshot
+back (gains first, then the gate, then the further objects) and report anything that could not be restored.
+
+``DampedLimp`` is the hand sweep's limp (DESIGN §5): position gain 0, integral 0, the velocity gain kept
+(damping, so gravity gives a slow descent) or set lower, read back to show Kp = 0. ``prime calibrate --auto``
+overrides the gains with its approach impedance and sets the following-error window and the drive's own
+torque limit with them.
 """
 
 from __future__ import annotations
 
 import signal
 import threading
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from humanoid_prime.drivers.erob.gains import ErobRegisters, write_order
@@ -45,46 +50,63 @@ def read_snapshot(objects: SizedSdo, position: int) -> GainSnapshot:
     )
 
 
-class DampedLimp:
-    """Context manager: the eRob at ``position`` is damped-limp inside the ``with`` block.
+def _name(address: tuple[int, int]) -> str:
+    return REGISTER_NAMES.get(address, f"0x{address[0]:04X}:{address[1]:02X}")
 
-    ``vel_reg`` sets the damping register during the limp; None keeps the drive's current value
-    (with the gate at 0 that is what the registers hold, not the factory gains in use).
-    """
 
-    def __init__(self, sdo: SdoClient, position: int, vel_reg: int | None = None) -> None:
-        if vel_reg is not None and vel_reg < 0:
-            raise PrimeError(f"ring {position}: damping register must be >= 0, got {vel_reg}")
+class GainOverride:
+    """Context manager: inside the ``with`` block the eRob at ``position`` runs on the registers ``wanted``
+    returns for its snapshot, with the gate armed and each of ``objects`` ((index, sub) -> value) set.
+
+    ``optional`` objects are set only where the drive has them: one that cannot be read is left out and named
+    in ``missing`` (object -> why), so the caller can say so. Each of ``objects`` is written before the gate
+    and the gains (a wider following-error window must be in place before a softer joint sags)."""
+
+    def __init__(self, sdo: SdoClient, position: int, wanted: Callable[[GainSnapshot], ErobRegisters], *,
+                 objects: Mapping[tuple[int, int], int] | None = None,
+                 optional: Mapping[tuple[int, int], int] | None = None) -> None:
         self.objects = SizedSdo(sdo)
         self.position = position
-        self.vel_reg = vel_reg
+        self.wanted = wanted
+        self.extra = dict(objects or {})
+        self.optional = dict(optional or {})
         self.snapshot: GainSnapshot | None = None
-        self.readback: GainSnapshot | None = None
+        self.extra_snapshot: dict[tuple[int, int], int] = {}
+        self.missing: dict[tuple[int, int], str] = {}
+        self.applied: ErobRegisters | None = None
         self.unrestored: list[str] = []
 
     def _write(self, address: tuple[int, int], value: int) -> None:
         self.objects.write(self.position, address, value)
 
-    def __enter__(self) -> DampedLimp:
+    def __enter__(self) -> GainOverride:
         self.snapshot = read_snapshot(self.objects, self.position)
         try:
-            limp = ErobRegisters(pos_reg=0, vel_reg=self.snapshot.registers.vel_reg if self.vel_reg is None
-                                 else self.vel_reg, integral=0)
+            for address in self.extra:
+                self.extra_snapshot[address] = self.objects.read(self.position, address)
+            for address in self.optional:
+                try:
+                    self.extra_snapshot[address] = self.objects.read(self.position, address)
+                except PrimeError as exc:
+                    self.missing[address] = str(exc)
+            for address, value in {**self.extra, **self.optional}.items():
+                if address in self.extra_snapshot:
+                    self._write(address, value)
             self._write(BUS_GAIN_GATE, 1)
-            for address, value in write_order(self.snapshot.registers, limp):
+            self.applied = self.wanted(self.snapshot)
+            for address, value in write_order(self.snapshot.registers, self.applied):
                 self._write(address, value)
-            self.readback = read_snapshot(self.objects, self.position)
-            if self.readback.gate != 1 or self.readback.registers.pos_reg != 0:
-                raise PrimeError(
-                    f"ring {self.position}: limp did not take (read back gate={self.readback.gate}, "
-                    f"pos_reg={self.readback.registers.pos_reg}); the drive is still stiff")
+            self.check()
         except BaseException:
             self.restore()
             raise
         return self
 
+    def check(self) -> None:
+        """Raise if the override did not take (a subclass reads back what matters to it)."""
+
     def restore(self) -> list[str]:
-        """Write the snapshot back; returns (and keeps) the registers that could not be restored.
+        """Write the snapshot back; returns (and keeps) what could not be restored.
 
         Signals are held off while it runs, so an impatient Ctrl-C cannot leave the pair half-written."""
         assert self.snapshot is not None
@@ -95,18 +117,16 @@ class DampedLimp:
             signal.pthread_sigmask(signal.SIG_BLOCK, held)
         try:
             try:
-                current = read_snapshot(self.objects, self.position).registers
+                current: ErobRegisters | None = read_snapshot(self.objects, self.position).registers
             except Exception:
-                current = self.readback.registers if self.readback is not None else None
-            for address, value in write_order(current, self.snapshot.registers):
+                current = self.applied
+            restores = [*write_order(current, self.snapshot.registers), (BUS_GAIN_GATE, self.snapshot.gate),
+                        *self.extra_snapshot.items()]
+            for address, value in restores:
                 try:
                     self._write(address, value)
                 except Exception as exc:
-                    self.unrestored.append(f"{REGISTER_NAMES[address]} (wanted {value}): {exc}")
-            try:
-                self._write(BUS_GAIN_GATE, self.snapshot.gate)
-            except Exception as exc:
-                self.unrestored.append(f"{REGISTER_NAMES[BUS_GAIN_GATE]} (wanted {self.snapshot.gate}): {exc}")
+                    self.unrestored.append(f"{_name(address)} (wanted {value}): {exc}")
         finally:
             if on_main_thread:
                 signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
@@ -116,3 +136,29 @@ class DampedLimp:
         self.restore()
         if self.unrestored:
             raise PrimeError(f"ring {self.position}: could not restore " + "; ".join(self.unrestored))
+
+
+class DampedLimp(GainOverride):
+    """Context manager: the eRob at ``position`` is damped-limp inside the ``with`` block.
+
+    ``vel_reg`` sets the damping register during the limp; None keeps the drive's current value
+    (with the gate at 0 that is what the registers hold, not the factory gains in use).
+    """
+
+    def __init__(self, sdo: SdoClient, position: int, vel_reg: int | None = None) -> None:
+        if vel_reg is not None and vel_reg < 0:
+            raise PrimeError(f"ring {position}: damping register must be >= 0, got {vel_reg}")
+        self.vel_reg = vel_reg
+        self.readback: GainSnapshot | None = None
+        super().__init__(sdo, position, self._limp)
+
+    def _limp(self, snapshot: GainSnapshot) -> ErobRegisters:
+        vel_reg = snapshot.registers.vel_reg if self.vel_reg is None else self.vel_reg
+        return ErobRegisters(pos_reg=0, vel_reg=vel_reg, integral=0)
+
+    def check(self) -> None:
+        self.readback = read_snapshot(self.objects, self.position)
+        if self.readback.gate != 1 or self.readback.registers.pos_reg != 0:
+            raise PrimeError(
+                f"ring {self.position}: limp did not take (read back gate={self.readback.gate}, "
+                f"pos_reg={self.readback.registers.pos_reg}); the drive is still stiff")

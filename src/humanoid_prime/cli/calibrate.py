@@ -46,6 +46,7 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
+from humanoid_prime.cli.calibrate_auto import add_auto_options, check_auto_options, config_option, run_auto
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.location import write_target
@@ -101,6 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_web_option(p)
     p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
     add_json_option(p)
+    add_auto_options(p)
     p.set_defaults(func=run)
 
 
@@ -124,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
             if value is not None:
                 raise PrimeError(f"{option} belongs to a calibration run; --verify checks --calibration and "
                                  "writes nothing")
+    check_auto_options(args)
     files = args.config
     hardware = load_hardware(args.hardware)
     target = Path(args.output) if args.output is not None else write_target(files.calibration, files.folder)
@@ -140,6 +143,8 @@ def run(args: argparse.Namespace) -> int:
         from humanoid_prime.virtual.harness import enter_private_netns
 
         enter_private_netns()
+    if args.auto is not None:
+        return run_auto(args, prior, target, emulator)
     if args.verify:
         return _verify(args, checked, emulator)
     asked = tuple(_joint_list(args.joints)) or (
@@ -353,16 +358,9 @@ def _file_note(result: CalibrationResult, asked: tuple[str, ...]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _config_option(args: argparse.Namespace, target: Path) -> str:
-    """The options by which the next command finds the file this run wrote."""
-    if args.output is not None or args.config.calibration.why == "--calibration":
-        return f" --calibration {target}"
-    return f" --robot {args.robot}" if args.robot else ""
-
-
 def _next_command(args: argparse.Namespace, result: CalibrationResult, missing: list[str], target: Path) -> str:
     """The exact command an operator runs next: a flip, the joints still to do, or the bring-up."""
-    where = _config_option(args, target)
+    where = config_option(args, target)
     flips = [r.joint for r in result.reports if r.status is Status.PROBABLE_FLIP and r.joint in missing]
     if flips:
         return f"prime calibration flip {flips[0]}{where}" + (f" (then {', '.join(flips[1:])})" if flips[1:] else "")

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if args.damping is not None:
         try:
             vel_reg = gains_to_registers(0.0, args.damping, kt=kt, gear=gear,
-                                         efficiency=hardware.torque_efficiency).vel_reg
+                                         efficiency=hardware.erob_torque_efficiency[joint]).vel_reg
         except ValueError as exc:
             raise PrimeError(f"DAMPING {args.damping:g} Nm*s/rad cannot be set on {joint}: {exc}") from None
     sdo = _sdo(args)

@@ -53,6 +53,10 @@ class HardwareConfig:
     erob_gear: dict[str, float]
     torque_efficiency: float
     command_limits: dict[str, CommandLimits]  # per family
+    # Per eRob joint, realised/nominal stiffness: ``joints.erob_torque_efficiency``, else ``torque_efficiency``.
+    erob_torque_efficiency: dict[str, float]
+    # Per joint given in ``joints.contact_effort_cap`` (Nm): what `prime calibrate --auto` may push a stop with.
+    contact_effort_cap: dict[str, float]
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -146,7 +150,8 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         raise ConfigError(path, "buses.can.bitrate", f"must be positive, got {can_bus.bitrate}")
 
     joints = _section(data, path, "joints")
-    check_keys(path, "joints", joints, ("all_joints", "erob_slaves", "mit_joints", "erob_kt", "erob_gear"))
+    check_keys(path, "joints", joints, ("all_joints", "erob_slaves", "mit_joints", "erob_kt", "erob_gear",
+                                     "erob_torque_efficiency", "contact_effort_cap"))
     names = joints.get("all_joints")
     if not isinstance(names, list) or not names:
         raise ConfigError(path, "joints.all_joints", "missing or empty", "list the joints in kinematic order")
@@ -223,6 +228,19 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     efficiency = _positive_float(data.get("torque_efficiency", 1.0), path, "torque_efficiency")
     if efficiency > 1.0:
         raise ConfigError(path, "torque_efficiency", f"{efficiency} is above 1", "use realised/nominal, 0 < e <= 1")
+    erob_efficiency = per_erob("erob_torque_efficiency", efficiency)
+    for joint, value in erob_efficiency.items():
+        if value > 1.0:
+            raise ConfigError(path, f"joints.erob_torque_efficiency.{joint}", f"{value} is above 1",
+                              "use realised/nominal, 0 < e <= 1")
+    caps = joints.get("contact_effort_cap") or {}
+    if not isinstance(caps, dict):
+        raise ConfigError(path, "joints.contact_effort_cap", "expected a mapping joint -> Nm")
+    for joint in caps:
+        if joint not in seen:
+            raise ConfigError(path, f"joints.contact_effort_cap.{joint}", f"joint {joint!r} is not in "
+                              "joints.all_joints", "fix the name or remove the entry")
+    contact_effort_cap = {j: _positive_float(v, path, f"joints.contact_effort_cap.{j}") for j, v in caps.items()}
 
     command_limits = _command_limits(data, path)
 
@@ -237,4 +255,57 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         erob_gear=per_erob("erob_gear", DEFAULT_GEAR),
         torque_efficiency=efficiency,
         command_limits=command_limits,
+        erob_torque_efficiency=erob_efficiency,
+        contact_effort_cap=contact_effort_cap,
     )
+
+
+def write_erob_torque_efficiency(path: str | Path, values: dict[str, float]) -> None:
+    """Set ``joints.erob_torque_efficiency`` of ``values``' joints in the hardware file at ``path``, keeping every
+    other line (and comment) as it is and the joints' earlier values; atomic, and checked by loading the result
+    before it replaces the file."""
+    import tempfile
+
+    import yaml
+
+    from humanoid_prime.files import atomic_write_text
+
+    path = config_path(path)
+    current = load_hardware(path)
+    unknown = sorted(set(values) - set(current.erob_slaves))
+    if unknown:
+        raise ConfigError(path, "joints.erob_torque_efficiency", f"{', '.join(unknown)} is not an eRob joint")
+    data = load_yaml(path)
+    merged = dict((data.get("joints") or {}).get("erob_torque_efficiency") or {})
+    merged.update(values)
+    lines = path.read_text().splitlines(keepends=True)
+    top = next((k for k, line in enumerate(lines) if line.rstrip() == "joints:"), None)
+    if top is None:
+        raise ConfigError(path, "joints", "no top-level 'joints:' line to add erob_torque_efficiency under",
+                          "write the joints section in block style")
+    section = [k for k in range(top + 1, len(lines)) if lines[k].strip() and not lines[k].lstrip().startswith("#")]
+    end = next((k for k in section if not lines[k][0].isspace()), len(lines))
+    children = [k for k in section if k < end]
+    indent = (len(lines[children[0]]) - len(lines[children[0]].lstrip())) if children else 2
+    pad = " " * indent
+    block = [f"{pad}erob_torque_efficiency:\n"] + [f"{pad}  {joint}: {value!r}\n" for joint, value in merged.items()]
+    found = next((k for k in children if lines[k].startswith(f"{pad}erob_torque_efficiency:")), None)
+    if found is None:
+        lines[top + 1:top + 1] = block
+    else:
+        stop = found + 1
+        while stop < end and (not lines[stop].strip() or len(lines[stop]) - len(lines[stop].lstrip()) > indent):
+            stop += 1
+        while stop > found + 1 and not lines[stop - 1].strip():  # blank lines after the block stay
+            stop -= 1
+        lines[found:stop] = block
+    text = "".join(lines)
+    check = yaml.safe_load(text)["joints"]["erob_torque_efficiency"]
+    if check != merged:
+        raise ConfigError(path, "joints.erob_torque_efficiency", "could not be rewritten in place",
+                          "set the values by hand")
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=True) as trial:
+        trial.write(text)
+        trial.flush()
+        load_hardware(trial.name)  # the whole file still loads, or nothing is written
+    atomic_write_text(path, text)

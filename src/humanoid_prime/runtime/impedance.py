@@ -211,14 +211,14 @@ class ImpedanceManager(SafetyFlags):
         self.retries = retries
         self.clock = clock
         self.rendezvous_s = rendezvous_s
-        self.efficiency = hw.torque_efficiency
         self.mode_gains = dict(mode_gains)
         self.slaves = [_Slave(j, hw.erob_slaves[j], hw.erob_kt[j], hw.erob_gear[j],
                               following_window_counts(robot.joints[robot.index(j)].effort_limit, mode_gains))
                        for j in hw.erob_joints]
         self.objects = SizedSdo(sdo)
         self.targets = {
-            mode: {s.position: gains_to_registers(kp, kd, kt=s.kt, gear=s.gear, efficiency=self.efficiency)
+            mode: {s.position: gains_to_registers(kp, kd, kt=s.kt, gear=s.gear,
+                                                  efficiency=hw.erob_torque_efficiency[s.joint])
                    for s in self.slaves}
             for mode, (kp, kd) in self.mode_gains.items()
         }

@@ -6,6 +6,9 @@ integral 0, damping kept, restored afterwards) with its CSP target following the
 limp already. The hand moves the joint slowly toward the lower stop and presses it there (at most a fraction of the
 joint's effort limit), waits until it rests, does the same at the upper stop, then lets go.
 
+``WatchingOperator`` is the operator of the hands-free calibration: it lets every joint move and answers the
+direction question from what the virtual robot's joint really did.
+
 The operator has two hands: ``by_hand`` works through the left arm's joints with one and the other joints with
 the other, at the same time, as a person at the robot does. The arms hang from a fixed torso, so one hand's
 joint does not move under the other's; a calibration of all fourteen joints takes half as long.
@@ -17,9 +20,13 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
+import numpy as np
+
+from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.limp import DampedLimp
+from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.erob.gains import vel_reg_exact
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.session import Session
@@ -76,7 +83,7 @@ class ScriptedOperator:
         if ethercat is None:
             raise PrimeError(f"{joint} is an eRob joint but this run has no EtherCAT bus")
         vel_reg = round(vel_reg_exact(self.limp_kd, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
-                                      efficiency=hw.torque_efficiency))
+                                      efficiency=hw.erob_torque_efficiency[joint]))
         self.session.mark_limp(joint, True)
         try:
             with DampedLimp(ethercat.master, hw.erob_slaves[joint], vel_reg):
@@ -132,3 +139,34 @@ class ScriptedOperator:
                 self.push_to(joint, +1)
             finally:
                 self.let_go(joint)
+
+
+class WatchingOperator:
+    """The virtual robot's operator for the hands-free calibration (``calibration.auto.Operator``): lets every joint
+    move, and answers the direction question as a person watching the robot does, from the joint's true motion
+    (``true_angles()``: every joint's true angle, description frame) seen along the axis the question names."""
+
+    def __init__(self, robot: Robot, true_angles: Callable[[], Mapping[str, float]],
+                 model: GravityModel | None = None) -> None:
+        self.robot = robot
+        self.true_angles = true_angles
+        self.model = GravityModel(robot, model.model if model is not None else None)
+        self._before: Mapping[str, float] = {}
+
+    def begin(self, joints: Sequence[str]) -> None:
+        pass
+
+    def confirm(self, joint: str) -> bool:
+        return True
+
+    def watch(self, joint: str) -> None:
+        self._before = self.true_angles()
+
+    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
+        after = self.true_angles()
+        turned = after[joint] - self._before[joint]
+        q = np.array([after[name] for name in self.robot.names])
+        facing = float(self.model.axis(joint, q) @ view)  # the true axis, toward the person or away
+        if abs(turned) < 1e-3 or abs(facing) < 0.3:
+            return None  # too small to see, or seen edge-on
+        return turned * facing > 0

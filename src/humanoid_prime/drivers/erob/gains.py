@@ -135,7 +135,7 @@ def check_mode_gains(config: ControllersConfig, hardware: HardwareConfig) -> Non
         for joint in hardware.erob_joints:
             try:
                 gains_to_registers(kp, kd, kt=hardware.erob_kt[joint], gear=hardware.erob_gear[joint],
-                                   efficiency=hardware.torque_efficiency)
+                                   efficiency=hardware.erob_torque_efficiency[joint])
             except ValueError as exc:
                 key = kp_key if str(exc).startswith("pos_reg") else kd_key  # pos_reg carries kp/kd, vel_reg kd
                 raise ConfigError(config.path, key or "", f"{mode.value} on {joint}: {exc}") from None

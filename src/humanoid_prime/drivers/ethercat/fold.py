@@ -93,7 +93,7 @@ def startup_sdos(spec: JointSpec, hardware: HardwareConfig,
     the gate that makes the drive use them. Values are plain integers, within ICube's signed 32-bit ``value``."""
     kp, kd = mode_gains[Mode.STANDBY]
     regs = gains_to_registers(kp, kd, kt=hardware.erob_kt[spec.name], gear=hardware.erob_gear[spec.name],
-                              efficiency=hardware.torque_efficiency)
+                              efficiency=hardware.erob_torque_efficiency[spec.name])
     writes: list[tuple[tuple[int, int], int]] = []
     window = following_window_counts(spec.effort_limit, mode_gains)
     if window is not None:

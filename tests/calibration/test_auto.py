@@ -1,0 +1,238 @@
+"""The hands-free calibration's parts, each against its specification: the contact-effort cap and the approach
+gains that keep a contact under it, contact as three signs together (never one sample), direction from the
+limits and from gravity, the plain question's view, and the stops, faults and key presses of a run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from humanoid_prime.calibration import approach
+from humanoid_prime.calibration.approach import CAP_SHARE, MAX_SPEED_RAD_S, approach_gains
+from humanoid_prime.calibration.auto import CONTACT_FRACTION, contact_cap, distal_first
+from humanoid_prime.calibration.direction import direction_from_gravity, direction_from_limits, view_of
+from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration
+from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.config.hardware import load_hardware
+from humanoid_prime.config.robot import load_robot
+from humanoid_prime.errors import ConfigError
+from humanoid_prime.files import bundled
+from humanoid_prime.virtual.lockstep import calibrate_in_lockstep
+from humanoid_prime.virtual.ring.drive import FACTORY_INTEGRAL, FACTORY_POS_REG, FACTORY_VEL_REG
+
+
+def test_the_default_cap_is_a_tenth_of_the_effort_limit(robot):
+    assert contact_cap(robot, "left_shoulder_pitch") == pytest.approx(CONTACT_FRACTION * 30.0)
+    assert contact_cap(robot, "left_wrist_roll") == pytest.approx(CONTACT_FRACTION * 4.8)
+
+
+def test_a_cap_from_the_hardware_file_is_used_and_one_above_the_effort_limit_is_refused(tmp_path):
+    text = bundled("prime_hardware.yaml").read_text().replace(
+        "contact_effort_cap: {}", "contact_effort_cap: {left_elbow_pitch: 2.0, left_wrist_yaw: 11.0}")
+    path = tmp_path / "prime_hardware.yaml"
+    path.write_text(text)
+    robot = load_robot(path)
+    assert contact_cap(robot, "left_elbow_pitch") == 2.0
+    with pytest.raises(ConfigError, match=r"contact_effort_cap\.left_wrist_yaw.*above the joint's effort limit"):
+        contact_cap(robot, "left_wrist_yaw")
+
+
+@pytest.mark.parametrize("cap", [0.48, 1.0, 3.0])
+def test_the_leash_and_stopping_the_motion_spend_no_more_than_the_cap_share(cap):
+    kp, kd = approach_gains(cap)
+    leash = (CAP_SHARE * cap - kd * MAX_SPEED_RAD_S) / kp
+    assert leash > 0
+    assert kp * leash + kd * MAX_SPEED_RAD_S == pytest.approx(CAP_SHARE * cap)
+
+
+def test_joints_go_arm_by_arm_from_the_hand_to_the_shoulder(robot):
+    order = distal_first(robot, ["right_shoulder_pitch", "left_elbow_pitch", "left_wrist_yaw", "right_wrist_roll"])
+    assert order == ["left_wrist_yaw", "left_elbow_pitch", "right_wrist_roll", "right_shoulder_pitch"]
+
+
+def _stops(spec, cal: JointCalibration, prior_direction: int = 1) -> tuple[float, float]:
+    """Where the two stops read in the host frame (the prior's direction, offset 0) for a true calibration."""
+    readings = [prior_direction * (cal.direction * q + cal.homing_offset) for q in (spec.lower, spec.upper)]
+    return min(readings), max(readings)
+
+
+@pytest.mark.parametrize("truth_direction", [1, -1])
+@pytest.mark.parametrize("joint", ["left_shoulder_pitch", "left_elbow_pitch"])
+def test_an_asymmetric_range_tells_the_direction(robot, joint, truth_direction):
+    spec = robot.joints[robot.index(joint)]
+    truth = JointCalibration(truth_direction, 0.37)
+    same, flipped, verdict = direction_from_limits(1, _stops(spec, truth), spec)
+    assert verdict == truth_direction
+    chosen = same if verdict == 1 else flipped
+    assert chosen.direction == truth.direction
+    assert chosen.homing_offset == pytest.approx(truth.homing_offset, abs=1e-12)
+
+
+def test_a_symmetric_range_cannot_tell_and_gives_one_offset_either_way(robot):
+    spec = robot.joints[robot.index("left_wrist_yaw")]
+    same, flipped, verdict = direction_from_limits(1, _stops(spec, JointCalibration(-1, 0.2)), spec)
+    assert verdict is None
+    assert same.homing_offset == pytest.approx(flipped.homing_offset) == pytest.approx(0.2)
+
+
+def test_an_implausible_offset_either_way_is_not_a_verdict(robot):
+    spec = robot.joints[robot.index("left_elbow_pitch")]  # lower + upper = -2.356
+    stops = (-1.178 - 1.178 + 1.178, 1.178)  # centred so both offsets are about half the asymmetry
+    assert direction_from_limits(1, stops, spec)[2] is None
+
+
+def test_gravity_picks_the_direction_whose_curve_fits_and_refuses_when_the_curves_agree():
+    q = np.linspace(-1.5, 1.8, 60)
+    measured = -6.0 * np.sin(q - 0.1) + 0.2  # the true load plus friction
+    predicted = {1: -6.0 * np.sin(q - 0.1), -1: -6.0 * np.sin(q - 0.1 - 0.349)}
+    assert direction_from_gravity(q, measured, predicted)[0] == 1
+    assert direction_from_gravity(q, measured, {1: predicted[-1], -1: predicted[1]})[0] == -1
+    same = {1: predicted[1], -1: predicted[1] + 0.5}  # an offset only: friction could be it
+    assert direction_from_gravity(q, measured, same)[0] is None
+
+
+def test_the_question_is_asked_along_the_nearest_world_axis_looking_at_its_tip():
+    view, where = view_of(np.array([0.1, -0.9, 0.3]))
+    assert view.tolist() == [0.0, -1.0, 0.0]
+    assert where == "at the robot's right side"
+    assert view_of(np.array([0.0, 0.2, 0.95]))[1] == "above the robot"
+
+
+def _tick(q: float, qd: float, effort: float, t: float = 0.0) -> approach.Tick:
+    return approach.Tick(t, 0.02, q, qd, effort, 0.0)
+
+
+def _run(cap: float = 3.0) -> approach.JointRun:
+    gains = approach_gains(cap)
+    return approach.JointRun(0, "j", cap=cap, gains=gains, leash_gains=gains, speed=MAX_SPEED_RAD_S, rate=50.0,
+                          effort_limit=30.0)
+
+
+def test_contact_needs_every_sign_for_the_debounce_time_never_one_sample():
+    run = _run()
+    detector = approach.ContactDetector(run, 1)
+    detector.start(_tick(0.0, 0.2, 0.0), 0.0)
+    lag, push = run.leash, 0.5 * run.cap
+    assert not detector.update(_tick(0.0, 0.0, push), lag, free=False)  # one sample: not yet
+    assert not detector.update(_tick(0.0, 0.0, push), lag, free=False)
+    assert not detector.update(_tick(0.0, 0.2, push), lag, free=False)  # it moved again: counting restarts
+    hits = [detector.update(_tick(0.0, 0.0, push), lag, free=False) for _ in range(detector.needed)]
+    assert hits[-1] and not any(hits[:-1])
+
+
+@pytest.mark.parametrize("missing", ["lag", "motion", "effort"])
+def test_two_signs_of_three_are_no_contact(missing):
+    run = _run()
+    detector = approach.ContactDetector(run, 1)
+    detector.start(_tick(0.0, 0.2, 0.0), 0.0)
+    lag = 0.0 if missing == "lag" else run.leash
+    qd = run.speed if missing == "motion" else 0.0
+    effort = 0.0 if missing == "effort" else 0.5 * run.cap
+    assert not any(detector.update(_tick(0.0, qd, effort), lag, free=False) for _ in range(20))
+
+
+def test_the_leash_holds_the_target_to_the_baseline_lag_plus_the_leash():
+    run = _run()
+    detector = approach.ContactDetector(run, -1)
+    detector.start(_tick(1.0, 0.0, 0.0), 1.0)
+    assert detector.leash(_tick(1.0, 0.0, 0.0), 0.5) == pytest.approx(1.0 - run.leash)
+    assert detector.leash(_tick(1.0, 0.0, 0.0), 0.99) == 0.99
+
+
+# ---- runs in virtual time: faults, key presses and pushes stop everything, restored ---------------------------
+
+@pytest.fixture(scope="module")
+def setup(robot):
+    truth = Calibration({j: JointCalibration(1, 0.1) for j in robot.names}).with_joint(
+        "left_elbow_pitch", JointCalibration(-1, -0.2))
+    return load_controllers(robot.names), load_calibration(robot.hardware), truth
+
+
+def _approaching(auto_run, joint: str, past_rad: float = 0.2) -> bool:
+    moving = auto_run.moving
+    segment = moving.segment if moving is not None else None
+    return (moving is not None and moving.name == joint and isinstance(segment, approach.Approach)
+            and segment.phase == "moving" and abs(segment.target - segment.start_target) > past_rad)
+
+
+def test_a_drive_fault_mid_approach_stops_the_run_with_its_gains_restored(robot, setup):
+    config, prior, truth = setup
+    injected = []
+
+    def fault(rig, auto_run) -> None:
+        if not injected and _approaching(auto_run, "left_elbow_pitch"):
+            rig.inject_fault("left_elbow_pitch", 0x8500)
+            injected.append(rig.sim_time)
+
+    result, rig = calibrate_in_lockstep(robot, config, prior, truth, ["left_elbow_pitch", "left_shoulder_roll"],
+                                        each_tick=fault)
+    assert injected
+    assert result.aborted is not None and "ring3/fault" in result.aborted and "0x8500" in result.aborted
+    assert not result.complete
+    assert result.outcomes["left_elbow_pitch"].status == "aborted"
+    assert result.outcomes["left_shoulder_roll"].status == "not_reached"  # nothing moved after the fault
+    elbow = rig.erob["left_elbow_pitch"]
+    assert int(elbow.gate.value) == 0  # gains back on the factory set, the gate reset
+    assert (int(elbow.pos_reg.value), int(elbow.vel_reg.value), int(elbow.integral_reg.value)) == \
+        (FACTORY_POS_REG, FACTORY_VEL_REG, FACTORY_INTEGRAL)
+    assert int(elbow.max_torque.value) == 1500 and int(elbow.following_window.value) == round(0.5 * 524288 / math.tau)
+    assert result.calibration == prior  # nothing was written over
+
+
+def test_a_key_press_stops_the_joint_where_it_is(robot, setup):
+    config, prior, truth = setup
+    where = []
+
+    def key(rig, auto_run) -> None:
+        if not where and _approaching(auto_run, "left_wrist_roll", 0.1):
+            auto_run.abort("key 'x' pressed")
+            where.append(rig.true_state.position[robot.index("left_wrist_roll")])
+
+    result, rig = calibrate_in_lockstep(robot, config, prior, truth, ["left_wrist_roll"], each_tick=key)
+    assert result.aborted == "key 'x' pressed" and not result.complete
+    stopped = rig.true_state.position[robot.index("left_wrist_roll")]
+    assert abs(stopped - where[0]) < 0.02  # it stopped at once, where it was
+    assert not any(motor.enabled for motor in rig.sito.values())
+
+
+def test_a_held_joint_pushed_away_stops_the_run(robot, setup):
+    config, prior, truth = setup
+    pushed = []
+
+    def push(rig, auto_run) -> None:
+        if not pushed and _approaching(auto_run, "left_elbow_pitch"):
+            dof = rig.physics.dof_adr[robot.index("left_wrist_roll")]
+            rig.physics.data.qfrc_applied[dof] = 3.0  # a hand on the held wrist
+            pushed.append(True)
+
+    result, rig = calibrate_in_lockstep(robot, config, prior, truth, ["left_elbow_pitch"], each_tick=push)
+    assert result.aborted is not None and result.aborted.startswith("left_wrist_roll moved")
+    assert int(rig.erob["left_elbow_pitch"].gate.value) == 0
+
+
+def test_assume_direction_keeps_the_prior_where_the_physics_cannot_tell(robot, setup):
+    config, prior, truth = setup
+    result, _ = calibrate_in_lockstep(robot, config, prior, truth, ["left_wrist_yaw"], assume_direction=True)
+    outcome = result.outcomes["left_wrist_yaw"]
+    assert outcome.done and outcome.direction_source.startswith("assumed")
+    assert outcome.calibration == JointCalibration(1, pytest.approx(0.1, abs=1e-3))
+
+
+def test_hardware_file_cap_and_efficiency_keys_are_checked(tmp_path):
+    path = tmp_path / "prime_hardware.yaml"
+    text = bundled("prime_hardware.yaml").read_text()
+    path.write_text(text.replace("erob_torque_efficiency: {}", "erob_torque_efficiency: {left_wrist_roll: 0.7}"))
+    with pytest.raises(ConfigError, match="left_wrist_roll.*is not an eRob joint"):
+        load_hardware(path)
+    path.write_text(text.replace("erob_torque_efficiency: {}", "erob_torque_efficiency: {left_elbow_pitch: 1.2}"))
+    with pytest.raises(ConfigError, match=r"erob_torque_efficiency\.left_elbow_pitch.*above 1"):
+        load_hardware(path)
+    path.write_text(text.replace("contact_effort_cap: {}", "contact_effort_cap: {nose: 1.0}"))
+    with pytest.raises(ConfigError, match=r"contact_effort_cap\.nose"):
+        load_hardware(path)
+    path.write_text(text.replace("erob_torque_efficiency: {}", "erob_torque_efficiency: {left_elbow_pitch: 0.7}"))
+    hardware = load_hardware(path)
+    assert hardware.erob_torque_efficiency["left_elbow_pitch"] == 0.7
+    assert hardware.erob_torque_efficiency["left_shoulder_pitch"] == hardware.torque_efficiency == 1.0

@@ -94,6 +94,12 @@ def graph(ros_clients, tmp_path_factory):
     for namespace, (process, path) in sims.items():
         assert process.returncode == 0, (folder / f"sim{namespace.replace('/', '_')}.log").read_text()[-3000:]
         summaries[namespace] = json.loads(path.read_text())
+    for distro, report in reports.items():  # the sample counts, for `pytest -s` (the note's figures)
+        counts = {namespace: {key: len(value) for key, value in seen.items() if isinstance(value, list)}
+                  for namespace, seen in report["instances"].items()}
+        print(f"\n{distro}: received {json.dumps(counts)}")
+    for namespace, summary in summaries.items():
+        print(f"prime {namespace}: dds {json.dumps(summary.get('dds', {}))[:600]}")
     return reports, summaries
 
 

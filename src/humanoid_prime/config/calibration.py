@@ -101,7 +101,7 @@ def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> 
             bus, address = "can", f"id {hardware.mit_joints[name]}"
         joints[name] = {
             "direction": int(cal.direction),
-            "homing_offset": round(float(cal.homing_offset), 6),
+            "homing_offset": round(float(cal.homing_offset), 6) + 0.0,  # never "-0.0"
             "bus": bus,
             "address": address,
         }

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -90,9 +91,18 @@ def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -
     return Calibration(result, path=path)
 
 
-def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> dict:
+class JointEntry(TypedDict):
+    """One joint of a calibration file."""
+
+    direction: int
+    homing_offset: float
+    bus: str
+    address: str
+
+
+def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> dict[str, dict[str, JointEntry]]:
     """The YAML document for ``calibration``, with the human-readable bus and address of each joint."""
-    joints: dict[str, dict] = {}
+    joints: dict[str, JointEntry] = {}
     for name in hardware.all_joints:
         cal = calibration.joints[name]
         if name in hardware.erob_slaves:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TypedDict
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
@@ -38,10 +39,10 @@ class Calibration:
     joints: dict[str, JointCalibration]
     path: Path | None = field(default=None, compare=False)
 
-    def direction_array(self, names: tuple[str, ...]) -> np.ndarray:
+    def direction_array(self, names: tuple[str, ...]) -> npt.NDArray[np.float64]:
         return np.array([self.joints[n].direction for n in names], dtype=np.float64)
 
-    def offset_array(self, names: tuple[str, ...]) -> np.ndarray:
+    def offset_array(self, names: tuple[str, ...]) -> npt.NDArray[np.float64]:
         return np.array([self.joints[n].homing_offset for n in names], dtype=np.float64)
 
     @property

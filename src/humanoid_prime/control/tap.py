@@ -125,11 +125,8 @@ class TickTap:
                 self._work.put(item)
 
     def _on_remote(self, message: MitCommand) -> None:  # any thread; the message may be reused: copy it
-        def copy(values: npt.ArrayLike) -> npt.NDArray[np.float64]:
-            return np.array(values, dtype=np.float64)
-
-        self._work.put(MitCommand(tuple(message.joint_names), copy(message.position), copy(message.velocity),
-                                  copy(message.effort), copy(message.stiffness), copy(message.damping),
+        self._work.put(MitCommand(tuple(message.joint_names), _copy(message.position), _copy(message.velocity),
+                                  _copy(message.effort), _copy(message.stiffness), _copy(message.damping),
                                   stamp=message.stamp))
 
     # ---- the consumer thread ---------------------------------------------------------------------
@@ -177,3 +174,7 @@ class TickTap:
         self._end_of_tick()
         self._work.put(None)
         self._thread.join(timeout)
+
+
+def _copy(values: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    return np.array(values, dtype=np.float64)

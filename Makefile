@@ -12,7 +12,7 @@ BENCH_DEBS := rt-tests
 PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
 
-.PHONY: sim test bench soak lint clean ros
+.PHONY: sim test typecheck bench soak lint clean ros
 
 $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/humanoid_prime/*/*/*.pyx)
 	tools/install-debs $(BUILD_DEBS)
@@ -27,7 +27,16 @@ sim: $(STAMP)
 test: $(STAMP)
 	tools/install-debs $(TEST_DEBS)
 	$(VENV)/bin/ruff check src tests
+	$(MAKE) typecheck
 	$(PY) -m pytest -q
+
+# mypy, strict on the packages listed in pyproject.toml's [tool.mypy]; stubtest holds the compiled kernels' stubs
+# (_tick.pyi) to the built modules, so a changed kernel signature fails here rather than at a caller.
+TICK_MODULES := humanoid_prime.control._tick humanoid_prime.drivers.ethercat._tick humanoid_prime.drivers.sito._tick
+typecheck: $(STAMP)
+	$(PY) -m mypy
+	$(PY) -m mypy.stubtest $(TICK_MODULES) --mypy-config-file pyproject.toml --allowlist tools/stubtest-allowlist \
+		--ignore-disjoint-bases
 
 bench: $(STAMP)
 	tools/install-debs $(BENCH_DEBS)

@@ -9,8 +9,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
@@ -37,10 +39,10 @@ class Calibration:
     joints: dict[str, JointCalibration]
     path: Path | None = field(default=None, compare=False)
 
-    def direction_array(self, names: tuple[str, ...]) -> np.ndarray:
+    def direction_array(self, names: tuple[str, ...]) -> npt.NDArray[np.float64]:
         return np.array([self.joints[n].direction for n in names], dtype=np.float64)
 
-    def offset_array(self, names: tuple[str, ...]) -> np.ndarray:
+    def offset_array(self, names: tuple[str, ...]) -> npt.NDArray[np.float64]:
         return np.array([self.joints[n].homing_offset for n in names], dtype=np.float64)
 
     @property
@@ -90,9 +92,18 @@ def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -
     return Calibration(result, path=path)
 
 
-def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> dict:
+class JointEntry(TypedDict):
+    """One joint of a calibration file."""
+
+    direction: int
+    homing_offset: float
+    bus: str
+    address: str
+
+
+def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> dict[str, dict[str, JointEntry]]:
     """The YAML document for ``calibration``, with the human-readable bus and address of each joint."""
-    joints: dict[str, dict] = {}
+    joints: dict[str, JointEntry] = {}
     for name in hardware.all_joints:
         cal = calibration.joints[name]
         if name in hardware.erob_slaves:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled, check_keys, config_path, load_yaml
@@ -113,11 +112,11 @@ class ControllersConfig:
 
 
 class _Reader:
-    def __init__(self, path: Path, data: Any) -> None:
+    def __init__(self, path: Path, data: dict[str, object]) -> None:
         self.path = path
         self.data = data
 
-    def params(self, node: str) -> dict[str, Any]:
+    def params(self, node: str) -> dict[str, object]:
         block = self.data.get(node)
         params = block.get("ros__parameters") if isinstance(block, dict) else None
         if not isinstance(params, dict):
@@ -160,13 +159,14 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
 
     cm = r.params("controller_manager")
     for name, kind in CONTROLLER_TYPES.items():
-        if not isinstance(cm.get(name), dict):
+        declared = cm.get(name)
+        if not isinstance(declared, dict):
             raise ConfigError(path, f"controller_manager.ros__parameters.{name}", "controller not declared",
                               f"add '{name}: {{type: {kind}}}'")
-        check_keys(path, f"controller_manager.ros__parameters.{name}", cm[name], ("type",))
-        if cm[name].get("type", kind) != kind:
+        check_keys(path, f"controller_manager.ros__parameters.{name}", declared, ("type",))
+        if declared.get("type", kind) != kind:
             raise ConfigError(path, f"controller_manager.ros__parameters.{name}.type",
-                              f"{cm[name]['type']!r} is not a controller of this stack", f"use {kind}")
+                              f"{declared['type']!r} is not a controller of this stack", f"use {kind}")
     for mode, name in MODE_CONTROLLERS.items():
         given = r.params(name).get("mode", mode.value)
         if given != mode.value:

@@ -5,10 +5,14 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled
+
+if TYPE_CHECKING:
+    from xml.dom import minidom
 
 XACRO_FILE = "description/prime_dummy.urdf.xacro"
 COMMAND_INTERFACES = ("position", "velocity", "effort", "stiffness", "damping")
@@ -71,7 +75,7 @@ def render_urdf(hardware: HardwareConfig, *, use_sim: bool = False, control_freq
         "erob_config_dir": str(erob_config_dir),
     }
     try:
-        doc = xacro.process_file(str(source), mappings=mappings)
+        doc: minidom.Document = xacro.process_file(str(source), mappings=mappings)
     except Exception as exc:  # xacro raises plain Exceptions with the useful text
         raise ConfigError(source, "", f"xacro failed: {exc}") from None
     return doc.toprettyxml(indent="  ")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled, check_keys, config_path, load_yaml
@@ -72,26 +71,26 @@ class HardwareConfig:
         return "erob" if joint in self.erob_slaves else "sito"
 
 
-def _section(data: Any, path: Path, key: str) -> dict[str, Any]:
+def _section(data: object, path: Path, key: str) -> dict[str, object]:
     value = data.get(key.rsplit(".", 1)[-1]) if isinstance(data, dict) else None
     if not isinstance(value, dict):
         raise ConfigError(path, key, "missing or not a mapping", f"add a '{key}' mapping")
     return value
 
 
-def _int(value: Any, path: Path, key: str) -> int:
+def _int(value: object, path: Path, key: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ConfigError(path, key, f"expected an integer, got {value!r}")
     return value
 
 
-def _positive_float(value: Any, path: Path, key: str) -> float:
+def _positive_float(value: object, path: Path, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ConfigError(path, key, f"expected a positive finite number, got {value!r}")
     return float(value)
 
 
-def _str(value: Any, path: Path, key: str) -> str:
+def _str(value: object, path: Path, key: str) -> str:
     if not isinstance(value, str) or not value:
         raise ConfigError(path, key, f"expected a non-empty string, got {value!r}")
     return value
@@ -100,14 +99,15 @@ def _str(value: Any, path: Path, key: str) -> str:
 LIMIT_NAMES = ("stiffness", "damping", "velocity")
 
 
-def _command_limits(data: dict[str, Any], path: Path) -> dict[str, CommandLimits]:
+def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLimits]:
     """``command_limits`` per family; a value the file leaves out is the bundled template's (a robot's file
     written before the section existed still loads, with the product's limits)."""
     limits = data.get("command_limits", {})
     if not isinstance(limits, dict):
         raise ConfigError(path, "command_limits", "expected a mapping family -> limits")
     check_keys(path, "command_limits", limits, FAMILIES)
-    defaults = None if path == bundled(HARDWARE_FILE) else load_yaml(bundled(HARDWARE_FILE))["command_limits"]
+    template = path == bundled(HARDWARE_FILE)
+    defaults = {} if template else load_yaml(bundled(HARDWARE_FILE))["command_limits"]
     result = {}
     for family in FAMILIES:
         key = f"command_limits.{family}"
@@ -115,7 +115,7 @@ def _command_limits(data: dict[str, Any], path: Path) -> dict[str, CommandLimits
         if not isinstance(section, dict):
             raise ConfigError(path, key, "expected a mapping of stiffness, damping, velocity")
         check_keys(path, key, section, LIMIT_NAMES)
-        if defaults is None and set(section) != set(LIMIT_NAMES):
+        if template and set(section) != set(LIMIT_NAMES):
             raise ConfigError(path, key, "the template must give stiffness, damping and velocity")
         result[family] = CommandLimits(**{
             name: _positive_float(section[name] if name in section else defaults[family][name], path,

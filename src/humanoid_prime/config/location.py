@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,7 +121,7 @@ class ConfigFiles:
     calibration: ConfigFile
     controllers: ConfigFile
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[ConfigFile]:
         return iter((self.hardware, self.calibration, self.controllers))
 
     def as_dict(self) -> dict[str, dict[str, object]]:

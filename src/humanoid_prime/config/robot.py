@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.description import Description, load_description
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
@@ -55,19 +56,19 @@ class Robot:
                 return joint.index
         raise KeyError(f"unknown joint {name!r}; known joints: {', '.join(self.names)}")
 
-    def indices(self, family: Family) -> np.ndarray:
+    def indices(self, family: Family) -> npt.NDArray[np.intp]:
         return np.array([j.index for j in self.joints if j.family == family], dtype=np.intp)
 
     @property
-    def lower(self) -> np.ndarray:
+    def lower(self) -> npt.NDArray[np.float64]:
         return np.array([j.lower for j in self.joints])
 
     @property
-    def upper(self) -> np.ndarray:
+    def upper(self) -> npt.NDArray[np.float64]:
         return np.array([j.upper for j in self.joints])
 
     @property
-    def effort_limit(self) -> np.ndarray:
+    def effort_limit(self) -> npt.NDArray[np.float64]:
         return np.array([j.effort_limit for j in self.joints])
 
 

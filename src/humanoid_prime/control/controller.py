@@ -13,6 +13,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import SafetyFlags
@@ -51,7 +52,7 @@ class Controller(SafetyFlags, ABC):
         """Write the command for this tick into ``command`` (all five rows, every joint)."""
 
 
-def capture_position(names: tuple[str, ...], state: StateArrays, out: np.ndarray, why: str) -> None:
+def capture_position(names: tuple[str, ...], state: StateArrays, out: npt.NDArray[np.float64], why: str) -> None:
     """Copy the measured position into ``out``; a joint that is not measured (non-finite) refuses the
     activation, with ``why`` saying what could not be done."""
     bad = np.flatnonzero(~np.isfinite(state.position))
@@ -60,7 +61,8 @@ def capture_position(names: tuple[str, ...], state: StateArrays, out: np.ndarray
     np.copyto(out, state.position)
 
 
-def gain_rows(robot: Robot, erob: tuple[float, float], sito: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def gain_rows(robot: Robot, erob: tuple[float, float],
+              sito: tuple[float, float]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """Per-joint (stiffness, damping) rows from one (kp, kd) pair per actuator family."""
     is_erob = np.array([j.family == "erob" for j in robot.joints])
     stiffness = np.where(is_erob, erob[0], sito[0]).astype(np.float64)
@@ -68,7 +70,7 @@ def gain_rows(robot: Robot, erob: tuple[float, float], sito: tuple[float, float]
     return stiffness, damping
 
 
-def pose_array(robot: Robot, pose: Mapping[str, float]) -> np.ndarray:
+def pose_array(robot: Robot, pose: Mapping[str, float]) -> npt.NDArray[np.float64]:
     """A named pose (joint -> rad, joints left out are 0) as an array in canonical order."""
     values = np.zeros(robot.n)
     for joint, angle in pose.items():

@@ -24,9 +24,10 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import SupportsFloat, TypedDict
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
@@ -53,6 +54,10 @@ FALLBACK: dict[Mode, Mode | None] = {
 }
 
 
+# A fallback as the run's summary lists it.
+Fallback = TypedDict("Fallback", {"tick": int, "from": str, "to": str, "reason": str})
+
+
 @dataclass(frozen=True)
 class ModeOutcome:
     """What became of a mode request, once the tick that applied it has run: the mode asked for, the mode
@@ -72,16 +77,16 @@ class LoopStats:
     capacity: int = 1 << 16
     ticks: int = 0
     overruns: int = 0
-    costs: np.ndarray = field(init=False, repr=False)
-    ios: np.ndarray = field(init=False, repr=False)
-    periods: np.ndarray = field(init=False, repr=False)
+    costs: npt.NDArray[np.float64] = field(init=False, repr=False)
+    ios: npt.NDArray[np.float64] = field(init=False, repr=False)
+    periods: npt.NDArray[np.float64] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.costs = np.zeros(self.capacity)
         self.ios = np.zeros(self.capacity)
         self.periods = np.full(self.capacity, np.nan)
-        # The tick writes through plain memoryviews: one C store each, not NumPy's item assignment.
-        self._rows = (memoryview(self.costs), memoryview(self.ios), memoryview(self.periods))
+        # The tick writes through plain memoryviews of doubles: one C store each, not NumPy's item assignment.
+        self._rows = tuple(a.data.cast("B").cast("d") for a in (self.costs, self.ios, self.periods))
 
     def record(self, cost: float, period: float, io: float = 0.0) -> None:
         """``period`` is NaN for the first tick."""
@@ -98,7 +103,7 @@ class LoopStats:
         if not k:
             empty = {"median": None, "p99": None, "max": None}
             return {"cpu": dict(empty), "io": dict(empty)}
-        figures = {}
+        figures: dict[str, dict[str, float | None]] = {}
         for name, values in (("cpu", self.costs[:k] - self.ios[:k]), ("io", self.ios[:k])):
             median, p99, top = np.percentile(values, (50, 99, 100)) * 1e6
             figures[name] = {"median": round(float(median), 3), "p99": round(float(p99), 3),
@@ -124,14 +129,15 @@ class LoopStats:
         median, p99, top = np.percentile(self.costs[:k], (50, 99, 100)) * 1e6
         return {"median": round(float(median), 3), "p99": round(float(p99), 3), "max": round(float(top), 3)}
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, object]:
         """Figures over the last ``capacity`` ticks; None where there is nothing to measure yet."""
         k = min(self.ticks, self.capacity)
         periods = self.periods[:k]
         periods = periods[np.isfinite(periods)]
         jitter = self.jitter_us((99,))
 
-        def stat(values: np.ndarray, fn: Callable[[np.ndarray], Any]) -> float | None:
+        def stat(values: npt.NDArray[np.float64],
+                 fn: Callable[[npt.NDArray[np.float64]], SupportsFloat]) -> float | None:
             return round(float(fn(values)), 3) if values.size else None
 
         return {
@@ -171,12 +177,12 @@ class ControllerManager:
         self.stats = LoopStats(self.period)
         self.active: Controller | None = None
         self.active_mode: Mode | None = None
-        self.fallbacks: list[dict[str, Any]] = []
+        self.fallbacks: list[Fallback] = []
         self.modes_visited: list[str] = []
         self.stages: list[tuple[str, float]] = []
         self.flags = SafetyFlags("controller_manager")
         # The configuration files of the run (kind -> path, sha256, source), named in every report of it.
-        self.configuration: dict[str, dict[str, Any]] = {}
+        self.configuration: dict[str, dict[str, object]] = {}
         self.tick_count = 0
         self.resets = 0  # operator fault resets applied
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
@@ -320,6 +326,7 @@ class ControllerManager:
             if not self._applied.wait_for(lambda: self._outcome is not None and self._outcome[0] >= ticket,
                                           timeout):
                 return None
+            assert self._outcome is not None  # the wait above ended on it
             applied, outcome = self._outcome
         if applied != ticket:
             return ModeOutcome(outcome.requested, outcome.active, f"superseded by a later request for "
@@ -432,6 +439,7 @@ class ControllerManager:
 
     def _tell_outcome(self) -> None:
         """The request applied in this tick has had its first update: tell ``wait_mode`` what became of it."""
+        assert self._applying is not None  # tick() calls this only while a request is being applied
         ticket, requested = self._applying
         self._applying = None
         active = self.active_mode
@@ -456,6 +464,7 @@ class ControllerManager:
         reason = self._run_active(now, dt)
         while reason is not None:
             failed = self.active_mode
+            assert failed is not None  # tick() updates only while a mode is active
             fallback = FALLBACK[failed]
             if fallback is None:
                 # Last resort: limp on every joint, target left on the last valid command.
@@ -471,6 +480,7 @@ class ControllerManager:
 
     def _run_active(self, now: float, dt: float) -> str | None:
         controller = self.active
+        assert controller is not None  # as in _update
         try:
             controller.update(now, dt, self.resources.state, self._proposal)
         except Exception as exc:

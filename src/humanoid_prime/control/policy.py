@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.errors import ControllerError, PrimeError
 
@@ -45,7 +46,7 @@ def observation_size(terms: Sequence[str], n: int) -> int:
     return size
 
 
-def export_mlp(layers: Sequence[tuple[np.ndarray, np.ndarray]], joint_names: Sequence[str],
+def export_mlp(layers: Sequence[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]], joint_names: Sequence[str],
                observation: Sequence[str], phase_period_s: float | None = None) -> onnx.ModelProto:
     """An ONNX model computing ``W_k @ tanh(... tanh(W_1 @ obs + b_1) ...) + b_k`` from (W, b) pairs.
 
@@ -137,13 +138,13 @@ class Policy:
         probe = self.session.run([output.name], {inp.name: self.observation})[0]
         if probe.shape != (1, n):
             raise PrimeError(f"{self.path}: output {output.name!r} has shape {probe.shape}, expected (1, {n})")
-        self.actions = np.zeros((1, n), dtype=np.float32)
+        self.actions: npt.NDArray[np.float32] = np.zeros((1, n), dtype=np.float32)
         # Bound once: inference reads self.observation and writes self.actions in place.
         self._binding = self.session.io_binding()
         self._binding.bind_cpu_input(inp.name, self.observation)
         self._binding.bind_output(output.name, "cpu", 0, np.float32, list(self.actions.shape),
                                   self.actions.ctypes.data)
-        self._views: dict[str, np.ndarray] = {}
+        self._views: dict[str, npt.NDArray[np.float32]] = {}
         start = 0
         for term in self.terms:
             width = n if OBSERVATION_TERMS[term] == "n" else int(OBSERVATION_TERMS[term])
@@ -155,7 +156,8 @@ class Policy:
         self._sin = self._views.get("phase_sin")
         self._cos = self._views.get("phase_cos")
 
-    def pack(self, joint_pos_rel: np.ndarray, joint_vel: np.ndarray, last_action: np.ndarray, time: float) -> None:
+    def pack(self, joint_pos_rel: npt.NDArray[np.float64], joint_vel: npt.NDArray[np.float64],
+             last_action: npt.NDArray[np.float64], time: float) -> None:
         """Write the declared observation terms; ``time`` (s since entry) drives the phase clock."""
         if self._pos is not None:
             np.copyto(self._pos, joint_pos_rel, casting="same_kind")
@@ -170,10 +172,11 @@ class Policy:
             if self._cos is not None:
                 self._cos[0] = math.cos(phase)
 
-    def run(self) -> np.ndarray:
+    def run(self) -> npt.NDArray[np.float32]:
         """Infer from the packed observation; returns the action row (a view, overwritten next call)."""
         try:
             self.session.run_with_iobinding(self._binding)
         except Exception as exc:
             raise ControllerError(f"policy inference failed: {exc}") from None
-        return self.actions[0]
+        action: npt.NDArray[np.float32] = self.actions[0]
+        return action

@@ -16,9 +16,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, JointState, MitCommand, SafetyStatus
@@ -33,7 +34,7 @@ class TickSample:
     valid only during the consumer's call."""
 
     stamp: float
-    data: np.ndarray
+    data: npt.NDArray[np.float64]
     queued_at: float
 
 
@@ -68,8 +69,9 @@ class TickTap:
         self._head = 0  # written by the tick thread only
         self._tail = 0  # written by the consumer thread only
         self._slot: int | None = None  # this tick's slot, handed over at its end
-        self._pending: list[Any] = []
-        self._work: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._pending: list[ControlMode | SafetyStatus] = []
+        # a tick's slot, a latched message, a REMOTE command, or None: the end
+        self._work: queue.SimpleQueue[int | ControlMode | SafetyStatus | MitCommand | None] = queue.SimpleQueue()
         self._joint_states = manager.config.joint_states_topic
         self._remote_topic = manager.config.remote.topic if remote else None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -123,9 +125,8 @@ class TickTap:
                 self._work.put(item)
 
     def _on_remote(self, message: MitCommand) -> None:  # any thread; the message may be reused: copy it
-        self._work.put(MitCommand(tuple(message.joint_names), *(np.array(getattr(message, name), dtype=np.float64)
-                                                                  for name in ("position", "velocity", "effort",
-                                                                               "stiffness", "damping")),
+        self._work.put(MitCommand(tuple(message.joint_names), _copy(message.position), _copy(message.velocity),
+                                  _copy(message.effort), _copy(message.stiffness), _copy(message.damping),
                                   stamp=message.stamp))
 
     # ---- the consumer thread ---------------------------------------------------------------------
@@ -173,3 +174,7 @@ class TickTap:
         self._end_of_tick()
         self._work.put(None)
         self._thread.join(timeout)
+
+
+def _copy(values: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    return np.array(values, dtype=np.float64)

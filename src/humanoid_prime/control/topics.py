@@ -9,9 +9,10 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypeVar, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.control._tick import Copy
 from humanoid_prime.control.flags import Level
@@ -20,6 +21,7 @@ JOINT_STATES = "/prime/joint_states"
 CONTROL_MODE = "/control_mode"
 SAFETY_STATUS = "/safety_status"
 REMOTE_COMMAND = "/remote_policy_controller/command"
+_M = TypeVar("_M")
 
 
 @dataclass
@@ -28,9 +30,9 @@ class JointState:
 
     stamp: float
     name: tuple[str, ...]
-    position: np.ndarray
-    velocity: np.ndarray
-    effort: np.ndarray
+    position: npt.NDArray[np.float64]
+    velocity: npt.NDArray[np.float64]
+    effort: npt.NDArray[np.float64]
 
 
 @dataclass
@@ -38,11 +40,11 @@ class MitCommand:
     """The MIT command message: one value per joint, in ``joint_names`` order."""
 
     joint_names: tuple[str, ...]
-    position: np.ndarray
-    velocity: np.ndarray
-    effort: np.ndarray
-    stiffness: np.ndarray
-    damping: np.ndarray
+    position: npt.NDArray[np.float64]
+    velocity: npt.NDArray[np.float64]
+    effort: npt.NDArray[np.float64]
+    stiffness: npt.NDArray[np.float64]
+    damping: npt.NDArray[np.float64]
     stamp: float = 0.0
 
 
@@ -72,28 +74,30 @@ class SafetyStatus:
 class TopicBus:
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._subscribers: dict[str, list[Callable[[Any], None]]] = {}
-        self._latest: dict[str, Any] = {}
+        # A topic is a name: what it carries is agreed between its publishers and subscribers (a DDS message
+        # may stand in for ours, with the same fields), so the bus stores callbacks of any one argument.
+        self._subscribers: dict[str, list[Callable[..., None]]] = {}
+        self._latest: dict[str, object] = {}
 
-    def publish(self, topic: str, message: Any) -> None:
+    def publish(self, topic: str, message: object) -> None:
         self._latest[topic] = message
         for callback in self._subscribers.get(topic, ()):
             callback(message)
 
-    def subscribe(self, topic: str, callback: Callable[[Any], None], *, latched: bool = False) -> None:
+    def subscribe(self, topic: str, callback: Callable[[_M], None], *, latched: bool = False) -> None:
         """Call ``callback`` for every message; with ``latched``, also once now with the latest one."""
         with self._lock:
             self._subscribers.setdefault(topic, []).append(callback)
         if latched and topic in self._latest:
-            callback(self._latest[topic])
+            callback(cast(_M, self._latest[topic]))  # what the topic carries, as agreed (see __init__)
 
-    def unsubscribe(self, topic: str, callback: Callable[[Any], None]) -> None:
+    def unsubscribe(self, topic: str, callback: Callable[[_M], None]) -> None:
         with self._lock:
             subs = self._subscribers.get(topic, [])
             if callback in subs:
                 subs.remove(callback)
 
-    def latest(self, topic: str) -> Any:
+    def latest(self, topic: str) -> object:
         return self._latest.get(topic)
 
 
@@ -124,7 +128,7 @@ class Snapshot:
     def _on_safety(self, message: SafetyStatus) -> None:
         self.status = message
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         status = self.status
         return {"names": list(self.names), "position": [None if v != v else float(v) for v in self.position],
                 "stamp": self.stamp, "mode": self.mode,

@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import Protocol, TypedDict, TypeVar, cast
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level, SafetyFlags
@@ -58,6 +58,36 @@ from humanoid_prime.drivers.ethercat.master import HELPER_PRIORITY, SlaveInfo, r
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+
+_T = TypeVar("_T")
+
+
+class SlaveSwitchDict(TypedDict):
+    """``SlaveSwitch.as_dict``: one slave's part of a switch, in the reports and the control socket's answer."""
+
+    joint: str
+    position: int
+    written: dict[str, int]
+    read_back: dict[str, int] | None
+    retries: int
+    seconds: float
+    al_state: str | None
+    ok: bool
+    problem: str | None
+
+
+class SwitchReportDict(TypedDict):
+    """``SwitchReport.as_dict``."""
+
+    mode: str
+    wall_seconds: float
+    skew_seconds: float
+    retries: int
+    together: bool
+    ok: bool
+    read_back: str  # "done" or "pending"
+    failed: dict[str, str]  # joint -> its problem
+    slaves: list[SlaveSwitchDict]
 
 
 @dataclass
@@ -85,7 +115,7 @@ class SlaveSwitch:
             return f"{self.mode} switch: the slave is in {self.al_state} after it, not OP"
         return self.read_back_error
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> SlaveSwitchDict:
         return {"joint": self.joint, "position": self.position, "written": dict(self.writes),
                 "read_back": self.read_back, "retries": self.retries, "seconds": self.finished_s,
                 "al_state": self.al_state, "ok": self.problem is None, "problem": self.problem}
@@ -106,7 +136,7 @@ class SwitchReport:
         """Every slave written, in OP after the switch, and (once read back) holding what was written."""
         return all(s.problem is None for s in self.slaves)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> SwitchReportDict:
         return {
             "mode": self.mode,
             "wall_seconds": self.wall_seconds,
@@ -206,7 +236,8 @@ class ImpedanceManager(SafetyFlags):
         super().__init__("erob_impedance_manager")
         hw = robot.hardware
         self.sdo = sdo
-        self.states = states if states is not None else (sdo if callable(getattr(sdo, "read_states", None)) else None)
+        self.states = states if states is not None else (
+            cast(RingStates, sdo) if callable(getattr(sdo, "read_states", None)) else None)
         self.parallel = parallel
         self.retries = retries
         self.clock = clock
@@ -350,7 +381,7 @@ class ImpedanceManager(SafetyFlags):
         return ErobRegisters(pos_reg=read(slave.position, POS_LOOP_GAIN), vel_reg=read(slave.position, VEL_LOOP_GAIN),
                              integral=read(slave.position, VEL_LOOP_INTEGRAL))
 
-    def _each(self, fn: Callable[[_Slave], object]) -> list[object]:
+    def _each(self, fn: Callable[[_Slave], _T]) -> list[_T]:
         if self._pool is not None:
             return list(self._pool.map(fn, self.slaves))
         return [fn(s) for s in self.slaves]

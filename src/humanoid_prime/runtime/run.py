@@ -68,7 +68,8 @@ def run_loop(session: Session, stop: threading.Event,
         between_ticks = GcBetweenTicks()
         # EtherCAT frames are polled for while this thread owns the cycle at real-time priority (soem_master.py).
         polled = realtime.fifo and master is not None and master.poll_frames(True)
-        session.reports["realtime"] = {**realtime.as_dict(), "ethercat_frames_polled": polled}
+        realtime_report: dict[str, object] = {**realtime.as_dict(), "ethercat_frames_polled": polled}
+        session.reports["realtime"] = realtime_report
         if report is not None:
             report(realtime.line())
     try:
@@ -80,11 +81,12 @@ def run_loop(session: Session, stop: threading.Event,
             session.impedance.wait_idle(5.0)
             close_impedance_while_ticking(session, between_ticks)
     finally:
-        if polled:
+        if polled and master is not None:
             master.poll_frames(False)
         if realtime is not None:
             leave_realtime(realtime)
-            session.reports["realtime"]["gc_between_ticks"] = between_ticks.collections
+        if between_ticks is not None:  # with realtime
+            realtime_report["gc_between_ticks"] = between_ticks.collections
 
 
 def close_impedance_while_ticking(session: Session, between_ticks: Callable[[], None] | None = None,
@@ -93,6 +95,7 @@ def close_impedance_while_ticking(session: Session, between_ticks: Callable[[], 
     active mode's, or the actual position while limp) at the moment its factory gains take over; a
     stopped loop would leave a stale target that the stiff factory gains snap to."""
     impedance = session.impedance
+    assert impedance is not None  # called for a run that has one
     done = threading.Event()
 
     def close() -> None:

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 
@@ -48,6 +48,10 @@ from humanoid_prime.runtime.realtime import lock_memory, tighten_switch_interval
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
 from humanoid_prime.runtime.socket import ControlServer
 from humanoid_prime.runtime.switching import mode_switcher
+
+if TYPE_CHECKING:
+    from humanoid_prime.drivers.ethercat.system import EthercatSystem
+    from humanoid_prime.drivers.sito.system import SitoSystem
 
 BACKENDS = tuple(BACKEND_BLOCKS)
 MOVING_MODES = (Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE)  # modes whose commands drive joints to targets
@@ -78,7 +82,7 @@ class BringupOptions:
     realtime: bool = False  # the loop thread takes real-time scheduling, locked memory, a frozen GC
     cpu: int | None = None  # (with realtime) pin the loop thread to this CPU
     uncalibrated: bool = False  # on the robot, allow the modes that move joints with an identity calibration
-    config: dict[str, Any] | None = None  # the configuration files used (path, sha256, source), for the reports
+    config: dict[str, dict[str, object]] | None = None  # the files used (path, sha256, source), for the reports
 
 
 @dataclass
@@ -180,9 +184,21 @@ class FaultRecord:
     since_s: float
     until_s: float | None = None
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         return {"key": self.key, "level": self.level.name, "text": self.text, "since_s": round(self.since_s, 3),
                 "until_s": None if self.until_s is None else round(self.until_s, 3)}
+
+
+class RunEnd(TypedDict, total=False):
+    """What held when the run ended (``Session.capture_end``); the EtherCAT and Sito parts where the run had them."""
+
+    position: dict[str, float | None]  # the last tick's joint angles, rad (None: unknown)
+    slaves: int
+    slaves_op: int
+    drives_enabled: int
+    drives_faulted: list[str]
+    sito: int
+    sito_online: int
 
 
 @dataclass
@@ -191,14 +207,14 @@ class Session:
 
     plan: Plan
     manager: ControllerManager
-    ethercat: Any = None  # EthercatSystem
-    sito: Any = None  # SitoSystem
+    ethercat: EthercatSystem | None = None
+    sito: SitoSystem | None = None
     impedance: ImpedanceManager | None = None
     bringup_seconds: float = 0.0
     faults: list[FaultRecord] = field(default_factory=list)
     gate_reset_failures: list[str] = field(default_factory=list)
-    end: dict[str, Any] = field(default_factory=dict)  # what held when the run ended (capture_end)
-    reports: dict[str, Any] = field(default_factory=dict)  # further sections of the summary (e.g. load_test)
+    end: RunEnd = field(default_factory=lambda: RunEnd())  # what held when the run ended (capture_end)
+    reports: dict[str, object] = field(default_factory=dict)  # further sections of the summary (e.g. load_test)
     final_position: dict[str, float | None] = field(default_factory=dict)  # keep_final_position
     _open: dict[str, FaultRecord] = field(default_factory=dict)
 
@@ -249,7 +265,7 @@ class Session:
     def capture_end(self) -> None:
         """What holds as the run ends, read fresh from the buses before they close: slaves in OP, drives
         enabled or faulted, wrists heard from."""
-        end: dict[str, Any] = {"position": self.final_position}
+        end: RunEnd = {"position": self.final_position}
         ethercat = self.ethercat
         if ethercat is not None and ethercat.master is not None:
             master = ethercat.master
@@ -288,7 +304,7 @@ class Session:
         lines += [f"gate not reset: {failure}" for failure in self.gate_reset_failures]
         return lines
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, object]:
         stats = self.manager.stats.summary()
         ec_bringup = None
         if self.ethercat is not None and self.ethercat.bringup is not None:
@@ -342,7 +358,9 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     manager.configuration = dict(options.config or {})
     if plan.refused is not None:
         manager.refuse_modes(MOVING_MODES, plan.refused)
-    session = Session(plan, manager, ethercat=by_block.get(ETHERCAT_BLOCK), sito=by_block.get(SITO_BLOCK))
+    # each block's component is the class the registry builds for it
+    session = Session(plan, manager, ethercat=cast("EthercatSystem | None", by_block.get(ETHERCAT_BLOCK)),
+                      sito=cast("SitoSystem | None", by_block.get(SITO_BLOCK)))
     stack.callback(session.capture_end)  # before the buses close, after everything entered later
     manager.topics.subscribe(SAFETY_STATUS, session.note, latched=True)
     manager.start()
@@ -354,7 +372,9 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
 
     ethercat = session.ethercat
     if ethercat is not None and not plan.broadcaster_only:
-        impedance = ImpedanceManager(robot, ethercat.master, plan.config.mode_gains(), parallel=plan.parallel_sdo,
+        master = ethercat.master
+        assert master is not None  # opened when the manager started
+        impedance = ImpedanceManager(robot, master, plan.config.mode_gains(), parallel=plan.parallel_sdo,
                                      retries=plan.config.impedance.sdo_retries)
         session.impedance = impedance
         manager.add_flag_source(impedance)
@@ -363,7 +383,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         # The bus is ready and joint states have flowed (the first tick); the worker arms the gate (while the
         # loop already ticks) and follows the mode.
         impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0,
-                        why_not_ready=ethercat.master.readiness, dropped=ethercat)
+                        why_not_ready=master.readiness, dropped=ethercat)
         plan.stage("impedance manager started", t)
     if plan.control is not None:
         serve(session, plan.control)
@@ -378,7 +398,7 @@ def serve(session: Session, server: ControlServer) -> None:
     switch = None if manager.broadcaster_only else mode_switcher(manager, session.impedance)
     sdo = session.ethercat.master if session.ethercat is not None else None
     joint_limp = on_close = None
-    if manager.broadcaster_only and session.ethercat is not None:
+    if manager.broadcaster_only and sdo is not None:
         ring_joints = {pos: joint for joint, pos in session.robot.hardware.erob_slaves.items()}
         marked: set[int] = set()
 

@@ -22,16 +22,33 @@ import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Required, TypedDict, cast
 
-from humanoid_prime.drivers.ethercat.sdo import SdoClient
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+
+if TYPE_CHECKING:
+    from humanoid_prime.runtime.switching import SwitchAnswer
 
 SOCKET_ENV = "PRIME_CONTROL_SOCKET"
 MAX_SOCKET_PATH_BYTES = 107  # sun_path holds 108 bytes on Linux, the last a NUL
 MAX_WAIT_S = 60.0  # the longest a mode request waits for its outcome
-SwitchMode = Callable[[Mode, float], dict[str, Any]]  # (mode, seconds to wait for its outcome) -> the outcome
+SwitchMode = Callable[[Mode, float], "SwitchAnswer"]  # (mode, seconds to wait for its outcome) -> the outcome
+Reply = dict[str, object]  # a JSON object: "ok", then "error" or what the request asked for
+
+
+class Request(TypedDict, total=False):
+    """A request as a client sends it (one JSON object per line); the server converts and checks each field."""
+
+    op: Required[str]  # ping, mode, state, reset, limp, sdo_read or sdo_write
+    mode: str
+    wait: float  # mode: seconds to wait for the outcome
+    position: int  # limp, sdo_*: ring position
+    limp: bool
+    index: int
+    sub_index: int
+    data: str  # sdo_write: the bytes in hex
 
 
 def default_socket_path() -> Path:
@@ -54,7 +71,7 @@ class ControlServer:
                  sdo: SdoClient | None = None, joint_limp: Callable[[int, bool], str] | None = None,
                  on_close: Callable[[], None] | None = None,
                  reset: Callable[[], list[str]] | None = None,
-                 state: Callable[[], dict[str, Any]] | None = None) -> None:
+                 state: Callable[[], dict[str, object]] | None = None) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
         self.ready = False
         self.switch_mode: SwitchMode | None = None
@@ -62,7 +79,7 @@ class ControlServer:
         self.sdo: SdoClient | None = None
         self.joint_limp: Callable[[int, bool], str] | None = None
         self.on_close: Callable[[], None] | None = None  # runs once no request can arrive any more
-        self.state: Callable[[], dict[str, Any]] | None = None  # the run's latest joints, mode and flags
+        self.state: Callable[[], dict[str, object]] | None = None  # the run's latest joints, mode and flags
         if any(h is not None for h in (switch_mode, sdo, joint_limp, on_close, reset, state)):
             self.attach(switch_mode=switch_mode, sdo=sdo, joint_limp=joint_limp, on_close=on_close, reset=reset,
                         state=state)
@@ -89,7 +106,7 @@ class ControlServer:
     def attach(self, *, switch_mode: SwitchMode | None = None, sdo: SdoClient | None = None,
                joint_limp: Callable[[int, bool], str] | None = None,
                on_close: Callable[[], None] | None = None, reset: Callable[[], list[str]] | None = None,
-               state: Callable[[], dict[str, Any]] | None = None) -> None:
+               state: Callable[[], dict[str, object]] | None = None) -> None:
         """Start answering with these handlers (the run is up)."""
         self.switch_mode, self.sdo, self.joint_limp, self.on_close = switch_mode, sdo, joint_limp, on_close
         self.reset = reset
@@ -128,7 +145,7 @@ class ControlServer:
             with contextlib.suppress(OSError):
                 conn.sendall(json.dumps(reply).encode() + b"\n")
 
-    def _answer(self, request: dict[str, Any]) -> dict[str, Any]:
+    def _answer(self, request: Request) -> Reply:
         op = request["op"]
         try:
             if op == "ping":
@@ -215,7 +232,7 @@ def _recv_line(conn: socket.socket) -> str:
     return b"".join(chunks).decode("utf-8", "replace")
 
 
-def request(path: str | Path | None, payload: dict[str, Any], timeout: float = 5.0) -> dict[str, Any]:
+def request(path: str | Path | None, payload: Request, timeout: float = 5.0) -> Reply:
     """Send one request to the running instance; a missing instance or an error answer raises PrimeError."""
     path = Path(path) if path is not None else default_socket_path()
     try:
@@ -230,7 +247,7 @@ def request(path: str | Path | None, payload: dict[str, Any], timeout: float = 5
     except OSError as exc:
         raise PrimeError(f"could not reach {path}: {exc.strerror or exc}") from None
     try:
-        reply = json.loads(text)
+        reply: Reply = json.loads(text)
     except ValueError:
         raise PrimeError(f"garbled answer from {path}") from None
     if not reply.get("ok"):
@@ -246,20 +263,22 @@ def _answers(path: Path) -> bool:
         return False
 
 
-def send_mode_request(mode: Mode, path: str | Path | None = None, wait: float = 0.0) -> dict[str, Any]:
+def send_mode_request(mode: Mode, path: str | Path | None = None, wait: float = 0.0) -> SwitchAnswer:
     """Ask the running instance to switch to ``mode`` and, with ``wait`` seconds, for what became of it
     (``runtime.switching``); a refused mode raises PrimeError."""
-    return request(path, {"op": "mode", "mode": mode.value, "wait": wait}, timeout=wait + 5.0)
+    reply = request(path, {"op": "mode", "mode": mode.value, "wait": wait}, timeout=wait + 5.0)
+    return cast("SwitchAnswer", reply)  # the server's ``switch_mode`` answer, with "ok"
 
 
-def request_state(path: str | Path | None = None, timeout: float = 2.0) -> dict[str, Any]:
+def request_state(path: str | Path | None = None, timeout: float = 2.0) -> Reply:
     """The running instance's latest joint positions, mode and safety flags."""
     return request(path, {"op": "state"}, timeout=timeout)
 
 
 def send_reset_request(path: str | Path | None = None) -> list[str]:
     """The operator's fault reset on the running instance; the faults latched when it was asked."""
-    return [str(fault) for fault in request(path, {"op": "reset"})["faults"]]
+    faults = cast(list[object], request(path, {"op": "reset"})["faults"])  # as ``_answer`` sends them
+    return [str(fault) for fault in faults]
 
 
 class SocketSdoClient:
@@ -275,7 +294,7 @@ class SocketSdoClient:
     def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
         reply = request(self.path, {"op": "sdo_read", "position": position, "index": index,
                                     "sub_index": sub_index}, self.timeout)
-        return bytes.fromhex(reply["data"])
+        return bytes.fromhex(cast(str, reply["data"]))  # as ``_answer`` sends it
 
     def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
         request(self.path, {"op": "sdo_write", "position": position, "index": index, "sub_index": sub_index,

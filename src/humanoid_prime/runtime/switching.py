@@ -5,28 +5,39 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol, Required, TypedDict
 
 from humanoid_prime.modes import Mode
 
 if TYPE_CHECKING:  # `prime switch` imports this module for ``describe``: nothing heavy at import
     from humanoid_prime.control.manager import ControllerManager
+    from humanoid_prime.runtime.impedance import SwitchReport, SwitchReportDict
 
 GAINS_POLL_S = 0.01
 
 
+class SwitchAnswer(TypedDict, total=False):
+    """What became of a switch (``mode_switcher``), as the control socket answers it."""
+
+    mode: Required[str]
+    outcome: Required[str]  # requested, active, fell_back, superseded, gains_failed or pending
+    active: str | None  # the mode active once the request was applied
+    reason: str
+    gains: SwitchReportDict  # the eRob's switch, when the run has an impedance manager
+
+
 class _Reports(Protocol):
-    reports: list[Any]  # SwitchReport, in the order the switches were made
+    reports: list[SwitchReport]  # in the order the switches were made
 
 
 def mode_switcher(manager: ControllerManager, impedance: _Reports | None = None,
-                  before: Callable[[], None] | None = None) -> Callable[[Mode, float], dict[str, Any]]:
+                  before: Callable[[], None] | None = None) -> Callable[[Mode, float], SwitchAnswer]:
     """``switch(mode, wait_s)``: request ``mode`` (``before`` runs first, e.g. the simulation hands the modes
     to the operator) and, unless ``wait_s`` is 0, wait up to that long for its outcome. The answer's
     ``outcome`` is ``requested`` (no wait), ``active``, ``fell_back``, ``superseded``, ``gains_failed`` or
     ``pending`` (not applied in time); a refused mode raises PrimeError."""
 
-    def switch(mode: Mode, wait_s: float) -> dict[str, Any]:
+    def switch(mode: Mode, wait_s: float) -> SwitchAnswer:
         if before is not None:
             before()
         switches_before = len(impedance.reports) if impedance is not None else 0
@@ -38,26 +49,27 @@ def mode_switcher(manager: ControllerManager, impedance: _Reports | None = None,
         if outcome is None:
             return {"mode": mode.value, "outcome": "pending",
                     "reason": f"the control loop did not apply it within {wait_s:g} s"}
-        answer: dict[str, Any] = {"mode": mode.value,
-                                  "active": outcome.active.value if outcome.active is not None else None}
+        active = outcome.active.value if outcome.active is not None else None
         if outcome.reason:
             kind = "superseded" if outcome.reason.startswith("superseded") else "fell_back"
-            return {**answer, "outcome": kind, "reason": outcome.reason}
+            return {"mode": mode.value, "active": active, "outcome": kind, "reason": outcome.reason}
         if impedance is not None:
             report = _gains_report(impedance, switches_before, mode, deadline)
             if report is None:
-                return {**answer, "outcome": "pending",
+                return {"mode": mode.value, "active": active, "outcome": "pending",
                         "reason": f"the eRob gains of {mode.value} were not reported applied within {wait_s:g} s"}
-            answer["gains"] = report.as_dict()
+            gains = report.as_dict()
             if not report.ok:
                 failed = ", ".join(f"{joint} ({error})" for joint, error in report.as_dict()["failed"].items())
-                return {**answer, "outcome": "gains_failed", "reason": f"eRob gains not applied on {failed}"}
-        return {**answer, "outcome": "active"}
+                return {"mode": mode.value, "active": active, "gains": gains, "outcome": "gains_failed",
+                        "reason": f"eRob gains not applied on {failed}"}
+            return {"mode": mode.value, "active": active, "gains": gains, "outcome": "active"}
+        return {"mode": mode.value, "active": active, "outcome": "active"}
 
     return switch
 
 
-def _gains_report(impedance: _Reports, after: int, mode: Mode, deadline: float) -> Any:
+def _gains_report(impedance: _Reports, after: int, mode: Mode, deadline: float) -> SwitchReport | None:
     """The impedance manager's report of the switch to ``mode`` made after its ``after``-th, once it is there."""
     while True:
         for report in impedance.reports[after:]:
@@ -68,7 +80,7 @@ def _gains_report(impedance: _Reports, after: int, mode: Mode, deadline: float) 
         time.sleep(GAINS_POLL_S)
 
 
-def describe(answer: dict[str, Any]) -> str:
+def describe(answer: SwitchAnswer) -> str:
     """One line for a person: what became of the switch."""
     mode, outcome = answer["mode"], answer["outcome"]
     if outcome == "requested":

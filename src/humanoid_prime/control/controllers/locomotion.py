@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller, capture_position, gain_rows
@@ -26,7 +27,7 @@ ENTRY_BLEND_S = 1.0
 
 
 class LocomotionController(Controller):
-    def __init__(self, policy_path: Path, default_pose: np.ndarray, action_scale: float, erob_kp: float,
+    def __init__(self, policy_path: Path, default_pose: npt.NDArray[np.float64], action_scale: float, erob_kp: float,
                  erob_kd: float, sito_kp: float, sito_kd: float) -> None:
         super().__init__(Mode.LOCOMOTION.controller, Mode.LOCOMOTION)
         self.policy_path = Path(policy_path)

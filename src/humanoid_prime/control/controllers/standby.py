@@ -4,6 +4,7 @@ at the pose measured on entry, so entering from a moving or limp arm never steps
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control._tick import Blend
@@ -26,7 +27,7 @@ def min_jerk(s: float) -> tuple[float, float]:
 class StandbyController(Controller):
     """Poses are arrays in canonical order; ``select_pose`` picks the target of the next activation."""
 
-    def __init__(self, poses: dict[str, np.ndarray], default_pose: str, kp: float, kd: float,
+    def __init__(self, poses: dict[str, npt.NDArray[np.float64]], default_pose: str, kp: float, kd: float,
                  duration: float) -> None:
         super().__init__(Mode.STANDBY.controller, Mode.STANDBY)
         self.poses = poses

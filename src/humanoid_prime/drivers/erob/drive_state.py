@@ -17,6 +17,7 @@ from __future__ import annotations
 from enum import IntEnum
 
 import numpy as np
+import numpy.typing as npt
 
 
 class Drive(IntEnum):
@@ -68,7 +69,7 @@ EVENT_CHART: dict[Event, dict[Drive, Drive]] = {
 HELD_STATES = (Drive.HELD, Drive.RESTORING)
 
 
-def frame_table() -> np.ndarray:
+def frame_table() -> npt.NDArray[np.uint8]:
     """``FRAME_CHART`` as the compiled tick reads it: ``table[state * 3 + seen]``."""
     return np.array([FRAME_CHART[state][seen] for state in Drive for seen in Seen], dtype=np.uint8)
 
@@ -78,11 +79,13 @@ def after(state: Drive, event: Event) -> Drive:
     return EVENT_CHART[event].get(state, state)
 
 
-def apply_event(states: np.ndarray, event: Event, where: np.ndarray | None = None) -> np.ndarray:
+def apply_event(states: npt.NDArray[np.uint8], event: Event,
+                where: npt.NDArray[np.bool_] | None = None) -> npt.NDArray[np.bool_]:
     """``event`` on every drive of ``states`` (uint8, changed in place) where ``where`` is true; the drives it
     changed."""
     before = states.copy()
     for old, new in EVENT_CHART[event].items():
         hit = before == old if where is None else (before == old) & where
         states[hit] = new
-    return states != before
+    changed: npt.NDArray[np.bool_] = states != before
+    return changed

@@ -119,7 +119,7 @@ class RingClocks:
         registers.write(k, REG_DC_SPEED_START, registers.read(k, REG_DC_SPEED_START, 2))
         if not self.cycles(DC_FILTER_FRAMES):
             return None
-        raw = _U32.unpack(registers.read(k, REG_DC_DIFFERENCE, 4))[0]
+        raw: int = _U32.unpack(registers.read(k, REG_DC_DIFFERENCE, 4))[0]
         magnitude = raw & DC_DIFFERENCE_SATURATED
         return magnitude if raw & DC_LOCAL_SMALLER else -magnitude
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Required, TypedDict
 
 from humanoid_prime.config.calibration import Calibration, JointCalibration
 from humanoid_prime.config.controllers import ControllersConfig
@@ -57,12 +57,39 @@ SDO_TYPES = {FOLLOWING_ERROR_WINDOW: "int32", BUS_GAIN_GATE[0]: "uint32", POS_LO
              VEL_LOOP_GAIN[0]: "uint16"}
 _HEX_KEYS = {"vendor_id": 8, "product_id": 8, "assign_activate": 4, "index": 4}
 
+Scalar = int | float | str | bool | None
+ChannelDoc = dict[str, Scalar]  # one channel: index, sub_index, type, its interface, factor, offset, default
 
-def _channels(entries: tuple[PdoEntry, ...], scaled: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+
+class PdoDoc(TypedDict):
+    index: int
+    channels: list[ChannelDoc]
+
+
+class StartupSdoDoc(TypedDict):
+    index: int
+    sub_index: int
+    type: str
+    value: int
+
+
+class SlaveConfigDoc(TypedDict, total=False):
+    """A per-slave config document (``slave_config.py`` reads it back)."""
+
+    vendor_id: Required[int]
+    product_id: Required[int]
+    assign_activate: Required[int]
+    auto_fault_reset: Required[bool]
+    rpdo: Required[list[PdoDoc]]
+    tpdo: Required[list[PdoDoc]]
+    sdo: list[StartupSdoDoc]
+
+
+def _channels(entries: tuple[PdoEntry, ...], scaled: dict[str, ChannelDoc]) -> list[ChannelDoc]:
     """The channels of a PDO, without its pad byte: IgH maps exactly what the file lists (the eRob takes any
     mapping of 0x1600/0x1A00 up to 76 bytes), and ICube's CiA402 plugin indexes its channels by domain
     position, which a gap channel would shift."""
-    channels = []
+    channels: list[ChannelDoc] = []
     for entry in entries:
         if entry.fmt == "x":
             continue
@@ -87,7 +114,7 @@ def check_foldable(robot: Robot, calibration: Calibration) -> None:
 
 
 def startup_sdos(spec: JointSpec, hardware: HardwareConfig,
-                 mode_gains: Mapping[Mode, tuple[float, float]]) -> list[dict[str, Any]]:
+                 mode_gains: Mapping[Mode, tuple[float, float]]) -> list[StartupSdoDoc]:
     """The SDOs the C++ stack writes once in PRE-OP for eRob joint ``spec``, in order: the following-error
     window this controllers file needs (as Prime's own impedance manager sets it), the standby gains, then
     the gate that makes the drive use them. Values are plain integers, within ICube's signed 32-bit ``value``."""
@@ -105,7 +132,7 @@ def startup_sdos(spec: JointSpec, hardware: HardwareConfig,
 
 
 def fold_slave_config(spec: JointSpec, cal: JointCalibration,
-                      sdo: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+                      sdo: list[StartupSdoDoc] | None = None) -> SlaveConfigDoc:
     """The per-slave config document of eRob joint ``spec`` with ``cal`` folded into its channels (and the
     start-up ``sdo`` list, when given)."""
     if spec.family != "erob":
@@ -114,7 +141,7 @@ def fold_slave_config(spec: JointSpec, cal: JointCalibration,
     c = COUNTS_PER_RAD
     state_offset = -d * cal.homing_offset + 0.0  # + 0.0 writes a zero offset as 0.0, not -0.0
     per_mille = 1000.0 / RATED_TORQUE_NM
-    commands = {
+    commands: dict[str, ChannelDoc] = {
         "controlword": {"command_interface": CONTROL_WORD, "default": 0},
         "target_position": {"command_interface": "position", "default": math.nan,
                             "factor": d * c, "offset": cal.homing_offset * c},
@@ -122,7 +149,7 @@ def fold_slave_config(spec: JointSpec, cal: JointCalibration,
         "torque_offset": {"command_interface": "effort", "default": 0, "factor": d * per_mille, "offset": 0.0},
         "mode_of_operation": {"command_interface": MODE_OF_OPERATION, "default": MODE_CSP},
     }
-    states = {
+    states: dict[str, ChannelDoc] = {
         "statusword": {"state_interface": STATUS_WORD},
         "position_actual": {"state_interface": "position", "factor": d / c, "offset": state_offset},
         "velocity_actual": {"state_interface": "velocity", "factor": d / c, "offset": 0.0},
@@ -130,18 +157,20 @@ def fold_slave_config(spec: JointSpec, cal: JointCalibration,
         "error_code": {"state_interface": ERROR_CODE},
         "mode_display": {"state_interface": MODE_OF_OPERATION},
     }
-    return {
+    doc: SlaveConfigDoc = {
         "vendor_id": VENDOR_ID,
         "product_id": PRODUCT_CODE,
         "assign_activate": ASSIGN_ACTIVATE_DC_SYNC0,
         "auto_fault_reset": AUTO_FAULT_RESET,
         "rpdo": [{"index": RXPDO_MAP, "channels": _channels(RXPDO, commands)}],
         "tpdo": [{"index": TXPDO_MAP, "channels": _channels(TXPDO, states)}],
-        **({"sdo": sdo} if sdo else {}),
     }
+    if sdo:
+        doc["sdo"] = sdo
+    return doc
 
 
-def _scalar(key: str, value: Any, hex_keys: dict[str, int]) -> str:
+def _scalar(key: str, value: object, hex_keys: dict[str, int]) -> str:
     if value is None:
         return "~"
     if isinstance(value, bool):
@@ -161,11 +190,11 @@ def _scalar(key: str, value: Any, hex_keys: dict[str, int]) -> str:
     return str(value)
 
 
-def _flow(mapping: dict[str, Any], hex_keys: dict[str, int]) -> str:
+def _flow(mapping: Mapping[str, object], hex_keys: dict[str, int]) -> str:
     return "{" + ", ".join(f"{k}: {_scalar(k, v, hex_keys)}" for k, v in mapping.items()) + "}"
 
 
-def render_slave_config(doc: dict[str, Any], header: str = "") -> str:
+def render_slave_config(doc: SlaveConfigDoc, header: str = "") -> str:
     """YAML text of a slave config document: hex identities and indices, one flow mapping per channel."""
     lines = [header.rstrip("\n")] if header else []
     for key in ("vendor_id", "product_id", "assign_activate", "auto_fault_reset"):

@@ -17,15 +17,8 @@ import shutil
 import subprocess
 import threading
 
-from humanoid_prime.drivers.ethercat.master import (
-    AL_ERROR,
-    AL_OP,
-    AL_PRE_OP,
-    RingError,
-    SdoError,
-    SdoRefused,
-    SlaveInfo,
-)
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoError, SdoRefused
+from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_OP, AL_PRE_OP, SlaveInfo
 from humanoid_prime.drivers.ethercat.slave_config import PDO_TYPES
 
 # IgH data type names: (bytes, signed). The short names are what `prime ec sdo --type` accepts.

@@ -239,7 +239,9 @@ class Channel:
     def _file_late(self, frame: bytes) -> None:
         """A reply to a request given up on earlier: its index is free again (junk with that index is not)."""
         index = frame_index(frame)
-        outstanding = self._outstanding.get(index) if index is not None else None
+        if index is None:
+            return
+        outstanding = self._outstanding.get(index)
         if outstanding is None or parse_reply(frame, outstanding[2]) is None:
             return
         del self._outstanding[index]

@@ -29,6 +29,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.ethercat.link import Channel, fprd, fpwr
@@ -121,7 +122,7 @@ class CoeMailbox:
             toggle = 0x00
             while len(data) < total:
                 request = struct.pack("<HB", COE_SDO_REQUEST << 12, 0x60 | toggle) + bytes(7)
-                segment = self._transfer(index, sub, request, lambda coe, want=toggle: _is_segment(coe, want),
+                segment = self._transfer(index, sub, request, partial(_is_segment, toggle=toggle),
                                          max(deadline - self.clock(), 0.0))
                 unused = (segment[2] >> 1) & 0x07 if len(segment) == 10 else 0
                 data += segment[3:len(segment) - unused]

@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
@@ -112,7 +113,7 @@ class BringupReport:
     bringup_rate: float
     sync0_period_ns: int
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, object]:
         return {"seconds": self.seconds, "cycles": self.cycles, "bringup_rate": self.bringup_rate,
                 "sync0_period_ns": self.sync0_period_ns}
 
@@ -157,12 +158,12 @@ def check_ring(found: Sequence[SlaveInfo], expected: Sequence[ExpectedSlave], in
                 want.vendor_id, want.product_code):
             problems.append(f"ring {position}: expected {want.joint} ({want.identity}), found {have.describe()}")
     if problems:
-        runs: list[list] = []  # consecutive positions holding the same device, e.g. "0-8 'eRob' (...)"
+        runs: list[tuple[int, int, str]] = []  # consecutive positions holding the same device, e.g. "0-8 'eRob' (...)"
         for slave in found:
             if runs and runs[-1][2] == slave.describe():
-                runs[-1][1] = slave.position
+                runs[-1] = (runs[-1][0], slave.position, runs[-1][2])
             else:
-                runs.append([slave.position, slave.position, slave.describe()])
+                runs.append((slave.position, slave.position, slave.describe()))
         seen = ", ".join(f"{a}-{b} {what}" if b > a else f"{a} {what}" for a, b, what in runs) or "none"
         raise RingError(f"EtherCAT ring on {interface} does not match {HARDWARE_KEY}: " + "; ".join(problems)
                         + f" (found ring: {seen}); fix the cabling order or the ring positions in the hardware file")
@@ -220,7 +221,8 @@ def feeding_priority(priority: int = FEEDING_PRIORITY) -> Iterator[None]:
 
 def read_live_error(sdo: SdoClient, position: int) -> int:
     """The drive's current error code (0x603F), through any SDO client."""
-    return struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
+    code: int = struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
+    return code
 
 
 def read_error_history(sdo: SdoClient, position: int) -> list[int]:
@@ -538,7 +540,8 @@ class EthercatMaster(ABC):
         """(AL state, AL status code) of every slave, ring order."""
 
     @staticmethod
-    def _to_push(states: Sequence[tuple[int, int]], op_asked: np.ndarray, now: float) -> list[tuple[int, int]]:
+    def _to_push(states: Sequence[tuple[int, int]], op_asked: npt.NDArray[np.float64],
+                 now: float) -> list[tuple[int, int]]:
         """(ring position, AL state) of the slaves the bring-up loop pushes toward OP at ``now``; ``op_asked``
         is updated.
 

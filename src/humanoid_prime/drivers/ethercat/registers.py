@@ -17,6 +17,7 @@ from humanoid_prime.drivers.ethercat.link import (
     LAST_INDEX,
     Channel,
     LateReply,
+    Reply,
     Request,
     Wire,
     aprd,
@@ -101,7 +102,8 @@ class RingRegisters:
         while _U16.unpack(self.read(k, REG_EEPROM_CONTROL, 2))[0] & EEPROM_BUSY:
             if self.clock() > deadline:
                 raise NoReply(f"ring {k}: its EEPROM stayed busy")
-        return _U32.unpack(self.read(k, REG_EEPROM_DATA, 4))[0]
+        data: int = _U32.unpack(self.read(k, REG_EEPROM_DATA, 4))[0]
+        return data
 
     def readdress(self, k: int, identity: tuple[int, int, int]) -> bool:
         """Slave ``k`` answers at its station address again: True at once if it does; one that answers at its
@@ -110,7 +112,7 @@ class RingRegisters:
         replies = self.ring.exchange([aprd(k, REG_STATION_ADDRESS, 2)], timeout_s=REGISTER_TIMEOUT_S)
         if replies is None or replies[0].wkc != 1:
             return False
-        address = _U16.unpack(replies[0].data)[0]
+        address: int = _U16.unpack(replies[0].data)[0]
         if address == self.stations[k] or address != 0:
             return address == self.stations[k]  # another address is another slave's to keep
         self.ring.exchange([apwr(k, REG_STATION_ADDRESS, _U16.pack(self.stations[k]))], timeout_s=REGISTER_TIMEOUT_S)
@@ -165,9 +167,11 @@ class RingRegisters:
                                      timeout_s=REGISTER_TIMEOUT_S)
         return 0 if replies is None else replies[0].wkc
 
-    def _exchange_all(self, requests: Sequence[Request], timeout_s: float):
+    def _exchange_all(self, requests: Sequence[Request], timeout_s: float) -> list[Reply] | None:
         """``requests`` in as few frames as fit (a frame carries at most 1486 bytes of datagrams)."""
-        replies, batch, size = [], [], 0
+        replies: list[Reply] = []
+        batch: list[Request] = []
+        size = 0
         for request in [*requests, None]:
             if request is None or size + 12 + request.length > 1400:
                 if batch:

@@ -15,7 +15,7 @@ import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TypeVar
 
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import load_yaml
@@ -31,6 +31,7 @@ PDO_TYPES: dict[str, tuple[str, int, int]] = {
     "int64": ("q", -(1 << 63), (1 << 63) - 1),
     "uint64": ("Q", 0, (1 << 64) - 1),
 }
+_Choice = TypeVar("_Choice", str, str | None)
 TYPE_OF_FORMAT = {fmt: name for name, (fmt, _, _) in PDO_TYPES.items()}
 
 # Interface names of the CiA402 housekeeping channels (the MIT ones are position, velocity, effort).
@@ -134,14 +135,14 @@ class SlaveConfig:
                           "regenerate it with `prime calibration fold`")
 
 
-def _int(value: Any, path: str | Path, key: str, lo: int, hi: int) -> int:
+def _int(value: object, path: str | Path, key: str, lo: int, hi: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
         span = f"{lo}..{hi}" if lo < 0 else f"0x{lo:X}..0x{hi:X}"
         raise ConfigError(path, key, f"expected an integer in {span}, got {value!r}")
     return value
 
 
-def _number(value: Any, path: str | Path, key: str, *, allow_nan: bool = False) -> float:
+def _number(value: object, path: str | Path, key: str, *, allow_nan: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(path, key, f"expected a number, got {value!r}")
     if not (math.isfinite(value) or (allow_nan and math.isnan(value))):
@@ -149,14 +150,14 @@ def _number(value: Any, path: str | Path, key: str, *, allow_nan: bool = False) 
     return float(value)
 
 
-def _choice(value: Any, path: str | Path, key: str, choices: tuple[str | None, ...]) -> str | None:
+def _choice(value: object, path: str | Path, key: str, choices: tuple[_Choice, ...]) -> _Choice:
     if value not in choices:
         names = ", ".join("~" if c is None else c for c in choices)
         raise ConfigError(path, key, f"expected one of {names}, got {value!r}")
-    return value
+    return choices[choices.index(value)]  # the choice ``value`` equals, typed as one
 
 
-def _channel(raw: Any, path: str | Path, key: str, interface_key: str, other_key: str) -> Channel:
+def _channel(raw: object, path: str | Path, key: str, interface_key: str, other_key: str) -> Channel:
     if not isinstance(raw, dict):
         raise ConfigError(path, key, "expected a mapping {index, sub_index, type, ...}")
     if other_key in raw:
@@ -181,7 +182,8 @@ def _channel(raw: Any, path: str | Path, key: str, interface_key: str, other_key
     )
 
 
-def _mappings(data: dict, section: str, path: str | Path, fields: str) -> Iterator[tuple[str, dict]]:
+def _mappings(data: dict[str, object], section: str, path: str | Path,
+              fields: str) -> Iterator[tuple[str, dict[str, object]]]:
     """The entries of the list ``section`` (absent: none), each with its key (``section[i]``); anything but a
     list of mappings with ``fields`` is refused naming the key."""
     raw = data.get(section, [])
@@ -194,7 +196,7 @@ def _mappings(data: dict, section: str, path: str | Path, fields: str) -> Iterat
         yield key, entry
 
 
-def _pdos(data: dict, path: str | Path, section: str) -> tuple[Pdo, ...]:
+def _pdos(data: dict[str, object], path: str | Path, section: str) -> tuple[Pdo, ...]:
     interface_key, other_key = (("command_interface", "state_interface") if section == "rpdo"
                                 else ("state_interface", "command_interface"))
     pdos = []
@@ -217,7 +219,7 @@ def _pdos(data: dict, path: str | Path, section: str) -> tuple[Pdo, ...]:
     return tuple(pdos)
 
 
-def _sync_managers(data: dict, path: str | Path) -> tuple[SyncManager, ...]:
+def _sync_managers(data: dict[str, object], path: str | Path) -> tuple[SyncManager, ...]:
     result = []
     for key, entry in _mappings(data, "sm", path, "index, type, pdo, watchdog"):
         result.append(SyncManager(
@@ -229,7 +231,7 @@ def _sync_managers(data: dict, path: str | Path) -> tuple[SyncManager, ...]:
     return tuple(result)
 
 
-def _startup_sdos(data: dict, path: str | Path) -> tuple[StartupSdo, ...]:
+def _startup_sdos(data: dict[str, object], path: str | Path) -> tuple[StartupSdo, ...]:
     result = []
     for key, entry in _mappings(data, "sdo", path, "index, sub_index, type, value"):
         missing = [k for k in ("index", "sub_index", "type", "value") if k not in entry]
@@ -252,7 +254,7 @@ def load_slave_config(path: str | Path) -> SlaveConfig:
     return parse_slave_config(load_yaml(path), path)
 
 
-def parse_slave_config(data: Any, source: str | Path) -> SlaveConfig:
+def parse_slave_config(data: object, source: str | Path) -> SlaveConfig:
     """Validate one per-slave config document (as YAML loads it); errors name ``source`` (a file, or what
     generated the document) and the key."""
     path = source

@@ -39,6 +39,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import pysoem
 
 from humanoid_prime.drivers.ethercat.clocks import RingClocks
@@ -111,15 +112,15 @@ class SoemMaster(EthercatMaster):
         self._closing = threading.Event()
         self._socket: int | None = None  # SOEM's socket, where it could be told from this process's others
         self._m: pysoem.Master | None = None
-        self._pslaves: list = []
+        self._pslaves: list[pysoem.CdefSlave] = []
         self._mailboxes: list[CoeMailbox] = []
         self._mapping: PdoMapping | None = None
         self._setups: list[EscSetup] = []
         self._clocks: RingClocks | None = None
         self._out_buf = bytearray()
         self._in_buf = bytearray()
-        self._out_pairs: list[tuple[object, memoryview]] = []  # (pysoem slave, its output bytes)
-        self._in_pairs: list[tuple[object, slice]] = []  # (pysoem slave, where its input bytes go)
+        self._out_pairs: list[tuple[pysoem.CdefSlave, memoryview]] = []  # (pysoem slave, its output bytes)
+        self._in_pairs: list[tuple[pysoem.CdefSlave, slice]] = []  # (pysoem slave, where its input bytes go)
 
     # ---------------------------------------------------------------------------------------- what it saw
     @property
@@ -128,7 +129,7 @@ class SoemMaster(EthercatMaster):
         return self._socket
 
     @property
-    def lost(self) -> np.ndarray:
+    def lost(self) -> npt.NDArray[np.bool_]:
         """Ring positions the supervision found not answering at all (copy)."""
         return self.supervisor.lost.copy() if self.supervisor is not None else np.zeros(len(self.slaves), bool)
 
@@ -222,14 +223,14 @@ class SoemMaster(EthercatMaster):
         """Every slave's AL state, polled until all show ``want`` (or one refuses it, or ``STATE_TIMEOUT_S``)."""
         deadline = self.clock() + STATE_TIMEOUT_S
         while True:
-            states = self.registers.states()
+            states = self._registers().states()
             if states is not None and all(s is not None and s[0] == want for s in states):
                 break
             if (states is not None and any(s is not None and s[0] & AL_ERROR for s in states)) \
                     or self.clock() > deadline:
                 break
             self.sleep(STATE_POLL_S)
-        found = [SlaveInfo(k, s.name, s.man, s.id, s.rev, *(states[k] if states and states[k] else (0, 0)))
+        found = [SlaveInfo(k, s.name, s.man, s.id, s.rev, *((states[k] if states else None) or (0, 0)))
                  for k, s in enumerate(self._pslaves)]
         if all(info.al_state == want for info in found):
             return found
@@ -286,7 +287,7 @@ class SoemMaster(EthercatMaster):
         self._await_ring_state(AL_PRE_OP, "did not reach PRE-OP")
 
     def _configure_once(self) -> None:
-        m, registers = self._require(), self.registers
+        m, registers = self._require(), self._registers()
         n = len(self._pslaves)
         try:
             layouts = [MailboxLayout(*mailbox_sync_managers(registers, k)) for k in range(n)]
@@ -324,11 +325,11 @@ class SoemMaster(EthercatMaster):
         except NoReply as exc:
             raise Reconfigure(f"{exc.what}: the SyncManager, FMMU and clock registers did not answer in time, so "
                               "they could not be kept to reconfigure the slave should it lose power") from None
-        self._clocks = RingClocks(registers, [s.dc for s in self._setups], [s.dc_delay for s in self._setups],
-                                  self._await_cycles)
+        self._clocks = clocks = RingClocks(registers, [s.dc for s in self._setups], [s.dc_delay for s in self._setups],
+                                           self._await_cycles)
         try:
             for k in range(n):
-                self._clocks.arm_sync0(k, self.sync0_ns)
+                clocks.arm_sync0(k, self.sync0_ns)
         except NoReply as exc:
             raise Reconfigure(f"SYNC0 could not be armed: {exc.what}") from None
         registers.request_all(AL_SAFE_OP)
@@ -361,7 +362,7 @@ class SoemMaster(EthercatMaster):
 
     # ------------------------------------------------------------------------------------------- to OP
     def _request_op(self) -> None:
-        self.registers.request_all(AL_OP)
+        self._registers().request_all(AL_OP)
 
     def _read_states(self) -> list[tuple[int, int]]:
         states = self.registers.states() if self.registers is not None else None
@@ -372,12 +373,13 @@ class SoemMaster(EthercatMaster):
     def _advance(self, slaves: Sequence[tuple[int, int]]) -> None:
         for k, state in slaves:
             with contextlib.suppress(NoReply):  # asked again at the next look
-                self.registers.request_state(k, AL_SAFE_OP | AL_ERROR if state & AL_ERROR else AL_OP)
+                self._registers().request_state(k, AL_SAFE_OP | AL_ERROR if state & AL_ERROR else AL_OP)
 
     def _started(self) -> None:
         # a returning slave's state changes: on the master's clock; in production the wait ends when it closes
         pause = self._closing.wait if self.sleep is time.sleep else self.sleep
-        self.supervisor = RingSupervisor(self, self.registers, self._clocks, self._setups,
+        assert self._clocks is not None  # armed by the configuration
+        self.supervisor = RingSupervisor(self, self._registers(), self._clocks, self._setups,
                                          remap=self._remap, recover=self._recover, wkc=lambda: self.wkc,
                                          sync0_ns=self.sync0_ns, period_s=self.supervise_period_s,
                                          name=f"ethercat-supervise-{self.interface}", clock=self.clock, pause=pause)
@@ -385,6 +387,7 @@ class SoemMaster(EthercatMaster):
 
     def _remap(self, k: int) -> None:
         """The PDO mapping hook for a slave the supervision reconfigures."""
+        assert self._mapping is not None  # made by the configuration, before the supervision starts
         self._mapping.hook(k)
 
     def _recover(self, k: int) -> bool:
@@ -392,7 +395,7 @@ class SoemMaster(EthercatMaster):
         it lost it in a power cycle; over our frames, not SOEM's ``ecx_recover_slave``, which holds the interpreter
         lock through SII reads of up to 20 ms each and would stall the cycle)."""
         info = self.slaves[k]
-        return self.registers.readdress(k, (info.vendor_id, info.product_code, info.revision))
+        return self._registers().readdress(k, (info.vendor_id, info.product_code, info.revision))
 
     def poll_frames(self, poll: bool) -> bool:
         if self._socket is None or self._m is None or (poll and self.threaded_receive is not None):
@@ -402,12 +405,16 @@ class SoemMaster(EthercatMaster):
 
     # -------------------------------------------------------------------------------------------- cyclic
     def _send(self) -> None:
+        m = self._m
+        assert m is not None  # cyclic exchange runs between open and close
         for slave, view in self._out_pairs:
             slave.output = bytes(view)
-        self._m.send_processdata()
+        m.send_processdata()
 
     def _receive(self) -> int:
-        wkc = self._m.receive_processdata(self.frame_timeout_us, release_gil=True)
+        m = self._m
+        assert m is not None  # as in _send
+        wkc: int = m.receive_processdata(self.frame_timeout_us, release_gil=True)
         buf = self._in_buf
         for slave, where in self._in_pairs:
             buf[where] = slave.input
@@ -468,6 +475,11 @@ class SoemMaster(EthercatMaster):
         if self._m is None:
             raise RingError(f"EtherCAT master on {self.interface} is not open")
         return self._m
+
+    def _registers(self) -> RingRegisters:
+        if self.registers is None:
+            raise RingError(f"EtherCAT master on {self.interface} is not open")
+        return self.registers
 
 
 def _describe(exc: BaseException) -> str:

@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.ethercat.clocks import RingClocks
@@ -45,11 +46,11 @@ _U16 = struct.Struct("<H")
 class RingHealth(Protocol):
     """What the supervision keeps up to date, in ring order (the master's arrays)."""
 
-    slave_ok: np.ndarray
-    al_state: np.ndarray
-    al_status_code: np.ndarray
-    left_op: np.ndarray
-    left_op_code: np.ndarray
+    slave_ok: npt.NDArray[np.bool_]
+    al_state: npt.NDArray[np.uint16]
+    al_status_code: npt.NDArray[np.uint16]
+    left_op: npt.NDArray[np.int64]
+    left_op_code: npt.NDArray[np.uint16]
     health_version: int
     recovery_problems: dict[int, str]
 
@@ -223,7 +224,7 @@ class RingSupervisor:
         deadline = self.clock() + STATE_CHANGE_TIMEOUT_S
         while True:
             try:
-                status = _U16.unpack(self.registers.read(k, REG_AL_STATUS, 2))[0]
+                status: int = _U16.unpack(self.registers.read(k, REG_AL_STATUS, 2))[0]
             except NoReply:
                 status = 0
             state = status & 0x0F

@@ -30,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK
@@ -93,7 +94,7 @@ _STATE_OBJECTS = (POSITION_ACTUAL, VELOCITY_ACTUAL, TORQUE_ACTUAL)
 _COMMAND_OBJECTS = (TARGET_POSITION, VELOCITY_OFFSET, TORQUE_OFFSET)
 
 
-def _controlword_table(auto_fault_reset: bool) -> np.ndarray:
+def _controlword_table(auto_fault_reset: bool) -> npt.NDArray[np.uint16]:
     """Controlword for every value of ``statusword & 0x7F`` (the bits the CiA402 state depends on)."""
     table = np.array([enable_step(sw) for sw in range(0x80)], dtype=np.uint16)
     if not auto_fault_reset:
@@ -162,7 +163,7 @@ class EthercatSystem(HardwareComponent):
         self._tick: EcTick | None = None  # the compiled read and write, bound to the process image at start
         self._wkc_flagged = False
         self._wkc_silent = False  # the flag says that nothing answered (working counter <= 0)
-        self._fault_seen: tuple = ()
+        self._fault_seen: tuple[tuple[np.intp, int, int], ...] = ()  # (joint k, statusword, error code)
         self._health_seen = -1
 
     # ---------------------------------------------------------------------------- lifecycle
@@ -244,12 +245,12 @@ class EthercatSystem(HardwareComponent):
             self.master.close()
 
     @property
-    def enabled(self) -> np.ndarray:
+    def enabled(self) -> npt.NDArray[np.bool_]:
         """Per joint: its drive reported operation enabled in the last frame read (copy)."""
         return self._enabled.copy()
 
     @property
-    def faulted(self) -> np.ndarray:
+    def faulted(self) -> npt.NDArray[np.bool_]:
         """Per joint: its drive reported fault in the last frame read (copy)."""
         return self._fault.copy()
 
@@ -262,6 +263,11 @@ class EthercatSystem(HardwareComponent):
         if self.master is None:
             raise PrimeError(f"{self.name}: not configured")
         return self.master
+
+    def _bound_tick(self) -> EcTick:
+        if self._tick is None:
+            raise PrimeError(f"{self.name}: not started")
+        return self._tick
 
     def _bind_views(self) -> None:
         master = self._master()
@@ -327,9 +333,9 @@ class EthercatSystem(HardwareComponent):
     # ---------------------------------------------------------------------------- hot path
     def _gather(self) -> None:
         """Raw inputs into joint order, and which drives are enabled or faulted."""
-        self._tick.gather()
+        self._bound_tick().gather()
 
-    def _take_reset(self) -> np.ndarray | None:
+    def _take_reset(self) -> npt.NDArray[np.uint8] | None:
         """The drives the operator's reset, if one was asked for since the last controlwords, resets (those in
         fault; None: no reset). It also releases the held drives whose slave is back in OP (a RESTORING one is
         not released: its settings are not back yet)."""
@@ -337,14 +343,14 @@ class EthercatSystem(HardwareComponent):
             return None
         self._reset_requested = False
         self._apply_restored()
-        if apply_event(self._state, Event.RESET, where=self.master.slave_ok[self.ring]).any():
+        if apply_event(self._state, Event.RESET, where=self._master().slave_ok[self.ring]).any():
             self._update_held_flags()
         return self._fault.view(np.uint8)
 
     def awaiting_restore(self) -> list[tuple[int, int]]:
         """Held drives whose slave is back in OP and whose settings wait to be restored: (ring position, how often
         the slave has left OP so far, to hand back to ``settings_restored``)."""
-        master = self.master
+        master = self._master()
         waiting = np.flatnonzero((self._state == Drive.RESTORING) & master.slave_ok[self.ring])
         return [(int(self.ring[k]), int(master.left_op[self.ring[k]])) for k in waiting]
 
@@ -362,7 +368,7 @@ class EthercatSystem(HardwareComponent):
     def _apply_restored(self) -> bool:
         """In the loop's thread (the only one that moves the drives' states): the restores reported meanwhile."""
         applied = False
-        master = self.master
+        master = self._master()
         while self._restored:
             k, left_op = self._restored.popleft()
             position = int(self.ring[k])
@@ -371,7 +377,7 @@ class EthercatSystem(HardwareComponent):
                 applied = True
         return applied
 
-    def _step_controlwords(self, reset: np.ndarray | None = None) -> None:
+    def _step_controlwords(self, reset: npt.NDArray[np.uint8] | None = None) -> None:
         """Per drive, the controlword one step toward enabled; drives in ``reset`` that are in fault get a
         fault reset (as does every faulted drive once after ``reset_faults``). A fault reset is a rising edge,
         so it alternates."""
@@ -380,16 +386,17 @@ class EthercatSystem(HardwareComponent):
             reset = reset | operator.view(bool)
         elif operator is not None:
             reset = operator.view(bool)
-        self._tick.controlwords(None if reset is None else reset.view(np.uint8))
+        self._bound_tick().controlwords(None if reset is None else reset.view(np.uint8))
 
     def read(self, now: float, state: StateArrays) -> None:
-        master = self.master
+        master, tick = self.master, self._tick
+        assert master is not None and tick is not None  # bound when the component started
         began = time.perf_counter()
         wkc = master.receive()
         self.io_s = time.perf_counter() - began
         # also holds disabled every drive that was enabled in the last frame and is now neither enabled nor in
         # fault: it dropped out (power or link)
-        faulted, held_changed = self._tick.read(state.data)
+        faulted, held_changed = tick.read(state.data)
         if wkc != master.expected_wkc:
             self.wkc_errors += 1
             self._wkc_bad_cycles += 1
@@ -413,9 +420,11 @@ class EthercatSystem(HardwareComponent):
         """Position is the CSP target: NaN holds the last target, and zero stiffness or a drive that is not
         enabled follows the actual position. The velocity and torque offsets carry the damping term's and the
         effort's feed-forward, zero where not finite or where the drive is not enabled."""
-        self._tick.write(command.data, self._take_reset())
+        master, tick = self.master, self._tick
+        assert master is not None and tick is not None  # as in read
+        tick.write(command.data, self._take_reset())
         began = time.perf_counter()
-        self.master.send()
+        master.send()
         self.io_s += time.perf_counter() - began
 
     # ------------------------------------------------------------------------------- flags
@@ -502,7 +511,7 @@ class EthercatSystem(HardwareComponent):
         if wake is not None and (self._state == Drive.RESTORING).any():
             wake()
 
-    def _held_text(self, k: int) -> str:
+    def _held_text(self, k: int | np.intp) -> str:
         text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left "
                 "operation, or its fault, by itself) and is held disabled, so it cannot snap to the target when it "
                 "comes back")
@@ -511,7 +520,7 @@ class EthercatSystem(HardwareComponent):
                    "or `prime reset`, enables it"
         return f"{text} (latched: r in the live table, or `prime reset`, once it is in OP)"
 
-    def _describe_drive(self, k: int) -> str:
+    def _describe_drive(self, k: int | np.intp) -> str:
         sw, err = int(self._rec_sw[k]), int(self._rec_err[k])
         text = (f"{self.joints[k]} (ring {int(self.ring[k])}): {drive_state(sw).value}, statusword {sw} "
                 f"(0x{sw:04X}), error 0x{err:04X} {describe_error(err)}")

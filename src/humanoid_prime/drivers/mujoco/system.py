@@ -27,6 +27,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import HardwareComponent
@@ -45,12 +46,12 @@ class _UrdfJoint:
     kind: str
     parent: str
     child: str
-    xyz: np.ndarray
-    quat: np.ndarray
-    axis: np.ndarray
+    xyz: npt.NDArray[np.float64]
+    quat: npt.NDArray[np.float64]
+    axis: npt.NDArray[np.float64]
 
 
-def _rpy_quat(rpy: np.ndarray) -> np.ndarray:
+def _rpy_quat(rpy: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """URDF fixed-axis roll-pitch-yaw as a MuJoCo (w, x, y, z) quaternion."""
     r, p, y = rpy / 2.0
     cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
@@ -62,7 +63,7 @@ def _rpy_quat(rpy: np.ndarray) -> np.ndarray:
     ])
 
 
-def _vector(element: ET.Element | None, key: str, default: str) -> np.ndarray:
+def _vector(element: ET.Element | None, key: str, default: str) -> npt.NDArray[np.float64]:
     text = element.get(key, default) if element is not None else default
     return np.array([float(v) for v in text.split()])
 
@@ -72,11 +73,13 @@ def _urdf_joints(urdf: str) -> list[_UrdfJoint]:
     for joint in ET.fromstring(urdf).findall("joint"):
         origin = joint.find("origin")
         axis = _vector(joint.find("axis"), "xyz", "1 0 0")
+        parent, child = joint.find("parent"), joint.find("child")
+        assert parent is not None and child is not None  # a URDF joint has both (the xacro's own output)
         joints.append(_UrdfJoint(
             name=joint.get("name", ""),
             kind=joint.get("type", ""),
-            parent=joint.find("parent").get("link", ""),
-            child=joint.find("child").get("link", ""),
+            parent=parent.get("link", ""),
+            child=child.get("link", ""),
             xyz=_vector(origin, "xyz", "0 0 0"),
             quat=_rpy_quat(_vector(origin, "rpy", "0 0 0")),
             axis=axis / np.linalg.norm(axis),

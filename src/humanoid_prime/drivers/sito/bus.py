@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import errno
 import math
-from typing import Any
 
 import can
 
@@ -56,18 +55,16 @@ def bus_cycle(update_rate: float, wrists: int, bitrate: float, budget: float = B
     return every, min(max(feedback_ms, 1), max(FEEDBACK_INTERVAL_MS))
 
 
-def open_bus(hardware: HardwareConfig, *, interface: str | None = None, channel: str | None = None,
-             **options: Any) -> can.BusABC:
+def open_bus(hardware: HardwareConfig, *, interface: str | None = None, channel: str | None = None) -> can.BusABC:
     """Open the Sito bus: interface and channel from ``buses.can`` unless overridden.
 
     On SocketCAN the Sito id filter runs in the kernel; error frames still arrive (separate filter).
     """
     interface = interface or hardware.can.interface
     channel = channel or hardware.can.channel
-    if interface == "socketcan":
-        options.setdefault("can_filters", SITO_FILTERS)
+    can_filters = SITO_FILTERS if interface == "socketcan" else None
     try:
-        return can.Bus(interface=interface, channel=channel, bitrate=hardware.can.bitrate, **options)
+        return can.Bus(interface=interface, channel=channel, bitrate=hardware.can.bitrate, can_filters=can_filters)
     except (OSError, can.CanError, ImportError, ValueError) as exc:
         if interface == "socketcan":
             fix = f"bring it up with: sudo ip link set {channel} up type can bitrate {hardware.can.bitrate}"

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
+import numpy.typing as npt
 
 ID_PREFIX = 0x0506_0000
 ID_PREFIX_MASK = 0xFFFF_0000
@@ -29,8 +30,15 @@ INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 # (_tick.SitoTick) is built from HOST_PAYLOADS and MIT_FIELDS: which field carries each MIT command interface.
 COMMAND_DTYPE = np.dtype([("current", ">i2"), ("velocity", ">i2"), ("position", ">i4")])  # mA, counts/s, counts
 GAINS_DTYPE = np.dtype([("kp", ">f4"), ("kd", ">f4")])  # firmware units
-COMMAND = struct.Struct(">" + "".join(COMMAND_DTYPE[f].char for f in COMMAND_DTYPE.names))
-GAINS = struct.Struct(">" + "".join(GAINS_DTYPE[f].char for f in GAINS_DTYPE.names))
+
+
+def _frame_struct(payload: np.dtype[np.void]) -> struct.Struct:
+    assert payload.names is not None  # a structured dtype
+    return struct.Struct(">" + "".join(payload[f].char for f in payload.names))
+
+
+COMMAND = _frame_struct(COMMAND_DTYPE)
+GAINS = _frame_struct(GAINS_DTYPE)
 HOST_PAYLOADS = np.dtype([("command", COMMAND_DTYPE), ("gains", GAINS_DTYPE)])  # one motor's, side by side
 MIT_FIELDS = (("command", "position"), ("command", "velocity"), ("command", "current"), ("gains", "kp"),
               ("gains", "kd"))  # position, velocity, effort, stiffness, damping
@@ -136,7 +144,7 @@ def current_mA_to_torque(current_mA: float, model: SitoModel) -> float:
     return current_mA * model.nm_per_mA
 
 
-def wire_scales(model: SitoModel) -> np.ndarray:
+def wire_scales(model: SitoModel) -> npt.NDArray[np.float64]:
     """Wire units per SI unit of each MIT command interface, in ``MIT_FIELDS`` order: counts per rad, counts/s per
     rad/s, mA per Nm, firmware Kp per Nm/rad and firmware Kd per Nm*s/rad (the state's position, velocity and
     effort use the first three)."""

@@ -31,10 +31,12 @@ import os
 import signal
 import threading
 import time
+import types
 from collections.abc import Callable
 
 import can
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.description import SITO_BLOCK
@@ -238,6 +240,12 @@ class SitoSystem(HardwareComponent):
 
     # --- lifecycle -------------------------------------------------------------------------------------
 
+    @property
+    def _open_bus(self) -> can.BusABC:
+        bus = self._bus
+        assert bus is not None, "the bus opens in on_configure"
+        return bus
+
     def on_configure(self) -> None:
         if self._bus is None:
             self._bus = open_bus(self.robot.hardware, interface=self._interface, channel=self.channel)
@@ -249,7 +257,7 @@ class SitoSystem(HardwareComponent):
         self._listening_since = None
         self._ticks_to_send = 0
         self._rx.reset()
-        self._notifier = can.Notifier(self._bus, [self._rx], timeout=_NOTIFIER_POLL_S)
+        self._notifier = can.Notifier(self._open_bus, [self._rx], timeout=_NOTIFIER_POLL_S)
         _EXIT_GUARD.add(self)
         try:
             now = self._clock()
@@ -296,7 +304,7 @@ class SitoSystem(HardwareComponent):
 
     def _send_or_raise(self, msg: can.Message, slot: int, what: str) -> None:
         try:
-            self._bus.send(msg, timeout=_LIFECYCLE_SEND_TIMEOUT_S)
+            self._open_bus.send(msg, timeout=_LIFECYCLE_SEND_TIMEOUT_S)
         except (can.CanError, OSError) as exc:
             raise PrimeError(f"{self.joints[slot]} (CAN id {self.can_ids[slot]}): cannot send {what} on "
                              f"{self.channel}: {exc}; check that the interface is up and the wrists are powered"
@@ -351,7 +359,7 @@ class SitoSystem(HardwareComponent):
         tick = self._tick
         # the payloads, which gains are due, and the command's problems (see SitoTick.write)
         problems_changed = tick.write(command.data, clock_now - self.gain_refresh_s)
-        bus = self._bus
+        bus = self._open_bus
         failed = False
         began = time.perf_counter()  # the sends are this component's bus I/O (``io_s``)
         for i in range(len(self.can_ids)):
@@ -396,7 +404,7 @@ class SitoSystem(HardwareComponent):
         else:
             self.clear_flag(key)
 
-    def _motor_flag(self, raised: bool, problem: str, slot: int, level: Level) -> None:
+    def _motor_flag(self, raised: bool, problem: str, slot: int | np.intp, level: Level) -> None:
         """Raise or clear ``<channel>/<problem>/<CAN id>``; its words are only needed, and built, when raised."""
         can_id = self.can_ids[slot]
         key = f"{self.channel}/{problem}/{can_id}"
@@ -418,9 +426,9 @@ class SitoSystem(HardwareComponent):
         self.set_flag(key, text, level)
 
 
-def _payload_bytes(payloads: np.ndarray, name: str) -> list[memoryview]:
+def _payload_bytes(payloads: npt.NDArray[np.void], name: str) -> list[memoryview]:
     """Each motor's ``name`` payload as bytes: views of what the compiled write fills in place."""
-    return [memoryview(payloads[name][k:k + 1].view(np.uint8)) for k in range(len(payloads))]
+    return [payloads[name][k:k + 1].view(np.uint8).data for k in range(len(payloads))]
 
 
 def _bus_flags(channel: str, bitrate: int) -> dict[str, tuple[str, str]]:
@@ -438,7 +446,7 @@ def _bus_flags(channel: str, bitrate: int) -> dict[str, tuple[str, str]]:
     return {problem: (f"{channel}/{problem}", text) for problem, text in texts.items()}
 
 
-def _check_command_limits(robot: Robot, scales: np.ndarray) -> None:
+def _check_command_limits(robot: Robot, scales: npt.NDArray[np.float64]) -> None:
     """The hardware file's Sito command limits must fit the wire: a velocity its int16 field carries, gains the
     firmware's float32 fields carry."""
     limits = robot.hardware.command_limits["sito"]
@@ -448,6 +456,10 @@ def _check_command_limits(robot: Robot, scales: np.ndarray) -> None:
             raise ConfigError(robot.hardware.path, f"command_limits.sito.{name}",
                               f"{getattr(limits, name):g} {_UNITS[row]} is beyond what the Sito wire carries "
                               f"({reach:.6g} {_UNITS[row]})", f"use at most {math.floor(reach * 100) / 100:g}")
+
+
+# what signal.getsignal returns
+_Handler = Callable[[int, types.FrameType | None], object] | int | None
 
 
 class _ExitGuard:
@@ -461,7 +473,7 @@ class _ExitGuard:
 
     def __init__(self) -> None:
         self._systems: set[SitoSystem] = set()  # strong: an active system must outlive its last user
-        self._previous: dict[int, object] = {}
+        self._previous: dict[int, _Handler] = {}
         self._lock = threading.Lock()
         atexit.register(self.disable_all)
 
@@ -486,7 +498,7 @@ class _ExitGuard:
         for system in list(self._systems):
             system.disable_motors()
 
-    def _on_signal(self, signum: int, frame: object) -> None:
+    def _on_signal(self, signum: int, frame: types.FrameType | None) -> None:
         worker = threading.Thread(target=self.disable_all, name="sito-disable", daemon=True)
         worker.start()
         worker.join(1.0)

@@ -34,6 +34,7 @@ from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import print_json, real
+from humanoid_prime.cli.addons import Addons, Run
 from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
 from humanoid_prime.config.hardware import HardwareConfig, write_erob_torque_efficiency
 from humanoid_prime.config.robot import Robot
@@ -211,12 +212,9 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
                              "robot (stdin is not one)")
         model = GravityModel(robot)  # compiled before the buses run: their keeper must never wait for it
         session = open_session(plan, stack)
-        if args.record is not None:
-            from humanoid_prime.record.mcap import Recorder
-
-            # Stamps in the system clock, as on the robot; the file is finished when the run ends.
-            recorder = Recorder(args.record, session.manager, epoch_offset=time.time() - time.monotonic())
-            stack.callback(recorder.close)
+        # Stamps in the system clock, as on the robot; the file is finished when the run ends.
+        Addons().attach(Run(session.manager, report=print, epoch_offset=time.time() - time.monotonic()), args, stack,
+                        names=("record",))
         manager = session.manager
         master = session.ethercat.master if session.ethercat is not None else None
         rings = {j: (master, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints

@@ -132,18 +132,17 @@ def _joints(args: argparse.Namespace, robot: Robot, on_run: Sequence[str]) -> tu
 def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Console) -> AutoResult:
     """MuJoCo alone at the hardware's control rate, ticked as fast as it computes: the model's stops, the
     identity calibration as the truth."""
-    from humanoid_prime.control.manager import ControllerManager
-    from humanoid_prime.drivers.mujoco.system import MujocoSystem
-    from humanoid_prime.sim.demo import START_POSE
+    from humanoid_prime.config.robot import load_robot
+    from humanoid_prime.sim.demo import START_POSE, build_simulation
     from humanoid_prime.virtual.operator import WatchingOperator
 
     plan = plan_session(BringupOptions(hardware_file=args.hardware, controllers_file=args.controllers,
                                        calibration=prior))
     robot, config = plan.robot, plan.config
     joints = _joints(args, robot, robot.names)
-    system = MujocoSystem(robot, physics_rate=config.physics_rate, update_rate=config.update_rate,
-                          initial_pose=START_POSE)
-    manager = ControllerManager(robot, [system], config, update_rate=config.update_rate, broadcaster_only=True)
+    # At the hardware's control rate, on the description's simulated block.
+    system, manager = build_simulation(load_robot(args.hardware, use_sim=True), config, initial_pose=START_POSE,
+                                       update_rate=config.update_rate, broadcaster_only=True, clock=time.monotonic)
     manager.start(now=system.sim_time)
     model = GravityModel(robot)
     try:

@@ -6,7 +6,8 @@ place. An add-on is a module (or any object) with three functions:
   the user asked for the add-on;
 - ``attach(run, args, stack) -> summary | None`` attaches it to the running ``Run``, registers its teardown on
   ``stack`` (closed before the run's own teardown) and returns what gives its figures for the summary (read
-  after ``stack`` has closed), or None when it has none.
+  after ``stack`` has closed), or None when it has none. An add-on that can go on with the run's next
+  controller manager (a calibration runs one session per bus) adds itself to ``run.followers``.
 
 ``ADDONS`` names them, python-can's way (``can/interfaces/__init__.py``): a module path (imported when used)
 or the add-on itself. A new add-on is its module and one line here, or in a user's launcher
@@ -20,7 +21,7 @@ import argparse
 import contextlib
 import importlib
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any, Protocol
 
@@ -43,6 +44,14 @@ class Run:
     state: Callable[[], dict[str, Any]] | None = None  # the run's state source if it keeps one (None: its own)
     host_graph: Callable[[], contextlib.AbstractContextManager[bool]] | None = None  # enter to be on this
     # machine's ROS 2 graph (an emulated run lives in a private network namespace); yields whether it is
+    followers: list[Callable[[ControllerManager, contextlib.ExitStack], None]] = field(default_factory=list)
+
+    def follow(self, manager: ControllerManager, stack: contextlib.ExitStack) -> None:
+        """The run goes on with ``manager`` (also the first one), whose teardown is ``stack``: every add-on that
+        follows moves to it, and lets go of it on ``stack`` before it shuts down."""
+        self.manager = manager
+        for follow in self.followers:
+            follow(manager, stack)
 
 
 class Addon(Protocol):

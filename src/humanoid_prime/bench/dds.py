@@ -27,7 +27,6 @@ from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.registry import ComponentSettings, build_components
 
 BENCH_DOMAIN = 231  # away from the usual ROS 2 domains, so a benchmark does not talk to a robot's graph
 RATES_HZ = (50.0, 1000.0)
@@ -45,14 +44,9 @@ class _Nothing:
 
 def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None,
          tap_only: bool = False, paired: bool = False) -> dict[str, Any]:
-    from humanoid_prime.config.calibration import identity_calibration
-    from humanoid_prime.config.description import MUJOCO_BLOCK
-    from humanoid_prime.sim.demo import START_POSE
+    from humanoid_prime.sim.demo import START_POSE, build_simulation
 
-    settings = ComponentSettings(robot, identity_calibration(robot.hardware), update_rate=rate,
-                                 physics_rate=max(rate, config.physics_rate), initial_pose=START_POSE)
-    (system,) = build_components((MUJOCO_BLOCK,), settings)
-    manager = ControllerManager(robot, [system], config, update_rate=rate, clock=time.monotonic)
+    _, manager = build_simulation(robot, config, initial_pose=START_POSE, update_rate=rate, clock=time.monotonic)
     listener = bridge = recorder = tap = None
     result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None, "tap_only": tap_only,
                               "paired": paired}

@@ -13,22 +13,18 @@ from pathlib import Path
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     SECONDS,
-    DdsOptions,
     add_config_options,
-    add_dds_options,
     add_emulation_options,
     add_json_option,
     add_realtime_options,
-    add_record_option,
     add_socket_option,
-    add_web_option,
-    check_web,
     dds_options,
     output_dir,
     output_file,
     real,
     ring_options,
 )
+from humanoid_prime.cli.addons import Addons, Run, add_addon_options, check_addons
 from humanoid_prime.config.controllers import MAX_BRINGUP_RATE_HZ
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
@@ -89,9 +85,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--erob-config-dir", metavar="DIR", type=output_dir,
                    help="keep the folded per-slave eRob configs here")
     add_socket_option(p)
-    add_dds_options(p, node=True)
-    add_record_option(p)
-    add_web_option(p)
+    add_addon_options(p)
     p.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
     p.add_argument("--no-live", action="store_true", help="no live table even on a terminal")
     add_json_option(p)
@@ -148,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     ring = ring_options(args, **{"--load-test": args.load_test})
     dds = dds_options(args)
-    check_web(args)
+    check_addons(args)
     # Everything is checked before anything opens, and before a private namespace is entered.
     load_test_joints = _load_test_joints(args, plan_session(options).robot) if args.load_test else []
     if options.emulated:
@@ -158,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     report = print if not args.json else (lambda *a, **k: None)
     emulator: dict = {}
+    addons = Addons()
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
         plan = plan_session(options)
         claim_control_socket(plan, stack)
@@ -174,19 +169,14 @@ def run(args: argparse.Namespace) -> int:
         with _bringing_up(plan, args):
             session = open_session(plan, stack)
         session.reports.update(load_test=[], emulator=emulator)
-        epoch_offset = time.time() - time.monotonic()  # stamps in the system clock, as ROS 2 nodes on the robot
-        if args.record is not None:
-            _record(session, args.record, stack, epoch_offset)
-        if dds is not None:
-            network: contextlib.AbstractContextManager[bool] = contextlib.nullcontext(True)
-            if options.emulated:  # the node on the host's graph (as root), the robot in its private namespace
-                from humanoid_prime.virtual.harness import host_network
+        host_graph = None
+        if options.emulated:  # the node on the host's graph (as root), the robot in its private namespace
+            from humanoid_prime.virtual.harness import host_network
 
-                network = host_network()
-            with network as on_host:
-                _bridge(session, dds, stack, report, private=not on_host, epoch_offset=epoch_offset)
-        if args.web is not None:
-            _web(session, args.web, stack, report)
+            host_graph = host_network
+        # Stamps in the system clock, as ROS 2 nodes on the robot.
+        addons.attach(Run(session.manager, report=report, epoch_offset=time.time() - time.monotonic(),
+                          host_graph=host_graph), args, stack)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
@@ -207,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
                  at_end=at_end)
         if load_test is not None:
             load_test.join(timeout=30.0)
+    session.reports.update(addons.summaries())
     summary = session.summary()
     if args.summary:
         atomic_write_text(Path(args.summary), json.dumps(summary, indent=2) + "\n")
@@ -237,42 +228,6 @@ def _bringing_up(plan, args: argparse.Namespace):
             yield
         finally:
             plan.on_stage = None
-
-
-def _web(session: Session, port: int, stack: contextlib.ExitStack, report) -> None:
-    """The live 3D view of the run; its mode buttons take the run's mode request path."""
-    from humanoid_prime.view.feeds import manager_source
-    from humanoid_prime.view.page import PrimeView
-
-    source, detach = manager_source(session.manager)
-    stack.callback(detach)
-    view = PrimeView(session.robot, port=port, request_mode=session.manager.request_mode, source=source)
-    stack.callback(view.close)
-    report(f"view: {view.url}")
-
-
-def _record(session: Session, path: Path, stack: contextlib.ExitStack, epoch_offset: float) -> None:
-    """Record the run; the file is finished before the session's teardown, and its figures go in the summary."""
-    from humanoid_prime.record.mcap import Recorder
-
-    recorder = Recorder(path, session.manager, epoch_offset=epoch_offset)
-    stack.callback(lambda: session.reports.__setitem__("record", recorder.summary()))
-    stack.callback(recorder.close)
-
-
-def _bridge(session: Session, dds: DdsOptions, stack: contextlib.ExitStack, report, *, private: bool,
-            epoch_offset: float) -> None:
-    """Put the run on the ROS 2 graph; the bridge closes before the session's teardown, and its figures go in
-    the summary."""
-    from humanoid_prime.dds.bridge import bridge_manager
-
-    bridge = bridge_manager(session.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
-                            epoch_offset=epoch_offset, settings=dds.discovery)
-    stack.callback(lambda: session.reports.__setitem__("dds", bridge.summary()))
-    stack.callback(bridge.close)
-    where = (" (inside the emulation's private network namespace: only processes in it can join; run as root to "
-             "put the node on this machine's graph)") if private else ""
-    report(f"DDS: {dds.describe()}{where}")
 
 
 def _refuse(mode: Mode) -> None:

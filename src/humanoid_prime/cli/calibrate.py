@@ -46,6 +46,7 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
+from humanoid_prime.cli.addons import Addons, Run
 from humanoid_prime.cli.calibrate_auto import add_auto_options, check_auto_options, config_option, run_auto
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.hardware import load_hardware
@@ -169,25 +170,19 @@ def _virtual(args: argparse.Namespace, ring: dict[str, Any], stack: contextlib.E
 
 
 class _Recording:
-    """``--record``: one file for the whole run, each phase's session attached in turn (None: no recording)."""
+    """``--record``: one file for the whole run, each phase's session attached in turn."""
 
-    def __init__(self, path: Path | None, stack: contextlib.ExitStack) -> None:
-        self.path = path
+    def __init__(self, args: argparse.Namespace, stack: contextlib.ExitStack) -> None:
+        self.args = args
         self.stack = stack
-        self.recorder: Any = None
+        self.run: Run | None = None
 
     def attach(self, session: Session, stack: contextlib.ExitStack) -> None:
-        if self.path is None:
-            return
-        if self.recorder is None:
-            from humanoid_prime.record.mcap import Recorder
-
+        if self.run is None:
             # Stamps in the system clock, as on the robot; the file is finished when the run ends.
-            self.recorder = Recorder(self.path, session.manager, epoch_offset=time.time() - time.monotonic())
-            self.stack.callback(self.recorder.close)
-        else:
-            self.recorder.attach(session.manager)
-        stack.callback(self.recorder.detach)  # before this phase's session closes
+            self.run = Run(session.manager, report=print, epoch_offset=time.time() - time.monotonic())
+            Addons().attach(self.run, self.args, self.stack, names=("record",))
+        self.run.follow(session.manager, stack)
 
 
 class _Web:
@@ -288,7 +283,7 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked
     with stop_on_signals(finish), contextlib.ExitStack() as run_stack:
         server = run_stack.enter_context(ControlServer(path=args.socket))  # a second instance stops here
         virtual = _virtual(args, ring, run_stack)
-        recording = _Recording(args.record, run_stack)
+        recording = _Recording(args, run_stack)
         web = _Web(args.web, args.hardware, run_stack)
         for number, backends in enumerate(phases, start=1):
             if finish.is_set():
@@ -449,7 +444,7 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
         server = stack.enter_context(ControlServer(path=args.socket))
         virtual = _virtual(args, ring, stack)
         session = _open(args, args.backends, calibration, virtual, server, stack)
-        _Recording(args.record, stack).attach(session, stack)
+        _Recording(args, stack).attach(session, stack)
         robot = session.robot
         joints = tracked_joints(robot, args.backends)
         chosen = tuple(_joint_list(args.joints)) or joints

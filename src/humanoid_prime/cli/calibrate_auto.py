@@ -34,6 +34,7 @@ from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import print_json, real
+from humanoid_prime.cli.addons import Addons, Run
 from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
 from humanoid_prime.config.hardware import HardwareConfig, write_erob_torque_efficiency
 from humanoid_prime.config.robot import Robot
@@ -131,18 +132,17 @@ def _joints(args: argparse.Namespace, robot: Robot, on_run: Sequence[str]) -> tu
 def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Console) -> AutoResult:
     """MuJoCo alone at the hardware's control rate, ticked as fast as it computes: the model's stops, the
     identity calibration as the truth."""
-    from humanoid_prime.control.manager import ControllerManager
-    from humanoid_prime.drivers.mujoco.system import MujocoSystem
-    from humanoid_prime.sim.demo import START_POSE
+    from humanoid_prime.config.robot import load_robot
+    from humanoid_prime.sim.demo import START_POSE, build_simulation
     from humanoid_prime.virtual.operator import WatchingOperator
 
     plan = plan_session(BringupOptions(hardware_file=args.hardware, controllers_file=args.controllers,
                                        calibration=prior))
     robot, config = plan.robot, plan.config
     joints = _joints(args, robot, robot.names)
-    system = MujocoSystem(robot, physics_rate=config.physics_rate, update_rate=config.update_rate,
-                          initial_pose=START_POSE)
-    manager = ControllerManager(robot, [system], config, update_rate=config.update_rate, broadcaster_only=True)
+    # At the hardware's control rate, on the description's simulated block.
+    system, manager = build_simulation(load_robot(args.hardware, use_sim=True), config, initial_pose=START_POSE,
+                                       update_rate=config.update_rate, broadcaster_only=True, clock=time.monotonic)
     manager.start(now=system.sim_time)
     model = GravityModel(robot)
     try:
@@ -211,12 +211,9 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
                              "robot (stdin is not one)")
         model = GravityModel(robot)  # compiled before the buses run: their keeper must never wait for it
         session = open_session(plan, stack)
-        if args.record is not None:
-            from humanoid_prime.record.mcap import Recorder
-
-            # Stamps in the system clock, as on the robot; the file is finished when the run ends.
-            recorder = Recorder(args.record, session.manager, epoch_offset=time.time() - time.monotonic())
-            stack.callback(recorder.close)
+        # Stamps in the system clock, as on the robot; the file is finished when the run ends.
+        Addons().attach(Run(session.manager, report=print, epoch_offset=time.time() - time.monotonic()), args, stack,
+                        names=("record",))
         manager = session.manager
         master = session.ethercat.master if session.ethercat is not None else None
         rings = {j: (master, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints

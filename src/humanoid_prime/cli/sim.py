@@ -23,15 +23,13 @@ from humanoid_prime.cli._common import (
     SECONDS,
     DdsOptions,
     add_config_options,
-    add_dds_options,
     add_json_option,
-    add_record_option,
-    add_web_option,
     dds_options,
     output_file,
     print_json,
 )
 from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
+from humanoid_prime.cli.addons import Addons, Run, add_addon_options, check_addons
 from humanoid_prime.config.controllers import ControllersConfig, load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.drivers.erob.gains import check_mode_gains
@@ -68,9 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "on a virtual CAN bus, their plants the wrists of the same model (default: none)")
     p.add_argument("--socket", metavar="PATH",
                    help=f"control socket for 'prime switch' (default: {default_socket_path()})")
-    add_dds_options(p, node=True)
-    add_record_option(p)
-    add_web_option(p)
+    add_addon_options(p)
     add_config_options(p, controllers=True)
     add_json_option(p)
     p.set_defaults(func=run)
@@ -171,6 +167,7 @@ def run(args: argparse.Namespace) -> int:
         raise PrimeError(f"--duration must be a positive number of seconds, got {args.duration:g}")
     duration = args.duration if args.duration is not None else (None if mode is not None else DEMO_SECONDS)
     dds = dds_options(args)
+    check_addons(args)
 
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
@@ -235,7 +232,7 @@ def _run(args: argparse.Namespace, robot: Robot, config: ControllersConfig, mode
         for hook in hooks:
             hook()
 
-    bridge = recorder = None
+    addons = Addons()
     with contextlib.ExitStack() as stack, _sigterm_stops():
         if close_viewer is not None:
             stack.callback(close_viewer)
@@ -245,33 +242,16 @@ def _run(args: argparse.Namespace, robot: Robot, config: ControllersConfig, mode
             stages = " -> ".join(name for name, _ in manager.stages)
             print(f"staged start: {stages} ({sum(s for _, s in manager.stages) * 1e3:.1f} ms); "
                   f"ZERO_TORQUE active, the other mode controllers loaded inactive", file=out, flush=True)
-            if args.record is not None:
-                from humanoid_prime.record.mcap import Recorder
-
-                # Stamps in simulated time, like the DDS topics; --fast has no deadline, so the loop waits for the
-                # writer instead of dropping a tick.
-                recorder = Recorder(args.record, manager, wait=args.fast)
-                stack.callback(recorder.close)
-            if dds is not None:
-                from humanoid_prime.dds.bridge import bridge_manager
-
-                # Stamps in simulated time, published on /clock, as ROS 2 nodes with use_sim_time expect.
-                bridge = bridge_manager(manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
-                                        request_mode=lambda text: operator_mode(Mode.parse(text)), sim_clock=True,
-                                        settings=dds.discovery)
-                stack.callback(bridge.close)
-                print(f"DDS: {dds.describe()}", file=out, flush=True)
             from humanoid_prime.view.feeds import manager_source
 
             state, _ = manager_source(manager)  # for the run's whole life: no detach
             server.attach(switch_mode=mode_switcher(manager, before=sim.take_over), state=state)
-            if args.web is not None:
-                from humanoid_prime.view.page import PrimeView
-
-                view = PrimeView(robot, port=args.web, request_mode=lambda text: operator_mode(Mode.parse(text)),
-                                 source=state, title="Prime (simulated)")
-                stack.callback(view.close)
-                print(f"view: {view.url}", file=out, flush=True)
+            # Stamps in simulated time, published on /clock; --fast has no deadline, so a writer makes the loop
+            # wait instead of dropping a tick.
+            run = Run(manager, report=lambda line: print(line, file=out, flush=True),
+                      request_mode=lambda text: operator_mode(Mode.parse(text)), sim_clock=True, wait=args.fast,
+                      title="Prime (simulated)", state=state)
+            addons.attach(run, args, stack)
             keys = stack.enter_context(ModeKeys(operator_mode, stop.set))
             if table is not None:
                 table.keys = keys.active
@@ -281,10 +261,7 @@ def _run(args: argparse.Namespace, robot: Robot, config: ControllersConfig, mode
             sim.stopped_by = "interrupt"
         summary = sim.summary()
     summary["hil"] = args.hil
-    if bridge is not None:
-        summary["dds"] = bridge.summary()
-    if recorder is not None:
-        summary["record"] = recorder.summary()
+    summary.update(addons.summaries())
     if hil is not None:
         summary["can"] = hil.frame_counts()  # after shutdown: the disable frames count too
 

@@ -5,7 +5,8 @@ impedance manager, put together in the order DESIGN §3 makes impossible to get 
    ``update_rate`` (an explicit ``sync0_period`` that differs is refused with the reason) before anything
    touches a bus;
 2. ``open_session`` builds one hardware component per hardware block of the chosen backends (by the
-   description's block names) and starts the controller manager: the eRob ring reaches OP with the fast
+   description's block names, through ``assemble``, which puts every run together: the simulation, hardware
+   in the loop and the benchmarks too) and starts the controller manager: the eRob ring reaches OP with the fast
    bring-up loop and the drives are enabled, the Sito wrists are activated (gains, then enable), and the
    controllers start in stages (joint-state broadcaster, ZERO_TORQUE active, the other modes inactive; or
    the broadcaster alone for a single-bus run);
@@ -33,6 +34,7 @@ from humanoid_prime.config.controllers import ControllersConfig, load_controller
 from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SITO_BLOCK
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
+from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus, Snapshot
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S
@@ -339,6 +341,17 @@ class Session:
         }
 
 
+def assemble(settings: ComponentSettings, config: ControllersConfig, parts: Sequence[str | HardwareComponent], *,
+             broadcaster_only: bool = False, clock: Callable[[], float] = time.monotonic) -> ControllerManager:
+    """Put a run together: one hardware component per part, in order (a block name of the robot description is
+    built by the registry; a component the caller built itself, such as the wrists of a hardware-in-the-loop
+    run on an emulated bus, is taken as it is), under one controller manager at ``settings.update_rate``,
+    not started."""
+    components = [build_components((part,), settings)[0] if isinstance(part, str) else part for part in parts]
+    return ControllerManager(settings.robot, components, config, update_rate=settings.update_rate,
+                             broadcaster_only=broadcaster_only, clock=clock)
+
+
 def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     """Bring Prime up as ``plan`` says; everything opened is registered on ``stack`` for teardown."""
     options, robot = plan.options, plan.robot
@@ -350,10 +363,9 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
         erob_config_dir=options.erob_config_dir, can_interface=options.can_interface,
         can_channel=options.can_channel)
-    components = build_components(BACKEND_BLOCKS[options.backends], settings)
-    by_block = {component.name: component for component in components}
-    manager = ControllerManager(robot, components, plan.config, update_rate=plan.update_rate,
-                                broadcaster_only=plan.broadcaster_only)
+    manager = assemble(settings, plan.config, BACKEND_BLOCKS[options.backends],
+                       broadcaster_only=plan.broadcaster_only)
+    by_block = {component.name: component for component in manager.resources.components}
     stack.callback(manager.shutdown)
     manager.configuration = dict(options.config or {})
     if plan.refused is not None:

@@ -28,7 +28,8 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.topics import MitCommand, TopicBus
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.registry import ComponentSettings, build_components
+from humanoid_prime.runtime.registry import ComponentSettings
+from humanoid_prime.runtime.session import assemble
 
 
 @dataclass(frozen=True)
@@ -97,13 +98,17 @@ class RemoteStream:
 
 
 def build_simulation(robot: Robot, config: ControllersConfig, *, initial_pose: Mapping[str, float] | None = None,
-                     model_path: str | Path | None = None) -> tuple[MujocoSystem, ControllerManager]:
-    """The description's ``MujocoSystem`` block at the simulation rates of ``config`` and a controller manager
-    over it (not started)."""
-    settings = ComponentSettings(robot, identity_calibration(robot.hardware), update_rate=config.sim_update_rate,
-                                 physics_rate=config.physics_rate, model_path=model_path, initial_pose=initial_pose)
-    (system,) = build_components((MUJOCO_BLOCK,), settings)
-    manager = ControllerManager(robot, [system], config, update_rate=config.sim_update_rate, clock=time.perf_counter)
+                     model_path: str | Path | None = None, update_rate: float | None = None,
+                     broadcaster_only: bool = False, clock: Callable[[], float] = time.perf_counter
+                     ) -> tuple[MujocoSystem, ControllerManager]:
+    """The description's ``MujocoSystem`` block and a controller manager over it (not started), at the simulation
+    rate of ``config`` unless ``update_rate`` is given; the physics never steps slower than the loop."""
+    rate = config.sim_update_rate if update_rate is None else update_rate
+    settings = ComponentSettings(robot, identity_calibration(robot.hardware), update_rate=rate,
+                                 physics_rate=max(rate, config.physics_rate), model_path=model_path,
+                                 initial_pose=initial_pose)
+    manager = assemble(settings, config, (MUJOCO_BLOCK,), broadcaster_only=broadcaster_only, clock=clock)
+    (system,) = manager.resources.components
     return system, manager
 
 

@@ -24,10 +24,11 @@ from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import Lifecycle
-from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.drivers.sito.protocol import FrameType
 from humanoid_prime.drivers.sito.system import SitoSystem
+from humanoid_prime.runtime.registry import ComponentSettings
+from humanoid_prime.runtime.session import assemble
 from humanoid_prime.virtual.plant import PrimeWorld
 from humanoid_prime.virtual.sito import SitoEmulator
 
@@ -76,8 +77,8 @@ class HilSimulation:
             self._world_step = world.step
             self.sito = SitoSystem(robot, calibration, update_rate=config.sim_update_rate, bus=self._host_bus,
                                    clock=self._firmware_time)
-            self.manager = ControllerManager(robot, [self.sito, self.system], config,
-                                             update_rate=config.sim_update_rate, clock=time.perf_counter)
+            settings = ComponentSettings(robot, calibration, update_rate=config.sim_update_rate)
+            self.manager = assemble(settings, config, (self.sito, self.system), clock=time.perf_counter)
         except BaseException:
             self._close_buses()
             raise

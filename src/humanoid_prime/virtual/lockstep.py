@@ -38,7 +38,6 @@ from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.drivers.erob import objects as obj
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, MODE_CSP
 from humanoid_prime.drivers.ethercat.master import SdoError
@@ -59,6 +58,8 @@ from humanoid_prime.drivers.sito.protocol import (
     torque_to_current_mA,
     velocity_to_counts,
 )
+from humanoid_prime.runtime.registry import ComponentSettings
+from humanoid_prime.runtime.session import assemble
 from humanoid_prime.sim.demo import START_POSE
 from humanoid_prime.virtual.operator import WatchingOperator
 from humanoid_prime.virtual.plant import Plant
@@ -355,9 +356,11 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
     virtual time: the host frame is ``prior``'s (its directions, offsets 0), the operator watches the virtual
     robot, ``each_tick`` runs after every tick (a test injecting a fault). Returns the result and the rig, shut
     down (drives disabled, wrists off)."""
-    rig = LockstepPrime(robot, identity_from(prior), truth, update_rate=config.update_rate,
-                        physics_rate=physics_rate, initial_pose=START_POSE if initial_pose is None else initial_pose)
-    manager = ControllerManager(robot, [rig], config, update_rate=config.update_rate, broadcaster_only=True)
+    host = identity_from(prior)
+    rig = LockstepPrime(robot, host, truth, update_rate=config.update_rate, physics_rate=physics_rate,
+                        initial_pose=START_POSE if initial_pose is None else initial_pose)
+    settings = ComponentSettings(robot, host, update_rate=config.update_rate)
+    manager = assemble(settings, config, (rig,), broadcaster_only=True)
     manager.start(now=rig.sim_time)
     try:
         auto: AutoCalibration | None = None

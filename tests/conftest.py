@@ -11,9 +11,14 @@ import uuid
 from collections.abc import Iterator
 
 import pytest
+from hypothesis import settings
 
 from doubles.session import DoubledRobot
 from humanoid_prime.config.robot import Robot, load_robot
+
+# Property tests judge values, never time: hypothesis's per-example deadline would fail them on a busy machine.
+settings.register_profile("prime", deadline=None)
+settings.load_profile("prime")
 
 
 def pytest_configure(config) -> None:

@@ -258,8 +258,11 @@ def whole(*, at_least: int | None = None, at_most: int | None = None) -> Callabl
     return parse
 
 
-SECONDS = real(above=0.0)  # a duration that must pass
-SECONDS_OR_ZERO = real(at_least=0.0)
+# The longest duration an option takes: a year. Longer is a slip of the keyboard, and would overflow the clocks
+# and sleeps it reaches (their limit is near 9.2e9 s).
+LONGEST_S = 366 * 24 * 3600.0
+SECONDS = real(above=0.0, at_most=LONGEST_S)  # a duration that must pass
+SECONDS_OR_ZERO = real(at_least=0.0, at_most=LONGEST_S)
 
 
 def add_duration_option(parser: argparse.ArgumentParser, help_text: str, *, default: float | None = None,

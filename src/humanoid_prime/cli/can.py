@@ -122,7 +122,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         add_config_options(sub)
         sub.add_argument("--interface", help="python-can interface (default: buses.can.interface)")
         sub.add_argument("--channel", help="CAN channel (default: buses.can.channel)")
-        sub.add_argument("--model", default="TA40-50", choices=sorted(SITO_MODELS), help="Sito model")
+        sub.add_argument("--model", default="TA40-50", choices=sorted(SITO_MODELS), help="Sito model (default TA40-50)")
 
     m = actions.add_parser("monitor", help="decode live Sito traffic",
                            description="Print every frame on the bus, Sito frames decoded (raw motor frame, "

@@ -62,6 +62,9 @@ def main(argv: list[str] | None = None) -> int:
             from humanoid_prime.cli._common import resolve_config
 
             resolve_config(args)
+        from humanoid_prime.cli._common import check_outputs
+
+        check_outputs(parser, args)  # no output may be an input: checked before anything starts
         if hasattr(args, "web_port"):  # --web and --port, one idea on every command that serves the view
             from humanoid_prime.cli._common import resolve_web
 

@@ -294,10 +294,57 @@ def output_dir(text: str) -> Path:
     return Path(text).expanduser()
 
 
+OUTPUT_TYPES = (output_file, output_dir, mcap_file)
+# What a command reads from a path, besides the configuration files: an output must never be one of them.
+INPUT_OPTIONS = {"hardware": "--hardware", "calibration": "--calibration", "controllers": "--controllers",
+                 "truth": "--truth", "prior": "--prior", "recording": "the recording", "model": "--model",
+                 "file": "the file checked"}
+
+
+def chosen_actions(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[argparse.Action]:
+    """The arguments of the (sub)command ``args`` was parsed for, the parsers on its way included."""
+    actions: list[argparse.Action] = []
+    while parser is not None:
+        actions += parser._actions
+        subparsers = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        parser = subparsers.choices.get(getattr(args, subparsers.dest, None)) if subparsers is not None else None
+    return actions
+
+
+def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse, before anything starts, an output path that is one of the command's inputs or another of its
+    outputs: writing it would destroy what the run reads, or what it wrote a moment before. A command may allow
+    a pair (``args.may_overwrite``: (output dest, input dest)), e.g. calibrate writing the calibration it refines."""
+    allowed = getattr(args, "may_overwrite", ())
+    outputs = [(action.dest, "/".join(action.option_strings) or action.metavar) for action in
+               chosen_actions(parser, args) if action.type in OUTPUT_TYPES and getattr(args, action.dest, None)]
+    seen: dict[Path, str] = {}
+    for dest, option in outputs:
+        path = Path(getattr(args, dest)).expanduser().absolute().resolve()
+        if path in seen:
+            raise PrimeError(f"{option} and {seen[path]} name one file ({path}): each output needs its own")
+        seen[path] = option
+        for source, source_option in INPUT_OPTIONS.items():
+            given = getattr(args, source, None)
+            if not isinstance(given, (str, Path)) or (dest, source) in allowed:
+                continue
+            if Path(given).expanduser().absolute().resolve() == path:
+                raise PrimeError(f"{option} {getattr(args, dest)} is also {source_option}, which this command "
+                                 "reads; writing it would destroy it: name another file")
+
+
 def console(*, stderr: bool = False) -> Console:
     """A rich console; piped or redirected, wide enough that tables and reports are never wrapped."""
     out = Console(stderr=stderr)
     return out if out.is_terminal else Console(stderr=stderr, width=200)
+
+
+def write_summary(args: argparse.Namespace, summary: Any) -> None:
+    """``--summary FILE``: the run's figures as JSON, written atomically (nothing without the option)."""
+    if getattr(args, "summary", None):
+        from humanoid_prime.files import atomic_write_text
+
+        atomic_write_text(args.summary, json.dumps(summary, indent=2) + "\n")
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:

@@ -172,7 +172,10 @@ def _emulate(args: argparse.Namespace) -> int:
     plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
     emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
     ids = ", ".join(str(i) for i in emulator.motors)
-    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface})", flush=True)
+    # python-can's virtual bus lives in one process: another command cannot hear these wrists.
+    reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
+             "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
+    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
     deadline = time.monotonic() + args.duration if args.duration else float("inf")
     emulator.start()
     try:

@@ -333,7 +333,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
         ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
         erob_config_dir=options.erob_config_dir, can_interface=options.can_interface,
-        can_channel=options.can_channel)
+        can_channel=options.can_channel, emulated=options.emulated)
     components = build_components(BACKEND_BLOCKS[options.backends], settings)
     by_block = {component.name: component for component in components}
     manager = ControllerManager(robot, components, plan.config, update_rate=plan.update_rate,

@@ -166,8 +166,9 @@ class SitoSystem(HardwareComponent):
     def __init__(self, robot: Robot, calibration: Calibration, *, update_rate: float,
                  bus: can.BusABC | None = None, interface: str | None = None, channel: str | None = None,
                  rx_timeout_ms: float = 200.0, gain_refresh_s: float = 1.0, model: str = "TA40-50",
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, emulated: bool = False) -> None:
         joints = robot.hardware.sito_joints
+        self.emulated = emulated  # emulated wrists: a silence is the emulator's, there is no cable
         super().__init__(SITO_BLOCK, robot, joints)
         self.robot = robot
         self.can_ids = tuple(robot.hardware.mit_joints[j] for j in joints)
@@ -405,8 +406,9 @@ class SitoSystem(HardwareComponent):
             return
         who = f"{self.joints[slot]} (CAN id {can_id})"
         if problem == "rx_timeout":
-            text = (f"{who} on {self.channel}: no feedback for more than {self.rx_timeout_s * 1000:g} ms; check the "
-                    "motor's power and its CAN cable")
+            cause = ("the emulated wrist fell behind (a loaded machine) or the virtual Prime stopped" if self.emulated
+                     else "check the motor's power and its CAN cable")
+            text = f"{who} on {self.channel}: no feedback for more than {self.rx_timeout_s * 1000:g} ms; {cause}"
         elif problem == "invalid_command":
             text = f"{who}: non-finite, negative-gain or unrepresentable command; sent limp (zero gains and effort)"
         else:

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             resolve_web(args)
         return int(args.func(args) or 0)
     except PrimeError as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"{name}: interrupted", file=sys.stderr)
@@ -93,12 +93,17 @@ def main(argv: list[str] | None = None) -> int:
             return 130
         if os.environ.get("PRIME_DEBUG"):
             raise
-        print(f"{name}: internal error, {type(exc).__name__}: {exc} (PRIME_DEBUG=1 shows where; "
+        print(f"{name}: internal error, {type(exc).__name__}: {_one_line(exc)} (PRIME_DEBUG=1 shows where; "
               "please report it)", file=sys.stderr)
         return 70
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error's text on one line: a library's message (xacro, MuJoCo) may span several."""
+    return " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
 
 
 def _watch_interrupts(interrupted: threading.Event) -> Any:

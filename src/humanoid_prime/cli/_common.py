@@ -316,10 +316,11 @@ def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
     outputs: writing it would destroy what the run reads, or what it wrote a moment before. A command may allow
     a pair (``args.may_overwrite``: (output dest, input dest)), e.g. calibrate writing the calibration it refines."""
     allowed = getattr(args, "may_overwrite", ())
-    outputs = [(action.dest, "/".join(action.option_strings) or action.metavar) for action in
-               chosen_actions(parser, args) if action.type in OUTPUT_TYPES and getattr(args, action.dest, None)]
+    outputs = {action.dest: "/".join(action.option_strings) or action.metavar for action in
+               chosen_actions(parser, args) if action.type in OUTPUT_TYPES
+               and action.help != argparse.SUPPRESS and getattr(args, action.dest, None)}  # an old spelling: once
     seen: dict[Path, str] = {}
-    for dest, option in outputs:
+    for dest, option in outputs.items():
         path = Path(getattr(args, dest)).expanduser().absolute().resolve()
         if path in seen:
             raise PrimeError(f"{option} and {seen[path]} name one file ({path}): each output needs its own")

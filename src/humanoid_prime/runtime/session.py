@@ -29,18 +29,19 @@ from typing import Any
 import numpy as np
 
 from humanoid_prime.config.calibration import Calibration, load_calibration
-from humanoid_prime.config.controllers import ControllersConfig, load_controllers
+from humanoid_prime.config.controllers import ControllersConfig, check_command_limits, load_controllers
 from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SITO_BLOCK
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus, Snapshot
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S
-from humanoid_prime.drivers.erob.gains import check_mode_gains
+from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gains
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
@@ -120,6 +121,9 @@ def check_robot_config(robot: Robot, config: ControllersConfig, calibration: Cal
     """What only the drive facts can check, before anything opens, each naming the file and key: every mode's
     eRob gains realisable, the loop rate within the eRob's minimum cycle, the calibration foldable."""
     check_mode_gains(config, robot.hardware)
+    check_command_limits(config, robot)
+    check_erob_limits(robot.hardware)
+    check_wire_limits(robot, calibration=calibration)
     try:
         sync0_period_ns(config.update_rate)
     except PrimeError as exc:

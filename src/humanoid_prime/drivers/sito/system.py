@@ -58,6 +58,7 @@ from humanoid_prime.drivers.sito.protocol import (
     MODE_MIT,
     UNDECODED_FEEDBACK_TYPES,
     FrameType,
+    SitoModel,
     arbitration_id,
     field_range,
     sito_model,
@@ -183,7 +184,7 @@ class SitoSystem(HardwareComponent):
         if not gain_refresh_s > 0:
             raise PrimeError(f"{SITO_BLOCK}: gain_refresh_s must be positive, got {gain_refresh_s}")
         self._scales = wire_scales(self.model)
-        _check_command_limits(robot, self._scales)
+        check_wire_limits(robot, self.model)
         self.channel = channel or robot.hardware.can.channel
         self.rx_timeout_s = rx_timeout_ms / 1000.0
         self.gain_refresh_s = gain_refresh_s
@@ -440,9 +441,17 @@ def _bus_flags(channel: str, bitrate: int) -> dict[str, tuple[str, str]]:
     return {problem: (f"{channel}/{problem}", text) for problem, text in texts.items()}
 
 
-def _check_command_limits(robot: Robot, scales: np.ndarray) -> None:
+def check_wire_limits(robot: Robot, model: str | SitoModel = "TA40-50", calibration: Calibration | None = None) -> None:
     """The hardware file's Sito command limits must fit the wire: a velocity its int16 field carries, gains the
-    firmware's float32 fields carry."""
+    firmware's float32 fields carry; and each wrist's homing offset a position the wire carries."""
+    scales = wire_scales(sito_model(model) if isinstance(model, str) else model)
+    reach = field_range(*MIT_FIELDS[0])[1] / scales[0]
+    for joint in robot.hardware.sito_joints if calibration is not None else ():
+        offset = calibration.joints[joint].homing_offset
+        if abs(offset) > reach:
+            raise ConfigError(calibration.path or "calibration", f"joints.{joint}.homing_offset",
+                              f"{offset:g} rad is beyond the positions the Sito wire carries (±{reach:.6g} rad)",
+                              "calibrate the joint again")
     limits = robot.hardware.command_limits["sito"]
     for row, name in ((1, "velocity"), (3, "stiffness"), (4, "damping")):
         reach = field_range(*MIT_FIELDS[row])[1] / scales[row]

@@ -185,6 +185,11 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     used = [name for name, value in given.items() if value is not None and value is not False]
     if used and not args.emulate:
         raise PrimeError(f"{', '.join(used)}: only with --emulate (these act on the virtual Prime)")
+    if args.truth is not None:  # read by the emulator once it runs: checked now, before anything starts
+        from humanoid_prime.config.calibration import load_calibration
+        from humanoid_prime.config.hardware import load_hardware
+
+        load_calibration(load_hardware(args.hardware), args.truth)
     options: dict[str, Any] = {}
     if args.dc_lock_cycles is not None:
         options["dc_lock_cycles"] = args.dc_lock_cycles

@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     name = "prime"
     try:
         argv = sys.argv[1:] if argv is None else argv
-        parser = build_parser(_command(argv))
+        command = _command(argv)
+        name = f"prime {command}" if command else name  # an interrupt while it loads names it too
+        parser = build_parser(command)
         args = parser.parse_args(argv)
         if getattr(args, "func", None) is None:
             parser.print_help()

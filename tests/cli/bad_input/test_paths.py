@@ -27,6 +27,9 @@ OUTPUTS = {
     "plot --output": ["plot", "{tmp}/run.mcap", "--output", "{out}"],
     "calibration fold --output": ["calibration", "fold", "--output", "{out}"],
     "remote --summary": ["remote", "--summary", "{out}"],
+    "can monitor --summary": ["can", "monitor", "--summary", "{out}"],
+    "can emulate --summary": ["can", "emulate", "--summary", "{out}"],
+    "limp --summary": ["limp", "4", "--summary", "{out}"],
 }
 FOLDERS = {"bringup --erob-config-dir", "calibration fold --output"}
 PLACES = {  # what the path is -> (the path, what the line must say)

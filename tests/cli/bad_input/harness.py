@@ -74,6 +74,20 @@ class Outcome:
         return [line for line in self.err.splitlines() if line.strip()]
 
 
+_DESCRIPTIONS: dict[tuple, Any] = {}
+
+
+def _remembered_description(original: Any) -> Any:
+    """``load_description`` remembered per hardware file content: the description of the same bytes is the
+    same, and rendering it (xacro) is most of what a case costs."""
+    def load(hardware: Any, **options: Any) -> Any:
+        key = (Path(hardware.path).read_bytes(), tuple(sorted(options.items())))
+        if key not in _DESCRIPTIONS:
+            _DESCRIPTIONS[key] = original(hardware, **options)
+        return _DESCRIPTIONS[key]
+    return load
+
+
 def _tripwire(name: str) -> Any:
     def fire(*args: Any, **kwargs: Any) -> Any:
         raise Started(name)
@@ -114,6 +128,10 @@ def run_prime(argv: list[str], folder: Path, monkeypatch: Any) -> Outcome:
             if getattr(other, "__name__", "").startswith("humanoid_prime.cli") and \
                     getattr(other, name, None) is original:
                 monkeypatch.setattr(other, name, wire)
+    import humanoid_prime.config.robot as robot_module
+    from humanoid_prime.config.description import load_description
+
+    monkeypatch.setattr(robot_module, "load_description", _remembered_description(load_description))
     monkeypatch.chdir(folder)
     before = snapshot(folder)
     out, err = io.StringIO(), io.StringIO()

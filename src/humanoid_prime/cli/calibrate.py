@@ -125,12 +125,12 @@ def run(args: argparse.Namespace) -> int:
     check_web(args)
     if args.cpu is not None and not args.realtime:
         raise PrimeError("--cpu pins the real-time control thread; it cannot be combined with --no-realtime")
+    check_auto_options(args)  # first: --auto --verify is the conflict to name, not what --verify refuses
     if args.verify:
         for option, value in (("--plot", args.plot), ("--output", args.output), ("--prior", args.prior)):
             if value is not None:
                 raise PrimeError(f"{option} belongs to a calibration run; --verify checks --calibration and "
                                  "writes nothing")
-    check_auto_options(args)
     files = args.config
     hardware = load_hardware(args.hardware)
     target = Path(args.output) if args.output is not None else write_target(files.calibration, files.folder)

@@ -301,9 +301,9 @@ class SitoEmulator:
         while True:
             try:
                 msg = self.bus.recv(0.0)
-            except can.CanOperationError:  # a datagram that is no CAN frame (udp_multicast): not for a motor
-                self.foreign_received += 1
-                continue
+            except can.CanOperationError:  # a datagram that is no CAN frame (udp_multicast), or a socket gone:
+                self.foreign_received += 1  # set aside; the frames after it wait for the next tick
+                return
             if msg is None:
                 return
             self.frames_received += 1

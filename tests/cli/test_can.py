@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 import uuid
@@ -97,12 +98,14 @@ def test_describe_unconfigured_and_foreign_ids():
         "foreign id 0x123 dlc 1: 01")
 
 
-def test_monitor_decodes_live_feedback(emulated, capsys):
+def test_monitor_decodes_live_feedback(emulated, capsys, tmp_path):
     emulator, channel = emulated
     enable_all(emulator)
-    assert main(["can", "monitor", "--interface", "virtual", "--channel", channel, "--count", "8"]) == 0
+    assert main(["can", "monitor", "--interface", "virtual", "--channel", channel, "--count", "8",
+                 "--summary", str(tmp_path / "s.json")]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 8
+    assert json.loads((tmp_path / "s.json").read_text())["frames"] == 8
     assert any("left_wrist_roll" in line and "feedback-2" in line for line in lines)
 
 
@@ -153,11 +156,13 @@ def test_missing_interface_is_one_line_and_exit_1(capsys):
     assert len(err) == 1 and "ip link set can_missing0 up" in err[0]
 
 
-def test_emulate_answers_as_the_wrists(channel):
+def test_emulate_answers_as_the_wrists(channel, tmp_path):
     host = can.Bus(interface="virtual", channel=channel)
     codes: list[int] = []
+    summary = tmp_path / "s.json"
     worker = threading.Thread(target=lambda: codes.append(
-        main(["can", "emulate", "--interface", "virtual", "--channel", channel, "--seconds", "0.5"])))
+        main(["can", "emulate", "--interface", "virtual", "--channel", channel, "--seconds", "0.5",
+              "--summary", str(summary)])))
     worker.start()
     try:
         feedback = None
@@ -170,6 +175,8 @@ def test_emulate_answers_as_the_wrists(channel):
         worker.join()
         assert codes == [0]
         assert feedback is not None and (feedback.arbitration_id >> 8) & 0xFF == 22
+        figures = json.loads(summary.read_text())
+        assert figures["ids"] == [22, 23, 38, 39] and figures["frames_received"] >= 1
     finally:
         worker.join()
         host.shutdown()

@@ -63,7 +63,7 @@ HARDWARE_CASES = [
      "non-empty string"),
     ("bitrate not an integer", lambda d: d["buses"]["can"].update(bitrate="1M"), "buses.can.bitrate",
      "expected an integer"),
-    ("bitrate zero", lambda d: d["buses"]["can"].update(bitrate=0), "buses.can.bitrate", "must be positive"),
+    ("bitrate zero", lambda d: d["buses"]["can"].update(bitrate=0), "buses.can.bitrate", "must be 1..1000000"),
     ("no joints", lambda d: drop(d, "joints"), "joints", "missing or not a mapping"),
     ("empty joint list", lambda d: _joints(d).update(all_joints=[]), "joints.all_joints", "missing or empty"),
     ("joint name not a string", lambda d: _joints(d)["all_joints"].__setitem__(3, 7), "joints.all_joints[3]",

@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     name = "prime"
     try:
         argv = sys.argv[1:] if argv is None else argv
-        parser = build_parser(_command(argv))
+        command = _command(argv)
+        name = f"prime {command}" if command else name  # an interrupt while it loads names it too
+        parser = build_parser(command)
         args = parser.parse_args(argv)
         if getattr(args, "func", None) is None:
             parser.print_help()
@@ -62,13 +64,16 @@ def main(argv: list[str] | None = None) -> int:
             from humanoid_prime.cli._common import resolve_config
 
             resolve_config(args)
+        from humanoid_prime.cli._common import check_outputs
+
+        check_outputs(parser, args)  # no output may be an input: checked before anything starts
         if hasattr(args, "web_port"):  # --web and --port, one idea on every command that serves the view
             from humanoid_prime.cli._common import resolve_web
 
             resolve_web(args)
         return int(args.func(args) or 0)
     except PrimeError as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"{name}: interrupted", file=sys.stderr)
@@ -90,12 +95,17 @@ def main(argv: list[str] | None = None) -> int:
             return 130
         if os.environ.get("PRIME_DEBUG"):
             raise
-        print(f"{name}: internal error, {type(exc).__name__}: {exc} (PRIME_DEBUG=1 shows where; "
+        print(f"{name}: internal error, {type(exc).__name__}: {_one_line(exc)} (PRIME_DEBUG=1 shows where; "
               "please report it)", file=sys.stderr)
         return 70
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error's text on one line: a library's message (xacro, MuJoCo) may span several."""
+    return " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
 
 
 def _watch_interrupts(interrupted: threading.Event) -> Any:

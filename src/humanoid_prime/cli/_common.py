@@ -185,6 +185,11 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     used = [name for name, value in given.items() if value is not None and value is not False]
     if used and not args.emulate:
         raise PrimeError(f"{', '.join(used)}: only with --emulate (these act on the virtual Prime)")
+    if args.truth is not None:  # read by the emulator once it runs: checked now, before anything starts
+        from humanoid_prime.config.calibration import load_calibration
+        from humanoid_prime.config.hardware import load_hardware
+
+        load_calibration(load_hardware(args.hardware), args.truth)
     options: dict[str, Any] = {}
     if args.dc_lock_cycles is not None:
         options["dc_lock_cycles"] = args.dc_lock_cycles
@@ -258,8 +263,11 @@ def whole(*, at_least: int | None = None, at_most: int | None = None) -> Callabl
     return parse
 
 
-SECONDS = real(above=0.0)  # a duration that must pass
-SECONDS_OR_ZERO = real(at_least=0.0)
+# The longest duration an option takes: a year. Longer is a slip of the keyboard, and would overflow the clocks
+# and sleeps it reaches (their limit is near 9.2e9 s).
+LONGEST_S = 366 * 24 * 3600.0
+SECONDS = real(above=0.0, at_most=LONGEST_S)  # a duration that must pass
+SECONDS_OR_ZERO = real(at_least=0.0, at_most=LONGEST_S)
 
 
 def add_duration_option(parser: argparse.ArgumentParser, help_text: str, *, default: float | None = None,
@@ -291,10 +299,58 @@ def output_dir(text: str) -> Path:
     return Path(text).expanduser()
 
 
+OUTPUT_TYPES = (output_file, output_dir, mcap_file)
+# What a command reads from a path, besides the configuration files: an output must never be one of them.
+INPUT_OPTIONS = {"hardware": "--hardware", "calibration": "--calibration", "controllers": "--controllers",
+                 "truth": "--truth", "prior": "--prior", "recording": "the recording", "model": "--model",
+                 "file": "the file checked"}
+
+
+def chosen_actions(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[argparse.Action]:
+    """The arguments of the (sub)command ``args`` was parsed for, the parsers on its way included."""
+    actions: list[argparse.Action] = []
+    while parser is not None:
+        actions += parser._actions
+        subparsers = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        parser = subparsers.choices.get(getattr(args, subparsers.dest, None)) if subparsers is not None else None
+    return actions
+
+
+def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse, before anything starts, an output path that is one of the command's inputs or another of its
+    outputs: writing it would destroy what the run reads, or what it wrote a moment before. A command may allow
+    a pair (``args.may_overwrite``: (output dest, input dest)), e.g. calibrate writing the calibration it refines."""
+    allowed = getattr(args, "may_overwrite", ())
+    outputs = {action.dest: "/".join(action.option_strings) or action.metavar for action in
+               chosen_actions(parser, args) if action.type in OUTPUT_TYPES
+               and action.help != argparse.SUPPRESS and getattr(args, action.dest, None)}  # an old spelling: once
+    seen: dict[Path, str] = {}
+    for dest, option in outputs.items():
+        path = Path(getattr(args, dest)).expanduser().absolute().resolve()
+        if path in seen:
+            raise PrimeError(f"{option} and {seen[path]} name one file ({path}): each output needs its own")
+        seen[path] = option
+        for source, source_option in INPUT_OPTIONS.items():
+            given = getattr(args, source, None)
+            if not isinstance(given, (str, Path)) or (dest, source) in allowed:
+                continue
+            if Path(given).expanduser().absolute().resolve() == path:
+                raise PrimeError(f"{option} {getattr(args, dest)} is also {source_option}, which this command "
+                                 "reads; writing it would destroy it: name another file")
+
+
 def console(*, stderr: bool = False) -> Console:
     """A rich console; piped or redirected, wide enough that tables and reports are never wrapped."""
     out = Console(stderr=stderr)
     return out if out.is_terminal else Console(stderr=stderr, width=200)
+
+
+def write_summary(args: argparse.Namespace, summary: Any) -> None:
+    """``--summary FILE``: the run's figures as JSON, written atomically (nothing without the option)."""
+    if getattr(args, "summary", None):
+        from humanoid_prime.files import atomic_write_text
+
+        atomic_write_text(args.summary, json.dumps(summary, indent=2) + "\n")
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:

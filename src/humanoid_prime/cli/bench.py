@@ -15,8 +15,8 @@ from rich.table import Table
 
 from humanoid_prime import bench as b
 from humanoid_prime.cli._commands import summary
+from humanoid_prime.cli._common import LONGEST_S, cpu_number, output_file, real
 from humanoid_prime.cli._common import console as make_console
-from humanoid_prime.cli._common import cpu_number, output_file, real
 from humanoid_prime.cli._live import Working
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
@@ -91,15 +91,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "a silent Sito, garbage and dropped CAN frames). Reports ticks, overruns, the worst tick, "
                     "jitter, what each fault did against what it should, any fault nobody injected, and that every "
                     "gate was reset and every drive left disabled; exit 1 if any of that fails.")
-    soak.add_argument("--minutes", type=real(above=0.0), default=10.0, metavar="M", help="length (default 10)")
+    soak.add_argument("--minutes", type=real(above=0.0, at_most=LONGEST_S / 60), default=10.0, metavar="M",
+                      help="length (default 10)")
     soak.add_argument("--rate", type=real(above=0.0, at_most=2000.0), metavar="HZ",
                       help="control rate (default: update_rate of the controllers file)")
     soak.add_argument("--cpu", type=cpu_number, metavar="N",
                       help="pin the control loop to CPU N, and the emulated robot off it")
     soak.add_argument("--no-load", dest="load", action="store_false", help="leave the cores idle")
-    soak.add_argument("--fault-every", type=real(at_least=1.0), default=6.0, metavar="S",
+    soak.add_argument("--fault-every", type=real(at_least=1.0, at_most=LONGEST_S), default=6.0, metavar="S",
                       help="seconds between injected faults (default 6)")
-    soak.add_argument("--dwell", type=real(at_least=1.0), default=10.0, metavar="S",
+    soak.add_argument("--dwell", type=real(at_least=1.0, at_most=LONGEST_S), default=10.0, metavar="S",
                       help="seconds in each mode (default 10)")
     soak.add_argument("--faults-once", action="store_true",
                       help="one pass: end once every fault has been injected and has settled (--minutes is then "

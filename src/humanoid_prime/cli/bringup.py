@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "`prime switch MODE` does it from another terminal.")
     p.add_argument("--backends", choices=BACKENDS, default="all",
                    help="all: both buses and the mode controllers; ec / can: that bus alone with only the "
-                        "joint-state broadcaster (calibration, diagnostics)")
+                        "joint-state broadcaster (calibration, diagnostics); default all")
     add_emulation_options(p, "run against the virtual Prime (eRob ring on a veth pair, Sito motors on a CAN bus, "
                              "one MuJoCo plant) inside a private network namespace; needs root or user namespaces")
     add_config_options(p, calibration=True, controllers=True)
@@ -77,7 +77,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="write the eRob gains one slave after another (the slow baseline) instead of in parallel")
     p.add_argument("--mode", metavar="MODE", help="switch to MODE once up")
     p.add_argument("--sequence", metavar="MODE,...", help="visit these modes, one every --dwell seconds, then stop")
-    p.add_argument("--dwell", type=SECONDS, default=2.0, metavar="S", help="seconds per mode of --sequence")
+    p.add_argument("--dwell", type=SECONDS, default=2.0, metavar="S", help="seconds per mode of --sequence (default 2)")
     p.add_argument("--duration", type=SECONDS, metavar="S", help="stop after S seconds of control loop")
     p.add_argument("--load-test", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) measure realised eRob stiffness in STANDBY: push each joint with a known "

@@ -43,6 +43,7 @@ from humanoid_prime.cli._common import (
     check_web,
     output_file,
     ring_options,
+    write_summary,
 )
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
@@ -102,9 +103,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_record_option(p)
     add_web_option(p)
     p.add_argument("--no-live", action="store_true", help="no live readout even on a terminal")
+    p.add_argument("--summary", metavar="FILE", type=output_file,
+                   help="write the run's result as JSON (what --json prints)")
     add_json_option(p)
     add_auto_options(p)
-    p.set_defaults(func=run)
+    # --output refines the calibration it names: it is the run's prior and its result.
+    p.set_defaults(func=run, may_overwrite={("output", "calibration"), ("output", "prior")})
 
 
 def _joint_list(text: str | None) -> list[str]:
@@ -122,12 +126,12 @@ def run(args: argparse.Namespace) -> int:
     check_web(args)
     if args.cpu is not None and not args.realtime:
         raise PrimeError("--cpu pins the real-time control thread; it cannot be combined with --no-realtime")
+    check_auto_options(args)  # first: --auto --verify is the conflict to name, not what --verify refuses
     if args.verify:
         for option, value in (("--plot", args.plot), ("--output", args.output), ("--prior", args.prior)):
             if value is not None:
                 raise PrimeError(f"{option} belongs to a calibration run; --verify checks --calibration and "
                                  "writes nothing")
-    check_auto_options(args)
     files = args.config
     hardware = load_hardware(args.hardware)
     target = Path(args.output) if args.output is not None else write_target(files.calibration, files.folder)
@@ -307,10 +311,11 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked
         plot_sweeps(args.plot, merged, merged.robot)
     missing = _not_calibrated(merged, asked)
     next_command = _next_command(args, merged, missing, target)
+    report = {"output": str(target), "ok": not missing and not errors, "asked": list(asked),
+              "not_calibrated": missing, **merged.as_dict(), "faults": faults, "next": next_command}
+    write_summary(args, report)
     if args.json:
-        print(json.dumps({"output": str(target), "ok": not missing and not errors, "asked": list(asked),
-                          "not_calibrated": missing, **merged.as_dict(), "faults": faults, "next": next_command},
-                         indent=2))
+        print(json.dumps(report, indent=2))
     else:
         _report(console, merged, str(target))
         for line in errors:
@@ -464,9 +469,10 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
     if errors:
         raise PrimeError(errors[0])
     ok = len(rows) == 2 * len(chosen) and all(r.ok for r in rows)  # every stop of every joint, each within tolerance
+    report = {"tolerance_rad": VERIFY_TOLERANCE_RAD, "ok": ok, "rows": [r.as_dict() for r in rows]}
+    write_summary(args, report)
     if args.json:
-        print(json.dumps({"tolerance_rad": VERIFY_TOLERANCE_RAD, "ok": ok, "rows": [r.as_dict() for r in rows]},
-                         indent=2))
+        print(json.dumps(report, indent=2))
     else:
         for r in rows:
             print(f"{r.joint:<22} {r.stop:<5} limit {r.limit:+.4f}  reads {r.reading:+.4f}  "

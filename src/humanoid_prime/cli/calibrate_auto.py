@@ -33,7 +33,7 @@ from humanoid_prime.calibration.auto import AutoCalibration, AutoResult, LoopTic
 from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
 from humanoid_prime.cli._common import console as make_console
-from humanoid_prime.cli._common import print_json, real
+from humanoid_prime.cli._common import print_json, real, write_summary
 from humanoid_prime.cli.addons import Addons, Run
 from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
 from humanoid_prime.config.hardware import HardwareConfig, write_erob_torque_efficiency
@@ -114,9 +114,11 @@ def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: d
         from humanoid_prime.calibration.auto_plot import plot_auto
 
         plot_auto(args.plot, result)
+    report = {"output": str(output) if written else None, **result.as_dict(), "applied": applied,
+              "next": next_after_auto(args, result, output)}
+    write_summary(args, report)
     if args.json:
-        print_json({"output": str(output) if written else None, **result.as_dict(), "applied": applied,
-                    "next": next_after_auto(args, result, output)})
+        print_json(report)
     else:
         _report(console, result, output, written, applied, args.hardware)
         console.print(f"Next: {next_after_auto(args, result, output)}")

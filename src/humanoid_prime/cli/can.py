@@ -16,7 +16,15 @@ from collections import Counter
 import can
 
 from humanoid_prime.cli._commands import summary
-from humanoid_prime.cli._common import add_config_options, add_duration_option, add_json_option, print_json, whole
+from humanoid_prime.cli._common import (
+    add_config_options,
+    add_duration_option,
+    add_json_option,
+    output_file,
+    print_json,
+    whole,
+    write_summary,
+)
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
@@ -122,7 +130,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         add_config_options(sub)
         sub.add_argument("--interface", help="python-can interface (default: buses.can.interface)")
         sub.add_argument("--channel", help="CAN channel (default: buses.can.channel)")
-        sub.add_argument("--model", default="TA40-50", choices=sorted(SITO_MODELS), help="Sito model")
+        sub.add_argument("--model", default="TA40-50", choices=sorted(SITO_MODELS), help="Sito model (default TA40-50)")
 
     m = actions.add_parser("monitor", help="decode live Sito traffic",
                            description="Print every frame on the bus, Sito frames decoded (raw motor frame, "
@@ -131,6 +139,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     bus_options(m)
     add_duration_option(m, "stop after this long")
     m.add_argument("--count", type=whole(at_least=1), help="stop after this many frames")
+    _summary_option(m)
     m.set_defaults(func=_monitor)
 
     d = actions.add_parser("discover", help="list the Sito CAN ids heard",
@@ -152,7 +161,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                        "or Ctrl-C.")
     bus_options(e)
     add_duration_option(e, "stop after this long")
+    _summary_option(e)
     e.set_defaults(func=_emulate)
+
+
+def _summary_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--summary", metavar="FILE", type=output_file, help="write the run's figures as JSON")
 
 
 def _open(args: argparse.Namespace) -> tuple[HardwareConfig, can.BusABC, SitoModel]:
@@ -172,7 +186,10 @@ def _emulate(args: argparse.Namespace) -> int:
     plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
     emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
     ids = ", ".join(str(i) for i in emulator.motors)
-    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface})", flush=True)
+    # python-can's virtual bus lives in one process: another command cannot hear these wrists.
+    reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
+             "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
+    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
     deadline = time.monotonic() + args.duration if args.duration else float("inf")
     emulator.start()
     try:
@@ -184,6 +201,10 @@ def _emulate(args: argparse.Namespace) -> int:
         emulator.stop()
         bus.shutdown()
     enabled = [str(i) for i, m in emulator.motors.items() if m.enabled]
+    write_summary(args, {"interface": interface, "channel": channel, "ids": list(emulator.motors),
+                         "seconds": round(emulator.time, 3), "enabled_at_end": [int(i) for i in enabled],
+                         "frames_sent": emulator.frames_sent, "frames_received": emulator.frames_received,
+                         "not_can_frames": emulator.foreign_received})
     print(f"stopped after {emulator.time:.1f} s; enabled at the end: {', '.join(enabled) or 'none'}")
     return 0
 
@@ -197,13 +218,14 @@ def _monitor(args: argparse.Namespace) -> int:
     joints = _joint_names(hardware)
     start = time.monotonic()
     deadline = start + args.duration if args.duration else float("inf")
-    seen = 0
+    seen = not_can = 0
     try:
         while time.monotonic() < deadline and (args.count is None or seen < args.count):
             try:
                 msg = bus.recv(min(0.1, max(0.0, deadline - time.monotonic())))
             except can.CanOperationError as exc:  # a datagram that is no CAN frame (udp_multicast): shown, not fatal
                 print(f"{time.monotonic() - start:10.4f}  not a CAN frame: {exc}", flush=True)
+                not_can += 1
                 continue
             if msg is None:
                 continue
@@ -213,6 +235,8 @@ def _monitor(args: argparse.Namespace) -> int:
         pass
     finally:
         bus.shutdown()
+    write_summary(args, {"channel": args.channel or hardware.can.channel, "frames": seen, "not_can_frames": not_can,
+                         "seconds": round(time.monotonic() - start, 3)})
     return 0
 
 

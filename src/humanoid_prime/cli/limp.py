@@ -15,9 +15,11 @@ from humanoid_prime.cli._common import (
     add_duration_option,
     add_json_option,
     add_socket_option,
+    output_file,
     print_json,
     real,
     whole,
+    write_summary,
 )
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.drivers.erob.gains import gains_to_registers, registers_to_gains
@@ -42,6 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="socket: through the running prime process (default); igh: the `ethercat` tool")
     add_socket_option(p)
     add_duration_option(p, "stay limp for S seconds instead of waiting for Enter (scripted sweeps)", zero=True)
+    p.add_argument("--summary", metavar="FILE", type=output_file, help="write what was set and restored as JSON")
     add_json_option(p)
     p.set_defaults(func=run)
 
@@ -113,10 +116,12 @@ def run(args: argparse.Namespace) -> int:
     restored = {"gate": snap.gate, "pos_reg": snap.registers.pos_reg, "vel_reg": snap.registers.vel_reg,
                 "integral": snap.registers.integral}
     back = limp.readback
+    report = {"joint": joint, "ring_position": args.ring_position,
+              "limp": None if back is None else {"gate": back.gate, **back.registers.__dict__},
+              "restored": restored, "interrupted": interrupted}
+    write_summary(args, report)
     if args.json:
-        print_json({"joint": joint, "ring_position": args.ring_position,
-                    "limp": None if back is None else {"gate": back.gate, **back.registers.__dict__},
-                    "restored": restored, "interrupted": interrupted})
+        print_json(report)
     else:
         print(f"{joint} (ring {args.ring_position}) restored: " + " ".join(f"{k}={v}" for k, v in restored.items()))
     return 130 if interrupted else 0

@@ -30,10 +30,11 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.cli._live import LiveTable, ModeKeys, ProgressLines
 from humanoid_prime.cli.addons import Addons, Run, add_addon_options, check_addons
-from humanoid_prime.config.controllers import ControllersConfig, load_controllers
+from humanoid_prime.config.controllers import ControllersConfig, check_command_limits, load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
-from humanoid_prime.drivers.erob.gains import check_mode_gains
+from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gains
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
+from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
@@ -172,6 +173,9 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware, use_sim=True)
     config = load_controllers(robot.names, args.controllers)
     check_mode_gains(config, robot.hardware)  # a configuration tried in simulation must run on the robot
+    check_command_limits(config, robot)
+    check_erob_limits(robot.hardware)
+    check_wire_limits(robot)
     # The control socket is claimed before anything starts: a second instance, or a path that is not free,
     # stops here with the reason.
     server = ControlServer(path=args.socket).start()

@@ -88,6 +88,12 @@ def load_calibration(hardware: HardwareConfig, path: str | Path | None = None) -
         offset = entry.get("homing_offset")
         if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not math.isfinite(offset):
             raise ConfigError(path, f"{key}.homing_offset", f"must be a finite number of radians, got {offset!r}")
+        for note, value in zip(("bus", "address"), _where(hardware, name), strict=True):
+            given = entry.get(note)
+            if given is not None and given != value:
+                raise ConfigError(path, f"{key}.{note}", f"{given!r}, but {hardware.path} puts {name} on "
+                                  f"{value!r}", "the file was written for another wiring: check this joint's "
+                                  "direction and offset, then correct the line or delete it")
         result[name] = JointCalibration(int(direction), float(offset))
     return Calibration(result, path=path)
 
@@ -101,15 +107,19 @@ class JointEntry(TypedDict):
     address: str
 
 
+def _where(hardware: HardwareConfig, name: str) -> tuple[str, str]:
+    """The bus and address a calibration file writes beside a joint, for people (and checked on load)."""
+    if name in hardware.erob_slaves:
+        return "ethercat", f"ring {hardware.erob_slaves[name]}"
+    return "can", f"id {hardware.mit_joints[name]}"
+
+
 def calibration_document(calibration: Calibration, hardware: HardwareConfig) -> dict[str, dict[str, JointEntry]]:
     """The YAML document for ``calibration``, with the human-readable bus and address of each joint."""
     joints: dict[str, JointEntry] = {}
     for name in hardware.all_joints:
         cal = calibration.joints[name]
-        if name in hardware.erob_slaves:
-            bus, address = "ethercat", f"ring {hardware.erob_slaves[name]}"
-        else:
-            bus, address = "can", f"id {hardware.mit_joints[name]}"
+        bus, address = _where(hardware, name)
         joints[name] = {
             "direction": int(cal.direction),
             "homing_offset": round(float(cal.homing_offset), 6) + 0.0,  # never "-0.0"

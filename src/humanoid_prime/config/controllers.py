@@ -5,10 +5,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled, check_keys, config_path, load_yaml
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
+
+if TYPE_CHECKING:
+    from humanoid_prime.config.robot import Robot
 
 CONTROLLERS_FILE = "prime_controllers.yaml"
 # This stack has one controller class per mode; a file naming another type means another stack's file.
@@ -23,6 +27,9 @@ CONTROLLER_TYPES = {
 MAX_ACTION_SCALE_RAD = 1.0  # rad per unit action: beyond it every action a policy outputs saturates at a limit
 MAX_UPDATE_RATE_HZ = 2000.0  # the eRob's minimum cycle is 500 us (DESIGN §2), and SYNC0 is the loop period
 MAX_BRINGUP_RATE_HZ = MAX_UPDATE_RATE_HZ  # faster bring-up frames than the drives' cycle gain nothing
+MAX_STANDBY_RAMP_S = 60.0
+MAX_PHYSICS_RATE_HZ = 10000.0
+MAX_REMOTE_TIMEOUT_S = 1.0
 # The parameters each node of the file takes (ROS 2 parameter-file shape: ``node: ros__parameters: {...}``).
 PARAMETERS: dict[str, tuple[str, ...]] = {
     "controller_manager": ("update_rate", "bringup_rate", *CONTROLLER_TYPES),
@@ -193,7 +200,8 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
     standby = StandbyParams(
         kp=r.number("standby_controller", "kp"),
         kd=r.number("standby_controller", "kd"),
-        duration=r.number("standby_controller", "duration", allow_equal=False),
+        duration=r.number("standby_controller", "duration", allow_equal=False, maximum=MAX_STANDBY_RAMP_S,
+                          why_maximum="the ramp to the pose; longer is a slip of the keyboard"),
         default_pose=r.text("standby_controller", "default_pose"),
         poses=poses,
     )
@@ -218,7 +226,9 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
                           f"expected 'damp' or 'hold', got {stale!r}")
     remote = RemoteParams(
         topic=r.text("remote_policy_controller", "topic", "/remote_policy_controller/command"),
-        timeout=r.number("remote_policy_controller", "timeout", allow_equal=False),
+        timeout=r.number("remote_policy_controller", "timeout", allow_equal=False, maximum=MAX_REMOTE_TIMEOUT_S,
+                         why_maximum="a REMOTE command older than this is stale; a longer timeout lets a client "
+                                     "that died drive the robot with its last command"),
         stale_policy=stale,
         stale_kd=r.number("remote_policy_controller", "stale_kd"),
         erob_kp=r.number("remote_policy_controller", "erob_kp"),
@@ -238,7 +248,8 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
                           f"expected an integer 0..20, got {retries!r}")
 
     sim_update_rate = r.number("mujoco_simulation", "update_rate", allow_equal=False)
-    physics_rate = r.number("mujoco_simulation", "physics_rate", allow_equal=False)
+    physics_rate = r.number("mujoco_simulation", "physics_rate", allow_equal=False, maximum=MAX_PHYSICS_RATE_HZ,
+                            why_maximum="MuJoCo steps below 0.1 ms gain nothing and stall the simulation")
     ratio = physics_rate / sim_update_rate
     if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
         raise ConfigError(path, "mujoco_simulation.ros__parameters.physics_rate",
@@ -259,3 +270,36 @@ def load_controllers(joints: tuple[str, ...], path: str | Path | None = None) ->
         remote=remote,
         impedance=ImpedanceParams(parallel_sdo=parallel, sdo_retries=retries),
     )
+
+
+def check_command_limits(config: ControllersConfig, robot: Robot) -> None:
+    """Every gain a mode controller commands within the hardware file's command limits of the family it drives,
+    and every standby pose within its joints' limits: the bus would clamp either silently."""
+    limits = robot.hardware.command_limits
+    gains = (("locomotion_controller", "sito_kp", config.locomotion.sito_kp, "sito", "stiffness"),
+             ("locomotion_controller", "sito_kd", config.locomotion.sito_kd, "sito", "damping"),
+             ("damping_controller", "kd", config.damping_kd, "sito", "damping"),
+             ("damping_controller", "kd", config.damping_kd, "erob", "damping"),
+             ("remote_policy_controller", "stale_kd", config.remote.stale_kd, "sito", "damping"),
+             ("remote_policy_controller", "stale_kd", config.remote.stale_kd, "erob", "damping"),
+             *((node, f"{prefix}kp", kp, "erob", "stiffness") for node, prefix, kp, _ in _erob_gains(config)),
+             *((node, f"{prefix}kd", kd, "erob", "damping") for node, prefix, _, kd in _erob_gains(config)))
+    for node, key, value, family, limit in gains:
+        most = getattr(limits[family], limit)
+        if value > most:
+            raise ConfigError(config.path, f"{node}.ros__parameters.{key}",
+                              f"{value:g} is beyond the {family} {limit} limit {most:g} of {robot.hardware.path}",
+                              "lower it, or raise command_limits in the hardware file")
+    for pose, values in config.standby.poses.items():
+        for joint, angle in values.items():
+            j = robot.joints[robot.index(joint)]
+            if not j.lower <= angle <= j.upper:
+                raise ConfigError(config.path, f"standby_controller.ros__parameters.poses.{pose}.{joint}",
+                                  f"{angle:g} rad is outside the joint's limits {j.lower:g}..{j.upper:g} rad",
+                                  "give an angle the joint can reach")
+
+
+def _erob_gains(config: ControllersConfig) -> tuple[tuple[str, str, float, float], ...]:
+    return (("standby_controller", "", config.standby.kp, config.standby.kd),
+            ("locomotion_controller", "erob_", config.locomotion.erob_kp, config.locomotion.erob_kd),
+            ("remote_policy_controller", "erob_", config.remote.erob_kp, config.remote.erob_kd))

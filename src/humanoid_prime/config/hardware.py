@@ -97,6 +97,8 @@ def _str(value: object, path: Path, key: str) -> str:
 
 
 LIMIT_NAMES = ("stiffness", "damping", "velocity")
+MAX_MASTER_INDEX = 31  # IgH masters are numbered from 0 on one host; more is a slip of the keyboard
+MAX_CAN_BITRATE = 1_000_000  # classic CAN's highest rate
 
 
 def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLimits]:
@@ -138,16 +140,17 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         interface=_str(ec.get("interface"), path, "buses.ethercat.interface"),
         master=_int(ec.get("master", 0), path, "buses.ethercat.master"),
     )
-    if ethercat.master < 0:
-        raise ConfigError(path, "buses.ethercat.master", f"must be >= 0, got {ethercat.master}",
+    if not 0 <= ethercat.master <= MAX_MASTER_INDEX:
+        raise ConfigError(path, "buses.ethercat.master", f"must be 0..{MAX_MASTER_INDEX}, got {ethercat.master}",
                           "the IgH master index, 0 for the first")
     can_bus = CanBus(
         interface=_str(can.get("interface", "socketcan"), path, "buses.can.interface"),
         channel=_str(can.get("channel"), path, "buses.can.channel"),
         bitrate=_int(can.get("bitrate"), path, "buses.can.bitrate"),
     )
-    if can_bus.bitrate <= 0:
-        raise ConfigError(path, "buses.can.bitrate", f"must be positive, got {can_bus.bitrate}")
+    if not 0 < can_bus.bitrate <= MAX_CAN_BITRATE:
+        raise ConfigError(path, "buses.can.bitrate", f"must be 1..{MAX_CAN_BITRATE}, got {can_bus.bitrate}",
+                          "classic CAN runs at most 1 Mbit/s; the Sito wrists at 1000000")
 
     joints = _section(data, path, "joints")
     check_keys(path, "joints", joints, ("all_joints", "erob_slaves", "mit_joints", "erob_kt", "erob_gear",
@@ -202,18 +205,19 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         owner_of_id[can_id] = joint
         mit_joints[joint] = can_id
 
-    if sorted(owner_of_ring) != list(range(len(owner_of_ring))):
-        far = [f"{owner_of_ring[p]}: {p}" for p in sorted(owner_of_ring) if p >= len(owner_of_ring)]
-        key = f"joints.erob_slaves.{far[0].split(':')[0]}" if len(far) == 1 else "joints.erob_slaves"
-        raise ConfigError(path, key, f"ring positions must be 0..{len(owner_of_ring) - 1}, each once (a ring of "
-                          f"{len(owner_of_ring)} eRob has no gaps); beyond it: {', '.join(far)}",
-                          "number the eRob in cabling order from 0")
     for name in names:
         if name not in erob_slaves and name not in mit_joints:
             raise ConfigError(
                 path, f"joints.all_joints.{name}", "joint has no bus",
                 "give it a ring position in joints.erob_slaves or a CAN id in joints.mit_joints",
             )
+    # after the joints with no bus: a ring entry left out is named as such, not as the gap it leaves
+    if sorted(owner_of_ring) != list(range(len(owner_of_ring))):
+        far = [f"{owner_of_ring[p]}: {p}" for p in sorted(owner_of_ring) if p >= len(owner_of_ring)]
+        key = f"joints.erob_slaves.{far[0].split(':')[0]}" if len(far) == 1 else "joints.erob_slaves"
+        raise ConfigError(path, key, f"ring positions must be 0..{len(owner_of_ring) - 1}, each once (a ring of "
+                          f"{len(owner_of_ring)} eRob has no gaps); beyond it: {', '.join(far)}",
+                          "number the eRob in cabling order from 0")
 
     def per_erob(key: str, default: float) -> dict[str, float]:
         raw = joints.get(key) or {}

@@ -36,6 +36,7 @@ class ComponentSettings:
     physics_rate: float = 1000.0
     model_path: str | Path | None = None
     initial_pose: Mapping[str, float] | None = None
+    emulated: bool = False  # the buses lead to the virtual Prime: its faults are the emulator's, not a cable's
 
 
 def _ethercat(settings: ComponentSettings) -> HardwareComponent:
@@ -48,14 +49,14 @@ def _ethercat(settings: ComponentSettings) -> HardwareComponent:
                         sync0_period_s=settings.sync0_period_s, parallel_sdo=settings.parallel_sdo)
     return EthercatSystem(robot, settings.calibration, update_rate=settings.update_rate,
                           bringup_rate=settings.bringup_rate, master=master, interface=interface,
-                          config_dir=settings.erob_config_dir)
+                          config_dir=settings.erob_config_dir, emulated=settings.emulated)
 
 
 def _sito(settings: ComponentSettings) -> HardwareComponent:
     from humanoid_prime.drivers.sito.system import SitoSystem
 
     return SitoSystem(settings.robot, settings.calibration, update_rate=settings.update_rate,
-                      interface=settings.can_interface, channel=settings.can_channel)
+                      interface=settings.can_interface, channel=settings.can_channel, emulated=settings.emulated)
 
 
 def _mujoco(settings: ComponentSettings) -> HardwareComponent:

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, TypedDict, cast
 import numpy as np
 
 from humanoid_prime.config.calibration import Calibration, load_calibration
-from humanoid_prime.config.controllers import ControllersConfig, load_controllers
+from humanoid_prime.config.controllers import ControllersConfig, check_command_limits, load_controllers
 from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SITO_BLOCK
 from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
@@ -38,11 +38,12 @@ from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus, Snapshot
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S
-from humanoid_prime.drivers.erob.gains import check_mode_gains
+from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gains
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
 from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
@@ -126,6 +127,9 @@ def check_robot_config(robot: Robot, config: ControllersConfig, calibration: Cal
     """What only the drive facts can check, before anything opens, each naming the file and key: every mode's
     eRob gains realisable, the loop rate within the eRob's minimum cycle, the calibration foldable."""
     check_mode_gains(config, robot.hardware)
+    check_command_limits(config, robot)
+    check_erob_limits(robot.hardware)
+    check_wire_limits(robot, calibration=calibration)
     try:
         sync0_period_ns(config.update_rate)
     except PrimeError as exc:
@@ -362,7 +366,7 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
         ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
         erob_config_dir=options.erob_config_dir, can_interface=options.can_interface,
-        can_channel=options.can_channel)
+        can_channel=options.can_channel, emulated=options.emulated)
     manager = assemble(settings, plan.config, BACKEND_BLOCKS[options.backends],
                        broadcaster_only=plan.broadcaster_only)
     by_block = {component.name: component for component in manager.resources.components}

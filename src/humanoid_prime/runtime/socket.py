@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 SOCKET_ENV = "PRIME_CONTROL_SOCKET"
 MAX_SOCKET_PATH_BYTES = 107  # sun_path holds 108 bytes on Linux, the last a NUL
 MAX_WAIT_S = 60.0  # the longest a mode request waits for its outcome
+MAX_REQUEST_BYTES = 65536  # the largest request is an SDO write of a few bytes
 SwitchMode = Callable[[Mode, float], "SwitchAnswer"]  # (mode, seconds to wait for its outcome) -> the outcome
 Reply = dict[str, object]  # a JSON object: "ok", then "error" or what the request asked for
 
@@ -136,7 +137,7 @@ class ControlServer:
         with conn:
             conn.settimeout(10.0)
             try:
-                request = json.loads(_recv_line(conn))
+                request = json.loads(_recv_line(conn, MAX_REQUEST_BYTES))
                 reply = self._answer(request)
             except (ValueError, KeyError, TypeError) as exc:
                 reply = {"ok": False, "error": f"bad request: {exc}"}
@@ -184,6 +185,8 @@ class ControlServer:
                 return {"ok": True}
         except (PrimeError, ValueError) as exc:
             return {"ok": False, "error": str(exc)}
+        except KeyError as exc:
+            return {"ok": False, "error": f"bad request: {op!r} needs the field {exc}"}
         except Exception as exc:  # an answer, never a dead handler: the client gets one line
             return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         return {"ok": False, "error": f"unknown op {op!r}"}
@@ -220,13 +223,18 @@ def check_socket_path(path: Path) -> None:
                          "(give another --socket)")
 
 
-def _recv_line(conn: socket.socket) -> str:
+def _recv_line(conn: socket.socket, limit: int | None = None) -> str:
+    """One line from ``conn``; beyond ``limit`` bytes a ValueError (a peer cannot grow the server without end)."""
     chunks = []
+    size = 0
     while True:
         chunk = conn.recv(4096)
         if not chunk:
             break
         chunks.append(chunk)
+        size += len(chunk)
+        if limit is not None and size > limit:
+            raise ValueError(f"a request is one line of at most {limit} bytes")
         if chunk.endswith(b"\n"):
             break
     return b"".join(chunks).decode("utf-8", "replace")

@@ -247,6 +247,7 @@ class SitoEmulator:
         self.ticks = 0
         self.frames_sent = 0
         self.frames_received = 0
+        self.foreign_received = 0  # datagrams on the channel that were no CAN frame
         self.send_failures = 0
         self.log: deque[tuple[float, int, int]] = deque(maxlen=log_length)  # (time, can id, type) received
         self._acknowledge = True
@@ -298,7 +299,11 @@ class SitoEmulator:
         if not self._acknowledge and isinstance(getattr(self.bus, "queue", None), queue.Queue):
             return
         while True:
-            msg = self.bus.recv(0.0)
+            try:
+                msg = self.bus.recv(0.0)
+            except can.CanOperationError:  # a datagram that is no CAN frame (udp_multicast), or a socket gone:
+                self.foreign_received += 1  # set aside; the frames after it wait for the next tick
+                return
             if msg is None:
                 return
             self.frames_received += 1

@@ -32,12 +32,12 @@ C = COUNTS_PER_RAD
 
 
 class Rig:
-    def __init__(self, robot, tmp_path, calibration=None, master=None) -> None:
+    def __init__(self, robot, tmp_path, calibration=None, master=None, emulated=False) -> None:
         self.robot = robot
         self.master = master or FakeMaster()
         calibration = calibration or load_calibration(robot.hardware)
         self.system = EthercatSystem(robot, calibration, update_rate=50.0, master=self.master,
-                                     config_dir=tmp_path)
+                                     config_dir=tmp_path, emulated=emulated)
         self.command = CommandArrays(robot.n)
         self.state = StateArrays(robot.n)
 
@@ -229,6 +229,19 @@ def test_a_working_counter_mismatch_for_three_cycles_raises_a_flag_until_it_reco
     rig.master.wkc_override = None
     rig.tick()
     assert "ethercat/wkc" not in rig.system.flags
+
+
+def test_an_emulated_ring_that_falls_silent_blames_the_emulator_not_a_cable(robot, tmp_path):
+    rig = Rig(robot, tmp_path, emulated=True)
+    rig.system.configure()
+    rig.system.activate()
+    rig.master.wkc_override = 0
+    for _ in range(3):
+        rig.tick()
+    assert rig.system.flags["ethercat/wkc"] == (
+        "no EtherCAT drive answered on fake0 for 3 cycles (working counter 0): the virtual Prime stopped answering "
+        "or fell behind (a loaded machine)")
+    rig.system.shutdown()
 
 
 def test_a_line_cut_before_the_first_drive_is_flagged_as_such_and_the_text_follows_the_count(rig):

@@ -248,6 +248,16 @@ def test_rx_timeout_is_raised_for_the_silent_motor_only(rig):
     assert "right_wrist_pitch (CAN id 39)" in rig.system.flags["can2/rx_timeout/39"]
 
 
+def test_an_emulated_wrist_that_falls_silent_blames_the_emulator_not_a_cable(make_rig):
+    rig = make_rig(emulated=True)
+    rig.activate()
+    rig.motor(39).silent = True
+    rig.tick(12)
+    text = rig.system.flags["can2/rx_timeout/39"]
+    assert "the emulated wrist fell behind (a loaded machine) or the virtual Prime stopped" in text
+    assert "cable" not in text
+
+
 def test_rx_timeout_is_not_raised_before_200_ms(rig):
     rig.motor(39).silent = True
     rig.tick(9)  # 180 ms

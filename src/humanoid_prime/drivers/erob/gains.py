@@ -141,6 +141,24 @@ def check_mode_gains(config: ControllersConfig, hardware: HardwareConfig) -> Non
                 raise ConfigError(config.path, key or "", f"{mode.value} on {joint}: {exc}") from None
 
 
+def check_erob_limits(hardware: HardwareConfig) -> None:
+    """The hardware file's eRob command limits must be realisable: the stiffness and damping in the loop-gain
+    registers of every eRob joint, the velocity in the INT32 velocity offset (0x60B1, counts/s)."""
+    limits = hardware.command_limits["erob"]
+    for joint in hardware.erob_joints:
+        try:
+            gains_to_registers(limits.stiffness, limits.damping, kt=hardware.erob_kt[joint],
+                               gear=hardware.erob_gear[joint], efficiency=hardware.erob_torque_efficiency[joint])
+        except ValueError as exc:
+            name = "stiffness" if str(exc).startswith("pos_reg") else "damping"
+            raise ConfigError(hardware.path, f"command_limits.erob.{name}", f"on {joint}: {exc}",
+                              "a limit no drive can be set to limits nothing") from None
+    reach = (2**31 - 1) / COUNTS_PER_RAD
+    if limits.velocity > reach:
+        raise ConfigError(hardware.path, "command_limits.erob.velocity", f"{limits.velocity:g} rad/s is beyond what "
+                          f"the eRob velocity offset carries ({reach:.6g} rad/s)", "use a velocity the joint can reach")
+
+
 def following_window_counts(effort_limit: float, mode_gains: Mapping[Mode, tuple[float, float]]) -> int | None:
     """The following-error window (counts) a joint needs: the margin times its sag when holding its effort
     limit at the smallest non-zero kp of the modes; None when no mode is stiff (every target follows)."""

@@ -109,8 +109,9 @@ class EthercatSystem(HardwareComponent):
                  bringup_rate: float = 1000.0, master: EthercatMaster | None = None,
                  interface: str | None = None, config_dir: str | Path | None = None,
                  enable_timeout_s: float = 5.0, wkc_tolerance_cycles: int = 3,
-                 name: str = ETHERCAT_BLOCK) -> None:
+                 name: str = ETHERCAT_BLOCK, emulated: bool = False) -> None:
         hw = robot.hardware
+        self.emulated = emulated  # the emulated ring: a silence is the emulator's, there is no cable
         super().__init__(name, robot, hw.erob_joints)
         self.robot = robot
         self.calibration = calibration
@@ -438,10 +439,11 @@ class EthercatSystem(HardwareComponent):
             # the supervision cannot name a slave then (every state read goes unanswered too)
             first = next((f"ring 0 ({joint})" for joint, position in zip(self.joints, self.ring, strict=True)
                           if position == 0), "ring 0")
+            cause = ("the virtual Prime stopped answering or fell behind (a loaded machine)" if self.emulated else
+                     f"the line is cut before the first drive; check the cable from {master.interface} and the "
+                     f"power of {first}")
             self.set_flag("ethercat/wkc", f"no EtherCAT drive answered on {master.interface} for "
-                                          f"{self._wkc_bad_cycles} cycles (working counter {wkc}): the line is cut "
-                                          f"before the first drive; check the cable from {master.interface} and "
-                                          f"the power of {first}")
+                                          f"{self._wkc_bad_cycles} cycles (working counter {wkc}): {cause}")
         else:
             self.set_flag("ethercat/wkc", f"EtherCAT working counter {wkc}, expected {master.expected_wkc} on "
                                           f"{master.interface} for {self._wkc_bad_cycles} cycles: process data is "

@@ -60,6 +60,7 @@ from humanoid_prime.drivers.sito.protocol import (
     MODE_MIT,
     UNDECODED_FEEDBACK_TYPES,
     FrameType,
+    SitoModel,
     arbitration_id,
     field_range,
     sito_model,
@@ -168,8 +169,9 @@ class SitoSystem(HardwareComponent):
     def __init__(self, robot: Robot, calibration: Calibration, *, update_rate: float,
                  bus: can.BusABC | None = None, interface: str | None = None, channel: str | None = None,
                  rx_timeout_ms: float = 200.0, gain_refresh_s: float = 1.0, model: str = "TA40-50",
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, emulated: bool = False) -> None:
         joints = robot.hardware.sito_joints
+        self.emulated = emulated  # emulated wrists: a silence is the emulator's, there is no cable
         super().__init__(SITO_BLOCK, robot, joints)
         self.robot = robot
         self.can_ids = tuple(robot.hardware.mit_joints[j] for j in joints)
@@ -184,7 +186,7 @@ class SitoSystem(HardwareComponent):
         if not gain_refresh_s > 0:
             raise PrimeError(f"{SITO_BLOCK}: gain_refresh_s must be positive, got {gain_refresh_s}")
         self._scales = wire_scales(self.model)
-        _check_command_limits(robot, self._scales)
+        check_wire_limits(robot, self.model)
         self.channel = channel or robot.hardware.can.channel
         self.rx_timeout_s = rx_timeout_ms / 1000.0
         self.gain_refresh_s = gain_refresh_s
@@ -413,8 +415,9 @@ class SitoSystem(HardwareComponent):
             return
         who = f"{self.joints[slot]} (CAN id {can_id})"
         if problem == "rx_timeout":
-            text = (f"{who} on {self.channel}: no feedback for more than {self.rx_timeout_s * 1000:g} ms; check the "
-                    "motor's power and its CAN cable")
+            cause = ("the emulated wrist fell behind (a loaded machine) or the virtual Prime stopped" if self.emulated
+                     else "check the motor's power and its CAN cable")
+            text = f"{who} on {self.channel}: no feedback for more than {self.rx_timeout_s * 1000:g} ms; {cause}"
         elif problem == "invalid_command":
             text = f"{who}: non-finite, negative-gain or unrepresentable command; sent limp (zero gains and effort)"
         else:
@@ -446,9 +449,18 @@ def _bus_flags(channel: str, bitrate: int) -> dict[str, tuple[str, str]]:
     return {problem: (f"{channel}/{problem}", text) for problem, text in texts.items()}
 
 
-def _check_command_limits(robot: Robot, scales: npt.NDArray[np.float64]) -> None:
+def check_wire_limits(robot: Robot, model: str | SitoModel = "TA40-50", calibration: Calibration | None = None) -> None:
     """The hardware file's Sito command limits must fit the wire: a velocity its int16 field carries, gains the
-    firmware's float32 fields carry."""
+    firmware's float32 fields carry; and each wrist's homing offset a position the wire carries."""
+    scales = wire_scales(sito_model(model) if isinstance(model, str) else model)
+    reach = field_range(*MIT_FIELDS[0])[1] / scales[0]
+    if calibration is not None:
+        for joint in robot.hardware.sito_joints:
+            offset = calibration.joints[joint].homing_offset
+            if abs(offset) > reach:
+                raise ConfigError(calibration.path or "calibration", f"joints.{joint}.homing_offset",
+                                  f"{offset:g} rad is beyond the positions the Sito wire carries (±{reach:.6g} rad)",
+                                  "calibrate the joint again")
     limits = robot.hardware.command_limits["sito"]
     for row, name in ((1, "velocity"), (3, "stiffness"), (4, "damping")):
         reach = field_range(*MIT_FIELDS[row])[1] / scales[row]

@@ -9,12 +9,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import atomic_write_yaml, bundled, check_keys, config_path, load_yaml
+
+if TYPE_CHECKING:  # numpy is imported where the arrays are made: reading a calibration (`prime info`) needs none
+    import numpy as np
 
 CALIBRATION_FILE = "prime_calibration.yaml"
 HEADER = (
@@ -38,9 +40,13 @@ class Calibration:
     path: Path | None = field(default=None, compare=False)
 
     def direction_array(self, names: tuple[str, ...]) -> np.ndarray:
+        import numpy as np
+
         return np.array([self.joints[n].direction for n in names], dtype=np.float64)
 
     def offset_array(self, names: tuple[str, ...]) -> np.ndarray:
+        import numpy as np
+
         return np.array([self.joints[n].homing_offset for n in names], dtype=np.float64)
 
     @property

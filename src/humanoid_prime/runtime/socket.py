@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from humanoid_prime.drivers.ethercat.sdo import SdoClient
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 

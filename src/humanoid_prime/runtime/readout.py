@@ -10,6 +10,7 @@ the displays show as "—".
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from humanoid_prime.control.hardware import DriveStatus
 from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.control.topics import Snapshot
 from humanoid_prime.drivers.erob.cia402 import describe_al_state, drive_state
 
 RATE_WINDOW_S = 1.0  # the loop rate is measured over about the last second of ticks
@@ -50,10 +52,7 @@ class Readout:
         return DriveWords.of(self.drives.get(joint))
 
     def loop_words(self) -> str:
-        """'elapsed 12.3 s  loop 49.9 Hz of 50 Hz'."""
-        elapsed = NONE if self.elapsed_s is None else f"{self.elapsed_s:.1f} s"
-        rate = NONE if self.rate_hz is None else f"{self.rate_hz:.1f} Hz"
-        return f"elapsed {elapsed}  loop {rate} of {self.update_rate_hz:g} Hz"
+        return loop_words(self.elapsed_s, self.rate_hz, self.update_rate_hz)
 
     def as_dict(self) -> dict[str, Any]:
         """For the control socket's ``state`` and the page (JSON)."""
@@ -61,6 +60,14 @@ class Readout:
                 "effort": [None if v != v else v for v in self.effort],
                 "drives": {joint: {"statusword": d.statusword, "error_code": d.error_code, "al_state": d.al_state}
                            for joint, d in self.drives.items()}}
+
+
+def loop_words(elapsed_s: float | None, rate_hz: float | None, update_rate_hz: float | None) -> str:
+    """'elapsed 12.3 s  loop 49.9 Hz of 50 Hz'."""
+    elapsed = NONE if elapsed_s is None else f"{elapsed_s:.1f} s"
+    rate = NONE if rate_hz is None else f"{rate_hz:.1f} Hz"
+    asked = NONE if update_rate_hz is None else f"{update_rate_hz:g} Hz"
+    return f"elapsed {elapsed}  loop {rate} of {asked}"
 
 
 def drive_from_dict(joint: str, entry: dict[str, Any]) -> DriveStatus:
@@ -96,3 +103,12 @@ class LoopReadout:
         periods = periods[np.isfinite(periods)]
         mean = float(periods.mean()) if periods.size else 0.0
         return 1.0 / mean if mean > 0 else None
+
+
+def state_source(manager: ControllerManager) -> tuple[Callable[[], dict[str, Any]], Callable[[], None]]:
+    """A run's state for a view and the control socket's ``state`` request, and the function that detaches it: the
+    latest joints, mode and flags off the topics (``Snapshot``: one copy of 14 positions a tick) with the readout,
+    read at each call."""
+    snapshot = Snapshot(manager.topics, manager.robot.names, manager.config.joint_states_topic)
+    readout = LoopReadout(manager)
+    return (lambda: {**snapshot.as_dict(), **readout.read().as_dict()}), snapshot.detach

@@ -4,8 +4,8 @@ its slave's AL state).
 
 A display (the live table, the page, the control socket's ``state``) reads this when it draws, from its own thread,
 out of what the loop and the bus supervision leave behind: nothing here runs in the control tick or costs it.
-Where a joint has no drive of its own to ask (a Sito wrist, a simulated joint) its drive fields are None, which
-the displays show as "—".
+A joint with no drive of its own to ask (a Sito wrist, a simulated joint) has no entry in ``drives``; the displays
+show "—" there.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ class DriveWords:
 @dataclass(frozen=True)
 class Readout:
     elapsed_s: float | None  # since the manager started (None before)
-    rate_hz: float | None  # ticks per second lately (None before the first tick)
+    rate_hz: float | None  # the loop's rate lately, 1 / mean period (None before two ticks)
     update_rate_hz: float  # the rate the loop is asked to hold
     effort: list[float]  # measured, per joint in canonical order (Nm)
     drives: dict[str, DriveStatus]  # by joint, the joints with a drive of their own

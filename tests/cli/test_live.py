@@ -187,6 +187,15 @@ def test_live_table_shows_the_time_run_and_the_loop_rate_against_the_configured_
     assert "\nelapsed 12.3 s  loop 200.0 Hz of 200 Hz\n" in console.file.getvalue()  # the simulation's 200 Hz
 
 
+def test_the_loop_rate_shown_is_the_one_the_loop_held_not_the_one_asked_for(started):
+    _, manager = started
+    for k in range(1, 301):  # a loop asked for 200 Hz that ticks every 25 ms; the table looks at its last second
+        manager.tick(now=1000.0 + k * 0.025)
+    console = Console(file=io.StringIO(), width=200)
+    console.print(LiveTable(manager, console=console).render())
+    assert " loop 40.0 Hz of 200 Hz\n" in console.file.getvalue()
+
+
 def test_a_simulated_joint_has_no_drive_state_to_show(started):
     _, manager = started
     console = Console(file=io.StringIO(), width=200)

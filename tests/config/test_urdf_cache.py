@@ -73,3 +73,12 @@ def test_a_cache_folder_that_cannot_be_written_costs_only_the_time(tmp_path, rob
     (tmp_path / "not-a-folder").write_text("")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "not-a-folder"))
     assert "<robot" in render_urdf(robot.hardware)
+
+
+def test_the_cache_keeps_only_its_newest_entries(cache, robot, monkeypatch):
+    import humanoid_prime.config.urdf_cache as urdf_cache
+
+    monkeypatch.setattr(urdf_cache, "KEPT_ENTRIES", 2)
+    for rate in (50.0, 100.0, 200.0):
+        render_urdf(robot.hardware, control_frequency=rate)
+    assert len(list(cache.glob("*.json"))) == 2

@@ -21,6 +21,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 
 FORMAT = 1  # bump when an entry's layout changes
+KEPT_ENTRIES = 32  # a few robots' descriptions, simulated and real, at a few rates each
 
 
 def cache_folder() -> Path:
@@ -44,7 +45,16 @@ def expand_cached(source: Path, mappings: Mapping[str, str], expand: Callable[[]
     reads = {str(p): _digest(Path(p)) for p in sorted(set(xacro.all_includes[first:]) | {str(source)})}
     with contextlib.suppress(OSError, PrimeError):
         atomic_write_text(entry_path, json.dumps({"format": FORMAT, "reads": reads, "urdf": urdf}))
+        _prune(entry_path.parent)
     return urdf
+
+
+def _prune(folder: Path) -> None:
+    """Keep the ``KEPT_ENTRIES`` newest entries: descriptions edited, or copied and gone, leave entries nobody
+    reads again."""
+    entries = sorted(folder.glob("*.json"), key=lambda path: path.stat().st_mtime, reverse=True)
+    for stale in entries[KEPT_ENTRIES:]:
+        stale.unlink(missing_ok=True)
 
 
 def _key(source: Path, mappings: Mapping[str, str]) -> str:

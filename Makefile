@@ -19,6 +19,9 @@ $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/huma
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
+	# Bytecode compiled once here: where PYTHONDONTWRITEBYTECODE is set, every command would compile the package
+	# again at each start (`prime bench --only startup` says which).
+	$(PY) -m compileall -q src/humanoid_prime
 	touch $(STAMP)
 
 sim: $(STAMP)

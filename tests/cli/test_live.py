@@ -168,3 +168,56 @@ def test_live_table_names_each_configuration_file_with_its_sha256(started):
     text = console.file.getvalue()
     for kind, entry in manager.configuration.items():
         assert f"{kind:<11} {entry['path']}  sha256 {entry['sha256'][:12]}" in text
+
+
+def rows(text: str) -> dict[str, list[str]]:
+    """The table's rows by joint, split into cells (two spaces or more apart)."""
+    import re
+
+    cells = [re.split(r"\s{2,}", line.strip()) for line in text.splitlines()]
+    return {row[0]: row[1:] for row in cells if row and row[0].startswith(("left_", "right_"))}
+
+
+def test_live_table_shows_the_time_run_and_the_loop_rate_against_the_configured_one(started):
+    system, manager = started
+    Simulation(system, manager, realtime=False).run(0.5)
+    manager.clock = lambda: manager.started_at + 12.34  # the run's clock, 12.34 s after its start
+    console = Console(file=io.StringIO(), width=200)
+    console.print(LiveTable(manager, console=console).render())
+    assert "\nelapsed 12.3 s  loop 200.0 Hz of 200 Hz\n" in console.file.getvalue()  # the simulation's 200 Hz
+
+
+def test_the_loop_rate_shown_is_the_one_the_loop_held_not_the_one_asked_for(started):
+    _, manager = started
+    for k in range(1, 301):  # a loop asked for 200 Hz that ticks every 25 ms; the table looks at its last second
+        manager.tick(now=1000.0 + k * 0.025)
+    console = Console(file=io.StringIO(), width=200)
+    console.print(LiveTable(manager, console=console).render())
+    assert " loop 40.0 Hz of 200 Hz\n" in console.file.getvalue()
+
+
+def test_a_simulated_joint_has_no_drive_state_to_show(started):
+    _, manager = started
+    console = Console(file=io.StringIO(), width=200)
+    console.print(LiveTable(manager, console=console).render())
+    table = rows(console.file.getvalue())
+    assert len(table) == 14
+    assert all(cells[-3:] == ["—", "—", "—"] for cells in table.values())
+
+
+def test_live_table_rows_show_each_erob_drives_statusword_state_al_state_and_torque(doubled):
+    session = doubled.open()
+    manager = session.manager
+    console = Console(file=io.StringIO(), width=200)
+    live = LiveTable(manager, console=console)
+    doubled.master.torque_per_mille[3] = 100  # ring 3, left_elbow_pitch: a tenth of its 23 Nm
+    doubled.master.fault(8, 0x8500)  # ring 8, right_elbow_pitch
+    manager.tick()
+    doubled.master.al_state[5] = 0x04  # ring 5, right_shoulder_pitch: the supervision found its slave in SAFE-OP
+    console.print(live.render())
+    table = rows(console.file.getvalue())
+    assert table["left_shoulder_pitch"][-3:] == ["0x1637", "operation enabled", "OP"]
+    assert table["left_elbow_pitch"][3] == "+2.30"  # tau Nm
+    assert table["right_elbow_pitch"][-3:] == ["0x1208", "fault", "OP"]
+    assert table["right_shoulder_pitch"][-3:] == ["0x1637", "operation enabled", "SAFE-OP"]
+    assert table["left_wrist_roll"][-3:] == ["—", "—", "—"]  # a Sito wrist has no CiA402 drive

@@ -243,3 +243,20 @@ def test_a_drive_back_from_a_power_loss_gets_its_window_gate_and_gains_again_bef
     run_ticks(session, 5)
     assert master.statusword[3] == OPERATION_ENABLED
     assert "ethercat/ring3/disabled" not in session.ethercat.flags
+
+
+def test_the_control_sockets_state_carries_the_loop_rate_torques_and_drive_states_a_view_shows(doubled, tmp_path):
+    from humanoid_prime.view.feeds import socket_source
+
+    session = doubled.open(control_socket=tmp_path / "control.sock")
+    doubled.master.torque_per_mille[3] = 100  # ring 3, left_elbow_pitch: a tenth of its 23 Nm
+    doubled.master.fault(8, 0x8500)  # ring 8, right_elbow_pitch
+    run_ticks(session, 3)
+    state, _ = socket_source(tmp_path / "control.sock")  # what `prime view --socket` polls
+    seen = state()
+    assert seen["update_rate_hz"] == session.manager.update_rate and seen["elapsed_s"] > 0
+    assert seen["rate_hz"] > 0
+    assert seen["effort"][3] == pytest.approx(2.3)
+    assert seen["drives"]["right_elbow_pitch"] == {"statusword": 0x1208, "error_code": 0x8500, "al_state": 0x08}
+    assert seen["drives"]["left_shoulder_pitch"]["statusword"] == 0x1637
+    assert "left_wrist_roll" not in seen["drives"]  # a Sito wrist has no CiA402 drive

@@ -4,6 +4,7 @@ running simulation, nothing leaves 127.0.0.1, and the robot is drawn."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 
 from doubles.process import popen, stop
@@ -25,6 +26,8 @@ def test_the_page_of_a_running_simulation_shows_it_and_switches_its_mode(browser
         page.get_by_text("mode DAMPING").wait_for(timeout=60_000)
         for joint in JOINTS:
             page.get_by_text(joint, exact=True).first.wait_for(timeout=30_000)
+        page.get_by_text(re.compile(r"^elapsed \d+\.\d s  loop \d+\.\d Hz of 200 Hz$")).wait_for(timeout=30_000)
+        page.get_by_role("cell", name="left_elbow_pitch").wait_for(timeout=30_000)  # its row in the drive table
         page.get_by_role("button", name="STANDBY").click()
         page.get_by_text("mode STANDBY").wait_for(timeout=60_000)  # the simulation's own /control_mode
         page.wait_for_timeout(1500)  # STANDBY lifts the arms; let a few frames draw
@@ -106,6 +109,21 @@ def test_a_recording_replays_into_the_view_once_a_browser_opens_it_and_pauses_an
         page.get_by_text("(paused)").wait_for(state="detached", timeout=30_000)
     finally:
         stop(replay)
+
+
+def test_the_drive_table_shows_each_joints_torque_and_its_drives_statusword_and_al_state(sim_robot):
+    from humanoid_prime.control.hardware import DriveStatus
+    from humanoid_prime.view.page import drive_table
+
+    effort = [0.0] * 14
+    effort[3], effort[6] = 2.3, float("nan")  # left_wrist_yaw not measured (the other bus of a one-bus run)
+    table = drive_table(sim_robot, effort, {"left_elbow_pitch": DriveStatus("left_elbow_pitch", 0x1208, 0x8500, 0x14)})
+    assert ("<tr><td>left_elbow_pitch</td><td align=right>+2.30</td><td>0x1208</td><td>fault</td>"
+            "<td>SAFE-OP + ERROR</td></tr>") in table
+    assert "<tr><td>left_wrist_roll</td><td align=right>+0.00</td><td>—</td><td>—</td><td>—</td></tr>" in table
+    assert "<td>left_wrist_yaw</td><td align=right>—</td>" in table
+    assert table.count("<tr>") == 15
+    assert "<td>left_shoulder_pitch</td><td align=right>—</td>" in drive_table(sim_robot, None, {})
 
 
 def test_a_calibration_page_shows_each_joints_swept_range(browser, sim_robot):

@@ -1,4 +1,5 @@
-"""Options and output helpers shared by the subcommands."""
+"""Options and output helpers shared by the subcommands. Every command imports this module, so it imports only
+what building a parser needs; the rest (rich, the file helpers) is imported where it is used."""
 
 from __future__ import annotations
 
@@ -9,14 +10,14 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-from rich.console import Console
+from typing import TYPE_CHECKING, Any
 
 from humanoid_prime.dds.domain import MAX_DOMAIN_ID, Discovery
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.socket import default_socket_path
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 CONFIG_RULE = ("default: the robot's config folder ($PRIME_CONFIG_DIR, else ~/.config/prime, with a --robot "
                "subfolder), else the bundled template; `prime config show` tells which")
@@ -285,6 +286,8 @@ def add_hidden_alias(parser: argparse.ArgumentParser, option: str, dest: str, **
 
 def output_file(text: str) -> Path:
     """argparse type of an output file: refused at once if it could not be written at the end of the run."""
+    from humanoid_prime.files import output_problem
+
     problem = output_problem(text)
     if problem is not None:
         raise argparse.ArgumentTypeError(f"cannot write there: {problem}")
@@ -293,6 +296,8 @@ def output_file(text: str) -> Path:
 
 def output_dir(text: str) -> Path:
     """argparse type of an output folder, checked like ``output_file``."""
+    from humanoid_prime.files import output_problem
+
     problem = output_problem(text, directory=True)
     if problem is not None:
         raise argparse.ArgumentTypeError(f"cannot write there: {problem}")
@@ -341,6 +346,8 @@ def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
 
 def console(*, stderr: bool = False) -> Console:
     """A rich console; piped or redirected, wide enough that tables and reports are never wrapped."""
+    from rich.console import Console
+
     out = Console(stderr=stderr)
     return out if out.is_terminal else Console(stderr=stderr, width=200)
 

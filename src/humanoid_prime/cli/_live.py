@@ -25,12 +25,14 @@ from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.readout import LoopReadout
 
 # As a gamepad would: one key per mode, in the order of the mode ladder.
 MODE_KEYS: dict[str, Mode] = {"1": Mode.ZERO_TORQUE, "2": Mode.DAMPING, "3": Mode.STANDBY,
                               "4": Mode.LOCOMOTION, "5": Mode.REMOTE}
 QUIT_KEYS = ("q", "Q")
 RESET_KEYS = ("r", "R")  # the operator's fault reset
+NUMBER_COLUMNS = ("q rad", "qd rad/s", "tau Nm", "q_cmd rad", "kp", "kd")
 MODE_KEY_HELP = "  ".join(f"{key} {mode.value}" for key, mode in MODE_KEYS.items())
 
 
@@ -68,10 +70,11 @@ def loop_line(manager: ControllerManager) -> str:
 
 
 class LiveTable:
-    """A rich Live table of the mode, every joint's q / qd / tau and command, and the loop timing.
+    """A rich Live table of the mode, the time run and the loop rate, every joint's q / qd / tau and command with
+    its drive's statusword, CiA402 state and AL state ("—" where a joint has no such drive), and the loop timing.
 
-    Rendering runs in rich's refresh thread from snapshots of the arrays, so the control loop never
-    waits for the terminal.
+    Rendering runs in rich's refresh thread from snapshots of the arrays (``LoopReadout``), so the control loop
+    never waits for the terminal.
     """
 
     def __init__(self, manager: ControllerManager, *, console: Console | None = None,
@@ -83,6 +86,7 @@ class LiveTable:
         self.keys = keys
         self.reset_key = reset_key
         self.note = ""
+        self.readout = LoopReadout(manager)
         self._live = Live(get_renderable=self.render, console=self.console, refresh_per_second=refresh_per_second,
                           redirect_stdout=False, redirect_stderr=False)
 
@@ -90,18 +94,23 @@ class LiveTable:
         manager = self.manager
         state = manager.resources.state.data.copy()
         command = manager.resources.command.data.copy()
+        readout = self.readout.read()
         mode = manager.active_mode.value if manager.active_mode is not None else "-"
         table = Table(box=None, pad_edge=False, header_style="bold")
-        for column in ("joint", "bus", "q rad", "qd rad/s", "tau Nm", "q_cmd rad", "kp", "kd"):
-            table.add_column(column, justify="left" if column in ("joint", "bus") else "right")
+        for column in ("joint", "bus", "q rad", "qd rad/s", "tau Nm", "q_cmd rad", "kp", "kd", "statusword", "drive",
+                       "AL"):
+            table.add_column(column, justify="right" if column in NUMBER_COLUMNS else "left")
         for joint in manager.robot.joints:
             i = joint.index
+            drive = readout.words(joint.name)
             table.add_row(joint.name, joint.family, f"{state[0, i]:+.3f}", f"{state[1, i]:+.3f}", f"{state[2, i]:+.2f}",
-                          f"{command[0, i]:+.3f}", f"{command[3, i]:.1f}", f"{command[4, i]:.1f}")
+                          f"{command[0, i]:+.3f}", f"{command[3, i]:.1f}", f"{command[4, i]:.1f}", drive.statusword,
+                          drive.state, drive.al_state)
         header = Text.assemble(("mode ", "bold"), (mode, "bold cyan"))
         if self.status is not None:
             header.append(f"   {self.status()}")
-        parts: list[Any] = [header, *config_lines(manager), Text(loop_line(manager)), *flag_lines(manager), table]
+        parts: list[Any] = [header, Text(readout.loop_words()), *config_lines(manager), Text(loop_line(manager)),
+                            *flag_lines(manager), table]
         if self.keys or self.reset_key:
             note = f"   [{self.note}]" if self.note else ""
             parts.append(Text(f"keys: {key_help(self.keys, self.reset_key)}{note}", style="dim"))

@@ -22,6 +22,8 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 
 SUITES: dict[str, tuple[str, str, str]] = {
+    "startup": ("humanoid_prime.bench.startup", "bench_startup",
+                "prime --help, info, switch and decode, each from the shell to its exit, beside python -c pass"),
     "sim": ("humanoid_prime.bench.sim", "bench_sim", "MujocoSystem + controllers, headless, as fast as possible"),
     "sito": ("humanoid_prime.bench.sito", "bench_sito", "SitoSystem read+write and bus load, 4 emulated wrists"),
     "ethercat": ("humanoid_prime.bench.ethercat", "bench_ethercat",
@@ -40,6 +42,9 @@ _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": oper
 
 # (suite, figure path) -> (suite, floor path, what the floor is): the physical limit shown beside a figure
 FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
+    **{("startup", f"{command}_s.median"): ("startup", "floors.python_s.median",
+                                            "python -c pass in this run (s, median)")
+       for command in ("help", "info", "switch", "decode")},
     ("sim", "realtime_factor"): ("sim", "floors.realtime_factor", "MuJoCo's own steps in this run"),
     ("bringup", "tick_io_us.median"): ("bringup", "floors.ethercat_cycle_us",
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
@@ -52,6 +57,10 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
 
 # (suite, figure path, comparison, goal, what) -- DESIGN §6
 TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
+    *(("startup", f"{command}_s.median", "<=", b.TARGET_STARTUP_S, f"{line} start-up (s, median)")
+      for command, line in (("help", "prime --help"), ("info", "prime info"), ("switch", "prime switch"),
+                            ("decode", "prime decode"))),
+    ("startup", "info_first_run_s", "<=", math.inf, "prime info's first run, the description not yet cached (s)"),
     ("sim", "realtime_factor", ">=", b.TARGET_REALTIME_FACTOR, "simulation speed (x real time)"),
     ("sim", "floor_fraction", "<=", math.inf, "simulation speed as a fraction of MuJoCo's own in this run"),
     ("sito", "host_load_percent", "<=", b.TARGET_LOAD_PERCENT, "Sito bus load from the host at 50 Hz (%)"),

@@ -142,6 +142,7 @@ def _play(recording, view, speed: float, loop: bool, stop: threading.Event) -> N
             position = 0.0
         k = max(int(np.searchsorted(times, position, side="right")) - 1, 0)
         m = int(np.searchsorted(mode_times, position, side="right")) - 1
-        view.update(position=recording.position[k], mode=recording.modes[m][1] if m >= 0 else None)
+        view.update(position=recording.position[k], mode=recording.modes[m][1] if m >= 0 else None,
+                    effort=recording.effort[k].tolist())
         timeline.show(position)
         stop.wait(FRAME_S)

@@ -9,14 +9,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TypedDict
-
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING, TypedDict
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import atomic_write_yaml, bundled, check_keys, config_path, load_yaml
+
+if TYPE_CHECKING:  # numpy is imported where the arrays are made: reading a calibration (`prime info`) needs none
+    import numpy as np
+    import numpy.typing as npt
 
 CALIBRATION_FILE = "prime_calibration.yaml"
 HEADER = (
@@ -40,9 +41,13 @@ class Calibration:
     path: Path | None = field(default=None, compare=False)
 
     def direction_array(self, names: tuple[str, ...]) -> npt.NDArray[np.float64]:
+        import numpy as np
+
         return np.array([self.joints[n].direction for n in names], dtype=np.float64)
 
     def offset_array(self, names: tuple[str, ...]) -> npt.NDArray[np.float64]:
+        import numpy as np
+
         return np.array([self.joints[n].homing_offset for n in names], dtype=np.float64)
 
     @property

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from humanoid_prime.config.hardware import HardwareConfig
+from humanoid_prime.config.urdf_cache import expand_cached
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled
 
@@ -64,9 +65,8 @@ class Description:
 
 def render_urdf(hardware: HardwareConfig, *, use_sim: bool = False, control_frequency: float = 50.0,
                 erob_config_dir: str | Path = "erob_config", xacro_file: str | Path | None = None) -> str:
-    """Expand the xacro into URDF text; the ros2_control section comes from the hardware file."""
-    import xacro
-
+    """Expand the xacro into URDF text; the ros2_control section comes from the hardware file. Cached in the
+    user's cache folder (``urdf_cache``) while the files it reads are unchanged."""
     source = Path(xacro_file) if xacro_file is not None else bundled(XACRO_FILE)
     mappings = {
         "hardware_file": str(hardware.path),
@@ -74,11 +74,17 @@ def render_urdf(hardware: HardwareConfig, *, use_sim: bool = False, control_freq
         "control_frequency": f"{control_frequency:g}",
         "erob_config_dir": str(erob_config_dir),
     }
-    try:
-        doc: minidom.Document = xacro.process_file(str(source), mappings=mappings)
-    except Exception as exc:  # xacro raises plain Exceptions with the useful text
-        raise ConfigError(source, "", f"xacro failed: {exc}") from None
-    return doc.toprettyxml(indent="  ")
+
+    def expand() -> str:
+        import xacro
+
+        try:
+            doc: minidom.Document = xacro.process_file(str(source), mappings=mappings)
+        except Exception as exc:  # xacro raises plain Exceptions with the useful text
+            raise ConfigError(source, "", f"xacro failed: {exc}") from None
+        return doc.toprettyxml(indent="  ")
+
+    return expand_cached(source, mappings, expand)
 
 
 def parse_urdf(urdf: str, source: Path) -> tuple[dict[str, JointLimits], tuple[HardwareBlock, ...]]:

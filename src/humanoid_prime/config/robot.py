@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
-
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING, Literal
 
 from humanoid_prime.config.description import Description, load_description
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
+
+if TYPE_CHECKING:  # numpy is imported where the arrays are made: reading the robot (`prime info`) needs none
+    import numpy as np
+    import numpy.typing as npt
 
 Family = Literal["erob", "sito"]
 
@@ -57,18 +58,26 @@ class Robot:
         raise KeyError(f"unknown joint {name!r}; known joints: {', '.join(self.names)}")
 
     def indices(self, family: Family) -> npt.NDArray[np.intp]:
+        import numpy as np
+
         return np.array([j.index for j in self.joints if j.family == family], dtype=np.intp)
 
     @property
     def lower(self) -> npt.NDArray[np.float64]:
+        import numpy as np
+
         return np.array([j.lower for j in self.joints])
 
     @property
     def upper(self) -> npt.NDArray[np.float64]:
+        import numpy as np
+
         return np.array([j.upper for j in self.joints])
 
     @property
     def effort_limit(self) -> npt.NDArray[np.float64]:
+        import numpy as np
+
         return np.array([j.effort_limit for j in self.joints])
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import enum
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -26,6 +27,16 @@ class Lifecycle(enum.Enum):
     INACTIVE = "inactive"
     ACTIVE = "active"
     FINALIZED = "finalized"
+
+
+@dataclass(frozen=True)
+class DriveStatus:
+    """What a drive with a state machine of its own (an eRob: CiA402 on EtherCAT) last said about itself."""
+
+    joint: str
+    statusword: int  # 0x6041, from the last frame read
+    error_code: int  # 0x603F, from the last frame read
+    al_state: int  # its slave's AL state register (0x0130), from the last supervision pass
 
 
 class HardwareComponent(SafetyFlags, ABC):
@@ -104,6 +115,11 @@ class HardwareComponent(SafetyFlags, ABC):
     def reset_faults(self) -> None:
         """Clear latched faults with the next ``write`` (called from the control loop's thread); a device
         whose cause persists faults again. Default: this component's devices latch no faults."""
+
+    def drive_states(self) -> list[DriveStatus]:
+        """Each of its drives' own state, for a display, which asks at its own rate from its own thread: read from
+        what the loop and the bus supervision left, never computed per tick. Default: no such drives."""
+        return []
 
     def __enter__(self) -> HardwareComponent:
         return self

@@ -184,6 +184,7 @@ class ControllerManager:
         # The configuration files of the run (kind -> path, sha256, source), named in every report of it.
         self.configuration: dict[str, dict[str, object]] = {}
         self.tick_count = 0
+        self.started_at: float | None = None  # the clock when ``start`` finished: the run's elapsed time counts from it
         self.resets = 0  # operator fault resets applied
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
         self._broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
@@ -247,6 +248,7 @@ class ControllerManager:
         if not self.broadcaster_only:
             self._activate(Mode.ZERO_TORQUE, now)
         t = self._stage("controllers activated", t)
+        self.started_at = t
         self._started = True
         self._publish_safety(now)
 

@@ -14,7 +14,6 @@ import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from xml.sax.saxutils import quoteattr
 
 from humanoid_prime.errors import PrimeError
 
@@ -85,6 +84,8 @@ class Discovery:
             discovery = (f"<Discovery><ParticipantIndex>none</ParticipantIndex><Tag>ros_discovery_off_{os.getpid()}"
                          "</Tag></Discovery>")
         elif self.range != "SYSTEM_DEFAULT":
+            from xml.sax.saxutils import quoteattr  # imports urllib.request: 0.1 s the CLI's options need not pay
+
             peers = (["localhost"] if self.range == "LOCALHOST" else []) + list(self.static_peers)
             listed = "".join(f"<Peer address={quoteattr(peer)}/>" for peer in peers)
             discovery = ("<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>"

@@ -36,7 +36,7 @@ from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.manager import ControllerManager
-from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus, Snapshot
+from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S
 from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gains
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
@@ -47,6 +47,7 @@ from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.impedance import ImpedanceManager
+from humanoid_prime.runtime.readout import state_source
 from humanoid_prime.runtime.realtime import lock_memory, tighten_switch_interval
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
 from humanoid_prime.runtime.socket import ControlServer
@@ -435,6 +436,6 @@ def serve(session: Session, server: ControlServer) -> None:
                 session.record_fault(f"limp/ring{position}", f"{ring_joints[position]} (ring {position}) was still "
                                      "limp when the run ended; its gate was reset to 0", Level.WARN)
 
-    snapshot = Snapshot(manager.topics, session.robot.names, manager.config.joint_states_topic)
+    state, _ = state_source(manager)  # for the run's whole life
     server.attach(switch_mode=switch, sdo=sdo, joint_limp=joint_limp, on_close=on_close,
-                  reset=manager.request_reset, state=snapshot.as_dict)
+                  reset=manager.request_reset, state=state)

@@ -10,21 +10,24 @@ import numpy as np
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.manager import ControllerManager
-from humanoid_prime.control.topics import Snapshot
+from humanoid_prime.runtime.readout import state_source
 from humanoid_prime.runtime.socket import request, request_state
+
+STATE_KEYS = ("position", "mode", "flags", "levels")
+READOUT_KEYS = ("elapsed_s", "rate_hz", "update_rate_hz", "effort", "drives")  # Readout.as_dict's
 
 
 def manager_source(manager: ControllerManager) -> tuple[Callable[[], dict[str, Any]], Callable[[], None]]:
-    """The run's own latest state (one copy of 14 positions per tick) and the function that detaches it."""
-    snapshot = Snapshot(manager.topics, manager.robot.names, manager.config.joint_states_topic)
-    return snapshot.as_dict, snapshot.detach
+    """The run's own latest state (one copy of 14 positions per tick, the readout when asked) and the function that
+    detaches it."""
+    return state_source(manager)
 
 
 def socket_source(path: Any) -> tuple[Callable[[], dict[str, Any]], Callable[[str], Any]]:
     """A running instance's state over its control socket, and its mode requests (what `prime switch` does)."""
     def state() -> dict[str, Any]:
         reply = request_state(path)
-        return {key: reply[key] for key in ("position", "mode", "flags", "levels")}
+        return {key: reply[key] for key in (*STATE_KEYS, *READOUT_KEYS) if key in reply}
 
     def mode(name: str) -> Any:
         return request(path, {"op": "mode", "mode": name})
@@ -56,6 +59,8 @@ class DdsSource:
         states = take(self._joint_states, 256)
         if states and list(states[-1].name) == self.names:
             self.latest["position"] = np.asarray(states[-1].position, dtype=np.float64)
+            if len(states[-1].effort) == len(self.names):
+                self.latest["effort"] = [float(v) for v in states[-1].effort]
         for sample in take(self._mode, 8):
             self.latest["mode"] = sample.data
         for sample in take(self._safety, 8):

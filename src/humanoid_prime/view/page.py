@@ -1,5 +1,6 @@
-"""The browser page of Prime: the robot posed live, the active mode and a button per mode, the safety flags,
-each joint's position against its limits and, during a calibration, each joint's swept range.
+"""The browser page of Prime: the robot posed live, the active mode and a button per mode, the time run and the
+loop rate, the safety flags, each joint's position against its limits, its measured torque and its drive's state
+(statusword and AL state, "—" where it has no such drive) and, during a calibration, each joint's swept range.
 
 Served by viser on 127.0.0.1 only, entirely from the installed package (no CDN, no telemetry: the share
 button and the logo link are off). The page is fed through ``update`` from any thread; a view thread redraws
@@ -10,6 +11,7 @@ name: the same path, with the same refusals, as ``prime switch``.
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import threading
 from collections.abc import Callable
@@ -19,12 +21,28 @@ from typing import Any
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
+from humanoid_prime.control.hardware import DriveStatus
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.readout import NONE, DriveWords, drive_from_dict, loop_words
 from humanoid_prime.view.scene import RobotScene
 
 REDRAW_HZ = 20.0
 LEVEL_MARK = {"WARN": "⚠️", "ERROR": "⛔"}
+
+
+def drive_table(robot: Robot, effort: list[float | None] | None, drives: dict[str, DriveStatus]) -> str:
+    """Per joint, its measured torque and its drive's statusword, CiA402 state and AL state, as an HTML table."""
+    rows = []
+    for joint in robot.joints:
+        tau = effort[joint.index] if effort is not None else None
+        words = DriveWords.of(drives.get(joint.name))
+        cells = (joint.name, NONE if tau is None or tau != tau else f"{tau:+.2f}", words.statusword, words.state,
+                 words.al_state)
+        rows.append("<tr>" + "".join(f"<td{' align=right' if k == 1 else ''}>{html.escape(c)}</td>"
+                                     for k, c in enumerate(cells)) + "</tr>")
+    head = "".join(f"<th align=left>{name}</th>" for name in ("joint", "tau Nm", "statusword", "drive", "AL"))
+    return f'<table style="font-size:0.8em;font-family:monospace"><tr>{head}</tr>{"".join(rows)}</table>'
 
 
 class Timeline:
@@ -107,8 +125,11 @@ class PrimeView:
                                              disabled=request_mode is None)
         self._buttons.on_click(lambda event: self._on_button(event.target.value))
         self._answer = gui.add_markdown("")
+        self._loop = gui.add_markdown(loop_words(None, None, None))
         with gui.add_folder("safety"):
             self._safety = gui.add_markdown("ok")
+        with gui.add_folder("drives: torque and state"):
+            self._drives = gui.add_html(drive_table(robot, None, {}))
         with gui.add_folder("joints: position within limits (rad)"):
             self._joints = [gui.add_slider(j.name, min=j.lower, max=j.upper, step=0.001,
                                            initial_value=float(np.clip(0.0, j.lower, j.upper)), disabled=True)
@@ -130,7 +151,8 @@ class PrimeView:
 
     def update(self, **latest: Any) -> None:
         """Keep the newest of ``position`` (14 rad), ``mode`` (str), ``flags`` and ``levels`` (dicts keyed by
-        flag), ``sweeps`` (14 (min, max) pairs); the view thread draws them."""
+        flag), ``sweeps`` (14 (min, max) pairs), and what ``Readout.as_dict`` gives (``elapsed_s``, ``rate_hz``,
+        ``update_rate_hz``, ``effort``, ``drives``); the view thread draws them."""
         with self._lock:
             self._latest.update(latest)
             self._version += 1
@@ -180,6 +202,12 @@ class PrimeView:
             lines = [f"- {LEVEL_MARK.get(str(levels.get(key, 'ERROR')), '')} `{key}`: {text}"
                      for key, text in sorted(latest["flags"].items())]
             self._safety.content = "\n".join(lines) or "ok"
+        if "rate_hz" in latest or "elapsed_s" in latest:
+            self._loop.content = loop_words(latest.get("elapsed_s"), latest.get("rate_hz"),
+                                            latest.get("update_rate_hz"))
+        if "effort" in latest or "drives" in latest:
+            drives = {joint: drive_from_dict(joint, entry) for joint, entry in (latest.get("drives") or {}).items()}
+            self._drives.content = drive_table(self.robot, latest.get("effort"), drives)
         sweeps = latest.get("sweeps")
         if sweeps is not None and self._sweeps:
             for slider, joint, (low, high) in zip(self._sweeps, self.robot.joints, sweeps, strict=True):

@@ -36,7 +36,7 @@ from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level
-from humanoid_prime.control.hardware import HardwareComponent
+from humanoid_prime.control.hardware import DriveStatus, HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import (
@@ -325,6 +325,14 @@ class EthercatSystem(HardwareComponent):
 
     def latched_faults(self) -> list[str]:
         return [self._describe_drive(k) for k in np.flatnonzero(self._fault)]
+
+    def drive_states(self) -> list[DriveStatus]:
+        master = self.master
+        if master is None or len(master.al_state) == 0:
+            return []
+        statuswords, errors, al_states = self._rec_sw.tolist(), self._rec_err.tolist(), master.al_state.tolist()
+        return [DriveStatus(joint, statuswords[k], errors[k], al_states[position])
+                for k, (joint, position) in enumerate(zip(self.joints, self.ring.tolist(), strict=True))]
 
     def reset_faults(self) -> None:
         """The operator's reset: every faulted drive gets one fault reset with the next write, and every drive

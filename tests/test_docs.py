@@ -31,7 +31,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import request
 
 REPOSITORY = Path(__file__).parents[1]
-PAGES = sorted((REPOSITORY / "docs").glob("*.md"))
+PAGES = [REPOSITORY / "README.md", *sorted((REPOSITORY / "docs").glob("*.md"))]
 BLOCK = re.compile(r"(?:<!--\s*test:\s*(?P<directive>.*?)\s*-->\s*\n)?```sh\n(?P<body>.*?)```", re.S)
 STARTUP_S = 120.0  # a background process answers on its control socket within this (a loaded machine, MuJoCo)
 

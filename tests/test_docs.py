@@ -1,6 +1,7 @@
 """Every command block of the README and the manual (docs/*.md) runs as written, in the order written, by a new
 user: a fresh HOME with nothing configured, `prime` on the PATH as `. .venv/bin/activate` puts it there, the page's
-own folder for the files it names. So the documentation cannot drift from the command line.
+own folder for the files it names. So the documentation cannot drift from the command line; and every link between
+the pages (a page, an image, a heading's anchor) resolves.
 
 A ```sh block is run line by line; each line must exit 0. A comment just before a block says how to run it where
 running it as written would need the real robot, or would not end:
@@ -31,7 +32,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import request
 
 REPOSITORY = Path(__file__).parents[1]
-PAGES = sorted((REPOSITORY / "docs").glob("*.md"))
+PAGES = [REPOSITORY / "README.md", *sorted((REPOSITORY / "docs").glob("*.md"))]
 BLOCK = re.compile(r"(?:<!--\s*test:\s*(?P<directive>.*?)\s*-->\s*\n)?```sh\n(?P<body>.*?)```", re.S)
 STARTUP_S = 120.0  # a background process answers on its control socket within this (a loaded machine, MuJoCo)
 
@@ -69,6 +70,25 @@ def test_every_page_has_examples_and_every_directive_is_known():
             assert kind in ("", "skip", "instead", "background", "exit"), f"{page.name}:{block.line}: {kind!r}"
             if kind == "skip":
                 assert "," in block.directive, f"{page.name}:{block.line}: a skip says why"
+
+
+LINK = re.compile(r"\]\((?!https?://)(?P<target>[^)#\s]*)(?:#(?P<anchor>[^)\s]+))?\)")
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors a page's headings get (GitHub's rule: lower case, punctuation dropped, spaces to hyphens)."""
+    headings = re.findall(r"^#+\s+(.*?)\s*$", page.read_text(), re.M)
+    return {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in headings}
+
+
+def test_every_link_between_pages_resolves():
+    for page in PAGES:
+        for match in LINK.finditer(page.read_text()):
+            target = (page.parent / match["target"]).resolve() if match["target"] else page
+            where = f"{page.name}: ({match['target']}#{match['anchor'] or ''})"
+            assert target.is_file(), f"{where}: no such file"
+            if match["anchor"]:
+                assert match["anchor"] in _anchors(target), f"{where}: no such heading"
 
 
 def _kind(directive: str) -> str:

@@ -49,7 +49,7 @@ from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
 from humanoid_prime.cli.addons import Addons, Run
 from humanoid_prime.cli.calibrate_auto import add_auto_options, check_auto_options, config_option, run_auto
-from humanoid_prime.config.calibration import Calibration, load_calibration
+from humanoid_prime.config.calibration import VIRTUAL_MARK, Calibration, load_calibration, virtual_may_replace
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.location import write_target
 from humanoid_prime.config.robot import Robot
@@ -135,6 +135,10 @@ def run(args: argparse.Namespace) -> int:
     files = args.config
     hardware = load_hardware(args.hardware)
     target = Path(args.output) if args.output is not None else write_target(files.calibration, files.folder)
+    virtual = bool(args.emulate or getattr(args, "sim", False))
+    if virtual and args.output is None and not args.verify and not virtual_may_replace(target, hardware):
+        raise PrimeError(f"{target} holds offsets measured on a physical robot, and this run is on a virtual one "
+                         "(--emulate or --sim): give --output FILE for its result")
     # The prior is the file being replaced, never identity: a run cannot weaken what it did not sweep.
     prior = load_calibration(hardware, args.prior or (target if target.is_file() else args.calibration))
     checked = load_calibration(hardware, args.calibration) if args.verify else None
@@ -298,7 +302,9 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked
             faults += [{"phase": title, **fault} for fault in phase_faults]
             if result.swept:
                 results.append(result)
-                write(target, merge_phases(results), result.robot, comment=_file_note(merge_phases(results), asked))
+                merged = merge_phases(results)
+                mark = VIRTUAL_MARK if args.emulate else ""  # another virtual run may replace it, nothing else
+                write(target, merged, result.robot, comment=mark + _file_note(merged, asked))
                 calibration = result.calibration
     errors = [f"{f['phase']}: {f['key']} at {f['since_s']:.2f} s: {f['text']}" for f in faults
               if f["level"] == "ERROR"]

@@ -35,7 +35,7 @@ from humanoid_prime.calibration.workflow import check_joint_names, identity_from
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import print_json, real, write_summary
 from humanoid_prime.cli.addons import Addons, Run
-from humanoid_prime.config.calibration import Calibration, JointCalibration, save_calibration
+from humanoid_prime.config.calibration import VIRTUAL_MARK, Calibration, JointCalibration, save_calibration
 from humanoid_prime.config.hardware import HardwareConfig, write_erob_torque_efficiency
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
@@ -108,7 +108,8 @@ def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: d
     done = [j for j in result.asked if result.outcomes[j].done]
     written = bool(done)
     if written:
-        save_calibration(output, result.calibration, robot.hardware)
+        save_calibration(output, result.calibration, robot.hardware,
+                         comment=VIRTUAL_MARK if args.emulate or args.sim else "")
     applied = _apply(args, result) if args.apply else {}
     if args.plot:
         from humanoid_prime.calibration.auto_plot import plot_auto

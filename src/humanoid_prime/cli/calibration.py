@@ -8,7 +8,7 @@ from pathlib import Path
 from humanoid_prime.calibration.math import FLIP_OFFSET_RAD, flip_direction, mirror_check, probable_flips
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_hidden_alias, add_json_option, output_dir, print_json
-from humanoid_prime.config.calibration import load_calibration, save_calibration
+from humanoid_prime.config.calibration import VIRTUAL_MARK, is_virtual, load_calibration, save_calibration
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.location import write_target
 from humanoid_prime.config.robot import load_robot
@@ -87,7 +87,8 @@ def _flip(args: argparse.Namespace) -> int:
     old = calibration.joints[spec.name]
     new = flip_direction(old, spec.lower, spec.upper)
     target = write_target(args.config.calibration, args.config.folder)
-    save_calibration(target, calibration.with_joint(spec.name, new), robot.hardware)
+    keep = VIRTUAL_MARK if calibration.path is not None and is_virtual(Path(calibration.path)) else ""
+    save_calibration(target, calibration.with_joint(spec.name, new), robot.hardware, comment=keep)
     result = {"joint": spec.name, "file": str(target), "read": str(calibration.path),
               "old": {"direction": old.direction, "homing_offset": old.homing_offset},
               "new": {"direction": new.direction, "homing_offset": new.homing_offset}}

@@ -25,6 +25,25 @@ HEADER = (
     "# direction is a wiring fact (+1/-1); homing_offset (rad) is measured per physical robot\n"
     "# with `prime calibrate`. bus/address are for people; the hardware file is authoritative.\n"
 )
+# The header line of a file a run on a virtual robot wrote: such a file may be replaced by another virtual run.
+VIRTUAL_MARK = "# calibrated on a virtual robot (--emulate or --sim), not on a physical one\n"
+
+
+def virtual_may_replace(path: Path, hardware: HardwareConfig) -> bool:
+    """Whether a run on a virtual robot may write its result over ``path`` when the user named no output: only
+    when there is nothing there, a virtual run wrote it, or it holds no measurement (every joint identity, as
+    `prime config init` leaves it). A physical robot's offsets are never replaced by a simulation's."""
+    if not path.is_file():
+        return True
+    if VIRTUAL_MARK in path.read_text(errors="replace"):
+        return True
+    held = load_calibration(hardware, path)
+    return all(c == JointCalibration() for c in held.joints.values())
+
+
+def is_virtual(path: Path) -> bool:
+    """Whether a virtual run wrote the calibration file at ``path`` (a flip keeps that mark)."""
+    return path.is_file() and VIRTUAL_MARK in path.read_text(errors="replace")
 
 
 @dataclass(frozen=True)

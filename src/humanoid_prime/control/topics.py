@@ -76,7 +76,7 @@ class TopicBus:
         self._lock = threading.Lock()
         # A topic is a name: what it carries is agreed between its publishers and subscribers (a DDS message
         # may stand in for ours, with the same fields), so the bus stores callbacks of any one argument.
-        self._subscribers: dict[str, list[Callable[..., None]]] = {}
+        self._subscribers: dict[str, list[Callable[..., None]]] = {}  # type: ignore[explicit-any]  # see above
         self._latest: dict[str, object] = {}
 
     def publish(self, topic: str, message: object) -> None:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -23,6 +22,7 @@ from humanoid_prime.drivers.erob.cia402 import describe_al_state, drive_state
 
 RATE_WINDOW_S = 1.0  # the loop rate is measured over about the last second of ticks
 NONE = "—"
+JsonObject = dict[str, object]  # what the control socket and the page carry (JSON)
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class Readout:
     def loop_words(self) -> str:
         return loop_words(self.elapsed_s, self.rate_hz, self.update_rate_hz)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> JsonObject:
         """For the control socket's ``state`` and the page (JSON)."""
         return {"elapsed_s": self.elapsed_s, "rate_hz": self.rate_hz, "update_rate_hz": self.update_rate_hz,
                 "effort": [None if v != v else v for v in self.effort],
@@ -70,7 +70,7 @@ def loop_words(elapsed_s: float | None, rate_hz: float | None, update_rate_hz: f
     return f"elapsed {elapsed}  loop {rate} of {asked}"
 
 
-def drive_from_dict(joint: str, entry: dict[str, Any]) -> DriveStatus:
+def drive_from_dict(joint: str, entry: dict[str, int]) -> DriveStatus:
     """A drive's status as ``Readout.as_dict`` sent it."""
     return DriveStatus(joint, int(entry["statusword"]), int(entry["error_code"]), int(entry["al_state"]))
 
@@ -105,7 +105,7 @@ class LoopReadout:
         return 1.0 / mean if mean > 0 else None
 
 
-def state_source(manager: ControllerManager) -> tuple[Callable[[], dict[str, Any]], Callable[[], None]]:
+def state_source(manager: ControllerManager) -> tuple[Callable[[], JsonObject], Callable[[], None]]:
     """A run's state for a view and the control socket's ``state`` request, and the function that detaches it: the
     latest joints, mode and flags off the topics (``Snapshot``: one copy of 14 positions a tick) with the readout,
     read at each call."""

@@ -120,7 +120,7 @@ class SoemMaster(EthercatMaster):
         self._out_buf = bytearray()
         self._in_buf = bytearray()
         self._out_pairs: list[tuple[pysoem.CdefSlave, memoryview]] = []  # (pysoem slave, its output bytes)
-        self._in_pairs: list[tuple[pysoem.CdefSlave, slice]] = []  # (pysoem slave, where its input bytes go)
+        self._in_pairs: list[tuple[pysoem.CdefSlave, slice]] = []  # type: ignore[explicit-any]  # pysoem ships no types
 
     # ---------------------------------------------------------------------------------------- what it saw
     @property

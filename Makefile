@@ -29,9 +29,11 @@ sim: $(STAMP)
 
 test: $(STAMP)
 	tools/install-debs $(TEST_DEBS)
-	$(VENV)/bin/ruff check src tests
-	$(MAKE) typecheck
+	$(MAKE) lint typecheck
 	$(PY) -m pytest -q
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests
 
 # mypy, strict on the packages listed in pyproject.toml's [tool.mypy]; stubtest holds the compiled kernels' stubs
 # (_tick.pyi) to the built modules, so a changed kernel signature fails here rather than at a caller.

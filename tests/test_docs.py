@@ -118,6 +118,11 @@ def _socket(command: str, env: dict[str, str], work: Path) -> str:
     return env["PRIME_CONTROL_SOCKET"]
 
 
+def _as_in_a_terminal() -> None:
+    """Ctrl-C as a terminal delivers it: a suite started as a background job inherits SIGINT ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _serves_a_page(command: str) -> bool:
     """prime view and prime replay are ready when they print their page's address, not on a control socket."""
     words = shlex.split(command)
@@ -162,7 +167,7 @@ def test_every_example_of_the_page_runs_as_written(page, user, tmp_path):
                     output = tmp_path / f"background-{len(running)}.log"
                     with output.open("w") as sink:
                         process = subprocess.Popen(["sh", "-c", f"exec {command}"], cwd=work, env=user, text=True,
-                                                   stdout=sink, stderr=subprocess.STDOUT)
+                                                   stdout=sink, stderr=subprocess.STDOUT, preexec_fn=_as_in_a_terminal)
                     running.append((where, process, output))
                     _wait_until_ready(command, user, work, process, output, where)
                     continue

@@ -94,7 +94,8 @@ def test_a_recording_replays_into_the_view_once_a_browser_opens_it_and_pauses_an
     recording = tmp_path / "run.mcap"
     subprocess.run([*PRIME, "sim", "--fast", "--record", str(recording)], check=True, capture_output=True,
                    timeout=300)
-    replay, url = start("replay", str(recording), "--port", "0", "--speed", "2")
+    # --loop: the replay is still playing whenever this browser gets to the button, however slow the machine.
+    replay, url = start("replay", str(recording), "--port", "0", "--speed", "2", "--loop")
     try:
         page = browser.page
         page.goto(url)  # the replay waits for this browser: it sees the start, ZERO_TORQUE

@@ -51,7 +51,7 @@ class RobotFolder:
 
 
 def robot_folder(robot: str | None = None) -> RobotFolder:
-    """The config folder of ``robot`` (None: ``$PRIME_ROBOT``, else the only robot of the default folder)."""
+    """The config folder of ``robot`` (None: ``$PRIME_ROBOT``, else the default folder itself, no subfolder)."""
     source = "--robot"
     if robot is None and os.environ.get(ROBOT_ENV):
         robot, source = os.environ[ROBOT_ENV], f"${ROBOT_ENV}"

@@ -2,7 +2,17 @@
 
 from __future__ import annotations
 
+import pytest
+
+from cli.bad_input.cases import fill
 from cli.bad_input.harness import CLASSES, TOTALS
+
+
+@pytest.fixture
+def folder(tmp_path):
+    """A case's folder with the input files every case may name (``cases.fill``)."""
+    fill(tmp_path)
+    return tmp_path
 
 
 def pytest_terminal_summary(terminalreporter) -> None:

@@ -9,7 +9,7 @@ import argparse
 
 import pytest
 
-from cli.bad_input.cases import fill, name, parsers, positional_values, positionals, typed
+from cli.bad_input.cases import name, parsers, positional_values, positionals, typed
 from cli.bad_input.harness import check
 
 BAD_VALUES = {"nan": "nan", "inf": "inf", "-inf": "-inf", "-1": "-1", "1e308": "1e308", "empty": "", "word": "abc"}
@@ -57,12 +57,6 @@ def _missing_positional_cases() -> list:
         if required:
             cases.append(pytest.param(list(path), name(required[0]), id=" ".join(path)))
     return cases
-
-
-@pytest.fixture
-def folder(tmp_path):
-    fill(tmp_path)
-    return tmp_path
 
 
 @pytest.mark.parametrize("argv, names", _value_cases())

@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cli.bad_input.cases import fill
 from cli.bad_input.harness import check
 from humanoid_prime.files import bundled
 
@@ -123,12 +122,6 @@ def _write(folder: Path, which: str, path: tuple, new) -> Path:
     target = folder / f"my_{which}.yaml"
     target.write_text(yaml.safe_dump(edited, sort_keys=False))
     return target
-
-
-@pytest.fixture
-def folder(tmp_path):
-    fill(tmp_path)
-    return tmp_path
 
 
 @pytest.mark.parametrize("which, path, new, expect", _cases())

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import pytest
 
-from cli.bad_input.cases import fill
 from cli.bad_input.harness import check
 from humanoid_prime.files import bundled
 
@@ -107,8 +106,9 @@ def _socket_cases():
 
 
 @pytest.fixture
-def folder(tmp_path):
-    fill(tmp_path)
+def folder(folder):
+    """The case folder with the paths these cases name besides its inputs."""
+    tmp_path = folder
     (tmp_path / "afolder").mkdir()
     (tmp_path / "afolder.mcap").mkdir()
     (tmp_path / "afolder" / "keep.txt").write_bytes(b"kept\n")

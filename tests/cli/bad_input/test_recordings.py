@@ -10,7 +10,6 @@ import sys
 
 import pytest
 
-from cli.bad_input.cases import fill
 from cli.bad_input.harness import check
 from humanoid_prime.files import bundled
 
@@ -42,12 +41,6 @@ RECORDINGS = {  # what the file holds -> how to make it from a good recording (N
     "missing": ...,
 }
 READERS = {"plot": ["plot", "{file}", "--output", "{tmp}/out.png"], "replay": ["replay", "{file}", "--no-wait"]}
-
-
-@pytest.fixture
-def folder(tmp_path):
-    fill(tmp_path)
-    return tmp_path
 
 
 @pytest.mark.parametrize("reader", READERS)

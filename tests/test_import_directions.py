@@ -18,7 +18,8 @@ APPS = {  # rooms above the layers, and which of their peers each may import
     "virtual": {"sim"},
     "bench": {"sim", "virtual"},
     "view": set(),
-    "cli": {"sim", "virtual", "bench", "view"},
+    "doctor": set(),
+    "cli": {"sim", "virtual", "bench", "view", "doctor"},
     "__main__": {"cli"},
 }
 

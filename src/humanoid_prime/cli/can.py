@@ -8,10 +8,8 @@ with zero gains (limp) and disables them again on every exit path.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import time
-from collections import Counter
 
 import can
 
@@ -28,16 +26,15 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
+from humanoid_prime.drivers.sito.probe import listen
 from humanoid_prime.drivers.sito.protocol import (
     MODE_MIT,
-    MOTOR_FRAME_TYPES,
     SITO_MODELS,
     Command,
     Disable,
     Enable,
     Feedback1,
     Feedback2,
-    FrameType,
     Gains,
     InvalidFrame,
     SitoModel,
@@ -47,7 +44,6 @@ from humanoid_prime.drivers.sito.protocol import (
     current_mA_to_torque,
     firmware_to_kd,
     firmware_to_kp,
-    pack_frame,
     parse,
     sito_model,
     split_arbitration_id,
@@ -56,7 +52,6 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.plant import InertiaPlant
 from humanoid_prime.virtual.sito import SitoEmulator
 
-PROBE_FEEDBACK_MS = 10
 _ERROR_CLASSES = ((CAN_ERR_BUSOFF, "bus-off"), (CAN_ERR_ACK, "no acknowledge"),
                   (CAN_ERR_CRTL, "controller problem"), (CAN_ERR_RESTARTED, "controller restarted"))
 
@@ -244,32 +239,12 @@ def _discover(args: argparse.Namespace) -> int:
     hardware, bus, model = _open(args)
     joints = _joint_names(hardware)
     probed = (args.ids or sorted(joints)) if args.probe else []
-    heard: dict[int, Counter[str]] = {}
     try:
-        for can_id in probed:
-            for frame in (Gains(0.0, 0.0), Enable(MODE_MIT, (PROBE_FEEDBACK_MS, PROBE_FEEDBACK_MS, 0)),
-                          Command(0, 0, 0)):
-                ident, data = pack_frame(can_id, frame)
-                bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
-        deadline = time.monotonic() + args.duration
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                msg = bus.recv(min(left, 0.1))
-            except can.CanOperationError:  # a datagram that is no CAN frame (udp_multicast): not a wrist
-                continue
-            if msg is None or msg.is_error_frame or not msg.is_extended_id:
-                continue
-            split = split_arbitration_id(msg.arbitration_id)
-            if split is not None and split[1] in MOTOR_FRAME_TYPES:
-                heard.setdefault(split[0], Counter())[FrameType(split[1]).name.lower()] += 1
+        heard = listen(bus, args.duration, enable=probed)
     except can.CanError as exc:
         raise PrimeError(f"CAN error on {args.channel or hardware.can.channel}: {exc}; check that the interface "
                          "is up") from None
     finally:
-        for can_id in probed:
-            ident, data = pack_frame(can_id, Disable())
-            with contextlib.suppress(can.CanError):
-                bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
         bus.shutdown()
 
     missing = [i for i in (probed or sorted(joints)) if i not in heard]

@@ -30,6 +30,8 @@ from array import array
 from collections.abc import Callable
 from typing import Any
 
+from humanoid_prime.drivers.erob.objects import IDENTITY
+from humanoid_prime.drivers.ethercat.registers import SII_IDENTITY
 from humanoid_prime.virtual.ring.drive import Cia402State
 from humanoid_prime.virtual.ring.firmware import AlState
 from humanoid_prime.virtual.ring.frames import (
@@ -393,6 +395,16 @@ class EmulatorServer:
 
     def _op_silence(self, position: int, silent: bool = True) -> None:
         self._slave(position).set_silent(bool(silent))
+
+    def _op_identity(self, position: int, product_code: int | None = None, revision: int | None = None) -> None:
+        """From the next ring scan on, present another product code or revision (SII and 0x1018), as a drive of
+        another model or firmware does."""
+        slave = self._slave(position)
+        _, product_word, revision_word = SII_IDENTITY
+        for word, sub, value in ((product_word, 2, product_code), (revision_word, 3, revision)):
+            if value is not None:
+                struct.pack_into("<I", slave.esc.sii, 2 * word, int(value))
+                slave.drive.od.set(IDENTITY, sub, int(value))
 
     def _op_fault(self, position: int, code: int, latched: bool = False) -> None:
         self._slave(position).drive.fault(int(code), latched=bool(latched))

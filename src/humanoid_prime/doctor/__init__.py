@@ -1,0 +1,1 @@
+"""The doctor: checks of the host, the buses and the robot before anything moves, each with its fix."""

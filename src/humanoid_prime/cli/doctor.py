@@ -36,6 +36,20 @@ def backends(text: str) -> tuple[str, ...]:
     return tuple(b for b in BACKENDS if b in names)
 
 
+def folder(text: str) -> Path:
+    """argparse type of a folder that exists."""
+    if not text or not Path(text).expanduser().is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is no folder")
+    return Path(text).expanduser()
+
+
+def input_file(text: str) -> Path:
+    """argparse type of a file that exists."""
+    if not text or not Path(text).expanduser().is_file():
+        raise argparse.ArgumentTypeError(f"{text!r} is no file")
+    return Path(text).expanduser()
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "doctor", help=summary("doctor"),
@@ -54,9 +68,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--op", action="store_true",
                    help="go further: take the ring to OP as a bring-up does (drives disabled), and enable each "
                         "wrist limp (zero gains, zero current) to hear it; nothing is commanded to move")
-    p.add_argument("--last-run", metavar="FILE", type=Path,
+    p.add_argument("--last-run", metavar="FILE", type=input_file,
                    help="the summary a run wrote (--summary): what it flagged, and the files it used")
-    p.add_argument("--erob-config-dir", metavar="DIR", type=Path,
+    p.add_argument("--erob-config-dir", metavar="DIR", type=folder,
                    help="check the per-slave eRob configs folded there (prime calibration fold --output DIR) "
                         "against the calibration")
     add_emulation_options(p, "check the virtual Prime (both buses emulated, in a private network namespace) "
@@ -67,6 +81,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from humanoid_prime.doctor.robot import read_summary
     from humanoid_prime.doctor.run import DoctorOptions, run_doctor
 
     emulation = ring_options(args)  # refuses the emulator's options without --emulate
@@ -74,8 +89,10 @@ def run(args: argparse.Namespace) -> int:
             and Path(args.summary).absolute().resolve() == Path(args.last_run).absolute().resolve():
         raise PrimeError(f"--summary {args.summary} is also --last-run, which this command reads; writing it would "
                          "destroy it: name another file")
+    summary = read_summary(args.last_run) if args.last_run is not None else None
     options = DoctorOptions(files=args.config, backends=args.backends, interface=args.interface, rate=args.rate,
-                            op=args.op, last_run=args.last_run, folded_dir=args.erob_config_dir)
+                            op=args.op, last_run=args.last_run, last_run_summary=summary,
+                            folded_dir=args.erob_config_dir)
     with contextlib.ExitStack() as stack:
         if args.emulate:
             from humanoid_prime.virtual.harness import attach_virtual_prime, enter_private_netns

@@ -201,13 +201,20 @@ def mailbox_check(hardware: HardwareConfig) -> Check:
                                     "(drivers/ethercat/mailbox.py) beside SOEM")
 
 
+def _grouped(found: dict[str, list[DriveReading]]) -> str:
+    """``{finding: drives}`` -> "ring 0 (a), ring 1 (b): finding; ...", each finding once."""
+    return "; ".join(f"{_joints(drives)}: {finding}" for finding, drives in found.items())
+
+
 def rated_torque_check(readings: Sequence[DriveReading], hardware: HardwareConfig) -> Check:
-    wrong, unknown, unread, agree = [], [], [], []
+    wrong: dict[str, list[DriveReading]] = {}
+    doubtful: dict[str, list[DriveReading]] = {}
+    agree = []
     for r in readings:
         kt, gear = hardware.erob_kt[r.joint], hardware.erob_gear[r.joint]
         said = f"Kt {kt:g} N*m/mA, gear {gear:g} (joints.erob_kt/erob_gear)"
         if r.rated_torque_nm is None or r.rated_torque_nm == 0:
-            unread.append(f"ring {r.slave.position} ({r.joint}) {r.rated_problem or '0x6076 reads 0'}")
+            doubtful.setdefault(f"0x6076 {r.rated_problem or 'reads 0'}", []).append(r)
             continue
         expected = model_for(kt, gear)
         reading = model_reading(r.rated_torque_nm)
@@ -215,18 +222,17 @@ def rated_torque_check(readings: Sequence[DriveReading], hardware: HardwareConfi
             agree.append(r)
         elif expected is not None:
             like = f", what an {reading.name} reports" if reading is not None else ""
-            wrong.append(f"ring {r.slave.position} ({r.joint}) reads {r.rated_torque_nm:g} N*m{like}; the hardware "
-                         f"file's {said} is an {expected.name}, which reports {expected.rated_torque_nm:g}")
+            wrong.setdefault(f"reads {r.rated_torque_nm:g} N*m{like}; the hardware file's {said} is an "
+                             f"{expected.name}, which reports {expected.rated_torque_nm:g}", []).append(r)
         else:
-            unknown.append(f"ring {r.slave.position} ({r.joint}) reads {r.rated_torque_nm:g} N*m; no tested model "
-                           f"has {said}")
+            doubtful.setdefault(f"reads {r.rated_torque_nm:g} N*m; no tested model has {said}", []).append(r)
     if wrong:
-        return failed(GROUP, "rated_torque", "; ".join(wrong),
-                      f"set this joint's joints.erob_kt and joints.erob_gear in {hardware.path} to its model's "
+        return failed(GROUP, "rated_torque", _grouped(wrong),
+                      f"set each such joint's joints.erob_kt and joints.erob_gear in {hardware.path} to its model's "
                       "(the label on the actuator), or fit the model the file says")
-    if unread or unknown:
+    if doubtful:
         known = ", ".join(f"{m.name} {m.rated_torque_nm:g} N*m" for m in EROB_MODELS)
-        return warned(GROUP, "rated_torque", "; ".join(unread + unknown) + f" (tested models: {known})",
+        return warned(GROUP, "rated_torque", f"{_grouped(doubtful)} (tested models: {known})",
                       "check each actuator's label against joints.erob_kt/erob_gear")
     values = sorted({r.rated_torque_nm for r in agree if r.rated_torque_nm is not None})
     return passed(GROUP, "rated_torque", f"0x6076 reads {', '.join(f'{v:g}' for v in values)} N*m on "

@@ -19,7 +19,7 @@ from humanoid_prime.config.controllers import ControllersConfig, load_controller
 from humanoid_prime.config.location import ConfigFile, ConfigFiles
 from humanoid_prime.config.robot import JointSpec, Robot, load_robot
 from humanoid_prime.doctor.report import Check, failed, not_run, passed, warned
-from humanoid_prime.doctor.system import member
+from humanoid_prime.doctor.system import Json, member
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.ethercat.fold import check_foldable, fold_slave_config
 from humanoid_prime.drivers.ethercat.slave_config import SlaveConfig, load_slave_config, parse_slave_config
@@ -158,16 +158,27 @@ def directions_check(robot: Robot, calibration: Calibration, folded_dir: Path | 
     return passed(GROUP, "directions", text)
 
 
-def last_run_check(path: Path | None, files: ConfigFiles) -> Check:
-    if path is None:
-        return passed(GROUP, "last_run", "no run summary named (a run writes one with --summary FILE; the doctor "
-                                         "reads it with --last-run FILE)")
+def read_summary(path: Path) -> Json:
+    """The run summary at ``path`` (what a run's ``--summary`` wrote); PrimeError, in one line, when it is none."""
     try:
         summary: object = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        return failed(GROUP, "last_run", f"{path} is no run summary: {exc}", "name the file a run's --summary wrote")
+    except OSError as exc:
+        raise PrimeError(f"--last-run {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise PrimeError(f"--last-run {path} is no run summary (not JSON: {exc}); name the file a run's --summary "
+                         "wrote") from None
     if not isinstance(summary, dict) or "ok" not in summary:
-        return failed(GROUP, "last_run", f"{path} is no run summary (no 'ok')", "name the file a run's --summary wrote")
+        raise PrimeError(f"--last-run {path} is no run summary (it has no 'ok'); name the file a run's --summary "
+                         "wrote")
+    return summary
+
+
+def last_run_check(path: Path | None, summary: Json | None, files: ConfigFiles) -> Check:
+    """The last run's summary (``read_summary``): whether it ended ok, what it flagged, and the files that changed
+    since it read them."""
+    if path is None or summary is None:
+        return passed(GROUP, "last_run", "no run summary named (a run writes one with --summary FILE; the doctor "
+                                         "reads it with --last-run FILE)")
     listed = summary.get("problems")
     problems = [str(p) for p in listed] if isinstance(listed, list) else []
     raised = summary.get("faults")
@@ -192,7 +203,7 @@ def last_run_check(path: Path | None, files: ConfigFiles) -> Check:
     return passed(GROUP, "last_run", text)
 
 
-def robot_checks(files: ConfigFiles, *, last_run: Path | None = None,
+def robot_checks(files: ConfigFiles, *, last_run: Path | None = None, summary: Json | None = None,
                  folded_dir: Path | None = None) -> tuple[list[Check], Loaded]:
     checks, loaded = config_checks(files)
     if loaded.calibration is not None and loaded.robot is not None:
@@ -200,5 +211,5 @@ def robot_checks(files: ConfigFiles, *, last_run: Path | None = None,
                    directions_check(loaded.robot, loaded.calibration, folded_dir)]
     else:
         checks += [not_run(GROUP, name, "the calibration did not load") for name in ("calibration", "directions")]
-    checks.append(last_run_check(last_run, files))
+    checks.append(last_run_check(last_run, summary, files))
     return checks, loaded

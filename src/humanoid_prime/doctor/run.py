@@ -19,7 +19,7 @@ from humanoid_prime.doctor import ethercat as ethercat_checks
 from humanoid_prime.doctor import host, latency
 from humanoid_prime.doctor.report import Check, Report, not_run
 from humanoid_prime.doctor.robot import robot_checks
-from humanoid_prime.doctor.system import System, ip_link, ip_links, nic_state
+from humanoid_prime.doctor.system import Json, System, ip_link, ip_links, nic_state
 
 BACKENDS = ("ec", "can")
 NIC_CHECKS = ("nic", "nic.up", "nic.carrier", "nic.speed", "cap_net_raw", "nic.addresses", "nic.users", "nic.traffic",
@@ -38,6 +38,7 @@ class DoctorOptions:
     rate: float | None = None  # --rate: a period to judge the latency against, and the ring's with --op
     op: bool = False
     last_run: Path | None = None
+    last_run_summary: Json | None = None  # robot.read_summary of last_run
     folded_dir: Path | None = None
     root: Path = Path("/")
     watch_s: float = host.LISTEN_S
@@ -108,7 +109,8 @@ def run_doctor(options: DoctorOptions) -> Report:
     report.context["files"] = files.as_dict()
     system = System(options.root)
     began = time.monotonic()
-    robot_part, loaded = robot_checks(files, last_run=options.last_run, folded_dir=options.folded_dir)
+    robot_part, loaded = robot_checks(files, last_run=options.last_run, summary=options.last_run_summary,
+                                      folded_dir=options.folded_dir)
     report.seconds["robot"] = time.monotonic() - began
     report.add(*robot_part)
     hardware = loaded.robot.hardware if loaded.robot is not None else None

@@ -5,7 +5,7 @@ STAMP := $(VENV)/.installed
 # would), check_urdf, a browser for the view, cyclictest, which the 1 kHz benchmark runs after its loop to
 # measure the machine's own real-time latency, and stress-ng, which loads the cores for the tests that must hold
 # on a busy robot computer.
-TEST_DEBS := g++ cmake liburdfdom-tools chromium rt-tests stress-ng
+TEST_DEBS := g++ cmake liburdfdom-tools chromium rt-tests stress-ng libcap2-bin
 ROS_DEBS := g++ cmake
 BENCH_DEBS := rt-tests
 # The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.

@@ -13,3 +13,4 @@ TARGET_LOAD_PERCENT = 5.0  # Sito bus at 50 Hz
 TARGET_DDS_ADDED_TICK_US = 30.0  # what --dds adds to the median tick
 TARGET_RECORD_ADDED_TICK_US = 20.0  # what --record adds to the median tick
 TARGET_STARTUP_S = 0.3  # prime --help, info, switch, decode from the shell to their exit (median)
+TARGET_DOCTOR_S = 10.0  # prime doctor on the healthy virtual Prime: start-up plus checks

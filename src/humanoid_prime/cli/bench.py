@@ -36,6 +36,8 @@ SUITES: dict[str, tuple[str, str, str]] = {
             "the simulated Prime at 50 Hz and 1 kHz with and without DDS, and a subscriber process"),
     "record": ("humanoid_prime.bench.dds", "bench_record",
                "the simulated Prime at 50 Hz and 1 kHz with and without --record"),
+    "doctor": ("humanoid_prime.bench.doctor", "bench_doctor",
+               "prime doctor --emulate --backends ec,can, twice: start-up plus checks, beside the emulator's start"),
 }
 
 _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": operator.ge}
@@ -50,6 +52,8 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
     ("dds", "added_tick_us_median"): ("dds", "floors.tap_added_tick_us_median",
                                       "handing each tick to the publisher thread, nothing published"),
+    ("doctor", "seconds.median"): ("doctor", "floors.seconds",
+                                   "python -c pass twice (it re-executes in its namespace) + its fixed waits (s)"),
     ("khz", "overruns"): ("khz", "floors.machine_late_wakeups",
                           "the machine's own: real-time wake-ups a period or more late, all CPUs, "
                           "in as long again right after the run (cyclictest)"),
@@ -81,6 +85,9 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("dds", "overruns_with_dds", "<=", 0, "DDS: overruns at 50 Hz and 1 kHz"),
     ("record", "added_tick_us_median", "<=", b.TARGET_RECORD_ADDED_TICK_US,
      "recording: added tick cost (us, median, worst rate)"),
+    ("doctor", "seconds.median", "<=", b.TARGET_DOCTOR_S,
+     "prime doctor on the healthy virtual Prime: start-up plus checks (s, median)"),
+    ("doctor", "seconds.max", "<=", b.TARGET_DOCTOR_S, "prime doctor: start-up plus checks (s, worst run)"),
 )
 
 

@@ -81,23 +81,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from humanoid_prime.doctor.robot import read_summary
-    from humanoid_prime.doctor.run import DoctorOptions, run_doctor
-
     emulation = ring_options(args)  # refuses the emulator's options without --emulate
     if args.summary is not None and args.last_run is not None \
             and Path(args.summary).absolute().resolve() == Path(args.last_run).absolute().resolve():
         raise PrimeError(f"--summary {args.summary} is also --last-run, which this command reads; writing it would "
                          "destroy it: name another file")
+    if args.emulate:  # before the checks' imports: this process is replaced by one in a namespace of its own
+        from humanoid_prime.virtual.harness import enter_private_netns
+
+        enter_private_netns()
+    from humanoid_prime.doctor.robot import read_summary
+    from humanoid_prime.doctor.run import DoctorOptions, run_doctor
+
     summary = read_summary(args.last_run) if args.last_run is not None else None
     options = DoctorOptions(files=args.config, backends=args.backends, interface=args.interface, rate=args.rate,
                             op=args.op, last_run=args.last_run, last_run_summary=summary,
                             folded_dir=args.erob_config_dir)
     with contextlib.ExitStack() as stack:
         if args.emulate:
-            from humanoid_prime.virtual.harness import attach_virtual_prime, enter_private_netns
+            from humanoid_prime.virtual.harness import attach_virtual_prime
 
-            enter_private_netns()
             began = time.monotonic()
             virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth,
                                            ring_options=emulation)
@@ -113,4 +116,3 @@ def run(args: argparse.Namespace) -> int:
             print(line)
     write_summary(args, report.as_dict())
     return 0 if report.ok else 1
-

@@ -8,7 +8,8 @@ faults, runs the doctor as its own process with ``--summary OUT/report.json`` an
 in ``rc`` and ``stdout``. Stages: ``healthy``; ``no-carrier`` (the veth's peer down); ``no-cap-net-raw`` (the doctor
 run under ``capsh --drop=cap_net_raw``); ``identity@N`` and ``revision@N`` (ring N presents another product code or
 firmware revision); ``fault@N`` (ring N faults with 0x8500, which its history keeps); ``silent-wrist``
-(left_wrist_pitch gives no feedback); ``foreign-frames`` (ARP frames on the ring's NIC while the doctor runs);
+(left_wrist_pitch gives no feedback); ``foreign-frames`` (ARP frames reach the ring's NIC from the cable, sent on
+the veth's other end, while the doctor runs);
 ``rated-torque`` (every eRob reports 31 N*m, as an eRob80H120I does).
 """
 
@@ -32,7 +33,7 @@ ARP_REQUEST = bytes.fromhex("ffffffffffff" "020000000001" "0806" "00010800060400
 
 
 def send_frames(interface: str, stop: threading.Event) -> None:
-    """An ARP request on ``interface`` every 20 ms until ``stop``: a host's network stack at work on the NIC."""
+    """An ARP request on ``interface`` every 20 ms until ``stop``: a device on the cable that is no EtherCAT slave."""
     with socket.socket(socket.AF_PACKET, socket.SOCK_RAW) as raw:
         raw.bind((interface, 0))
         while not stop.wait(0.02):
@@ -68,7 +69,7 @@ def main(argv: list[str]) -> int:
             elif kind == "silent-wrist":
                 virtual.control.call("sito", joint="left_wrist_pitch", silent=True)
             elif kind == "foreign-frames":
-                sender = threading.Thread(target=send_frames, args=(virtual.master_interface, stop), daemon=True)
+                sender = threading.Thread(target=send_frames, args=(virtual.emulator_interface, stop), daemon=True)
                 sender.start()
             elif kind not in ("healthy", "rated-torque"):
                 raise SystemExit(f"unknown stage {stage!r}")

@@ -69,8 +69,8 @@ def healthy(configs, tmp_path_factory) -> Run:
 
 @pytest.fixture(scope="module")
 def ring_faults(configs, tmp_path_factory) -> Run:
-    """Another device at ring 3, another firmware at ring 6, a fault at ring 2, frames of a network stack on the
-    ring's NIC, and every drive reporting another model's rated torque."""
+    """Another device at ring 3, another firmware at ring 6, a fault at ring 2, frames from a device on the ring's
+    cable that is no EtherCAT slave, and every drive reporting another model's rated torque."""
     return rig(tmp_path_factory.mktemp("ring"), configs, "identity@3,revision@6,fault@2,foreign-frames,rated-torque",
                "--backends", "ec")
 
@@ -134,10 +134,11 @@ def test_a_rated_torque_of_another_model_is_found(ring_faults):
     assert check["found"].count("eRob80H120I") == 1  # one finding, once, for the nine drives that read it
 
 
-def test_a_foreign_frame_on_the_ring_s_nic_is_found_with_how_to_keep_the_network_stack_off(ring_faults):
+def test_a_foreign_frame_on_the_ring_s_nic_is_found_with_where_to_look(ring_faults):
     check = ring_faults.check("host.nic.traffic")
-    assert check["verdict"] == "fail" and re.search(r"\d+ ARP sent", check["found"])
-    assert "nmcli device set" in check["fix"]
+    assert check["verdict"] == "fail" and re.search(r"\d+ ARP received", check["found"])
+    assert check["fix"].startswith("find what else is on ecm")
+    assert ring_faults.check("host.nic.users")["verdict"] == "pass"  # no program of this host sent them
 
 
 def test_a_silent_wrist_is_found_by_the_limp_probe_and_the_others_answer(operated):

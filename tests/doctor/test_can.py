@@ -12,7 +12,7 @@ from doubles.kernel import can_link, link
 from doubles.sito import wait_until
 from humanoid_prime.doctor import can as doctor_can
 from humanoid_prime.doctor.report import Verdict
-from humanoid_prime.drivers.sito.protocol import FrameType
+from humanoid_prime.drivers.sito.protocol import MODE_MIT, Enable, FrameType, Gains, pack_frame
 from humanoid_prime.virtual.plant import InertiaPlant
 from humanoid_prime.virtual.sito import SitoEmulator
 
@@ -131,3 +131,21 @@ def test_without_op_nothing_is_sent_to_a_wrist(robot, channel, wrists):
     checks = doctor_can.can_checks(robot.hardware, interface="virtual", channel=channel, op=False, seconds=0.2)
     assert all(not c.ran for c in checks if c.name.startswith("wrist."))
     assert sum(sum(m.received.values()) for m in wrists.motors.values()) == 0
+
+
+def test_wrists_that_already_stream_are_not_probed_for_the_probe_s_disable_would_stop_them(robot, channel, wrists):
+    driver = can.Bus(interface="virtual", channel=channel)  # a program that drives the wrists
+    try:
+        for frame in (Gains(0.0, 0.0), Enable(MODE_MIT, (10, 10, 0))):
+            ident, data = pack_frame(22, frame)
+            driver.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data))
+        wait_until(lambda: wrists.motors[22].feedback_sent > 0, "id 22 streaming")
+        checks = by_name(doctor_can.can_checks(robot.hardware, interface="virtual", channel=channel, op=True,
+                                               seconds=0.3))
+    finally:
+        driver.shutdown()
+    assert checks["wrist.left_wrist_roll"].verdict is Verdict.PASS
+    assert "answered unprompted" in checks["wrist.left_wrist_roll"].found
+    assert not checks["wrist.left_wrist_pitch"].ran and "not probed" in checks["wrist.left_wrist_pitch"].found
+    assert wrists.motors[22].enabled and wrists.motors[22].received[FrameType.DISABLE] == 0
+    assert all(sum(wrists.motors[i].received.values()) == 0 for i in (23, 38, 39))

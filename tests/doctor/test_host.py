@@ -159,12 +159,20 @@ def test_another_process_with_a_raw_socket_on_the_nic_fails_naming_it(tmp_path):
                            "0000000000000000 3 3 0003 5 1 0 0 515151\n",
         "proc/4321/comm": "ethercat_master\n", "proc/4321/fd/7": "->socket:[424242]",
         "proc/555/comm": "tcpdump\n", "proc/555/fd/3": "->socket:[515151]"})
-    owners = system.socket_owners(system.packet_sockets(3))
-    assert owners == {4321: "ethercat_master"}
-    check = host.sockets_check("enp3s0", owners)
+    holders = system.socket_holders(system.packet_sockets(3))
+    assert holders == {"socket:[424242]": {(4321, "ethercat_master")}}  # not tcpdump's, on interface 5
+    check = host.sockets_check("enp3s0", holders, own_pid=1)
     assert check.verdict is Verdict.FAIL
-    assert check.found.startswith("pid 4321 (ethercat_master) has a raw socket on enp3s0")
+    assert check.found.startswith("pid 4321 (ethercat_master): a raw socket on enp3s0")
     assert check.fix.startswith("stop it (kill 4321)")
+    assert host.sockets_check("enp3s0", holders, own_pid=4321).verdict is Verdict.PASS  # the doctor's own
+
+
+def test_a_raw_socket_no_process_holds_is_the_kernel_s_and_fails_too(tmp_path):
+    system = write_tree(tmp_path, {"proc/net/packet": "sk RefCnt Type Proto Iface R Rmem User Inode\n"
+                                                      "0000000000000000 3 3 0003 3 1 0 0 777\n"})
+    check = host.sockets_check("enp3s0", system.socket_holders(system.packet_sockets(3)), own_pid=1)
+    assert check.verdict is Verdict.FAIL and "an IgH master's generic driver?" in check.found
 
 
 def test_addresses_on_the_ring_s_nic_warn_with_how_to_take_them_off():

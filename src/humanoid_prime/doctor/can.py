@@ -2,7 +2,8 @@
 ``ip -details -statistics -json link show`` reports it, and each Sito wrist of the hardware file heard on it.
 
 A Sito has no read request (``drivers/sito/probe.py``): without ``--op`` the doctor only listens, and a wrist that
-nothing has enabled stays silent, so it is reported as not checked. ``--op`` enables each wrist limp for the probe.
+nothing has enabled stays silent, so it is reported as not checked. ``--op`` enables each wrist limp for the probe,
+unless wrists already stream unprompted: then a program drives the bus, and the probe's disable would stop them.
 """
 
 from __future__ import annotations
@@ -112,8 +113,10 @@ def txqueue_check(channel: str, txqueuelen: object, wrists: int) -> Check:
 
 
 def wrist_checks(mit_joints: dict[str, int], heard: dict[int, Counter[str]], *, probed: bool,
-                 seconds: float) -> list[Check]:
-    """One line per wrist of the hardware file: heard, or not (and whether it was probed)."""
+                 seconds: float, busy: bool = False) -> list[Check]:
+    """One line per wrist of the hardware file: heard, or not, and whether it was probed. ``busy``: the probe was
+    asked for but not sent, the wrists already streaming (something drives them; the probe's disable would stop
+    them)."""
     checks = []
     how = "to the limp probe" if probed else "unprompted"
     for joint, can_id in mit_joints.items():
@@ -127,6 +130,10 @@ def wrist_checks(mit_joints: dict[str, int], heard: dict[int, Counter[str]], *, 
                                               "probe enabled it",
                                  f"check the wrist's power and cable; `prime can discover --probe --ids 1-255` finds "
                                  f"it if its id is not {can_id} (joints.mit_joints)"))
+        elif busy:
+            checks.append(not_run(GROUP, name, f"id {can_id} not heard, and not probed: other wrists stream "
+                                               "unprompted, so a program drives this bus and the probe's disable "
+                                               "would stop its wrists", "run the doctor with that program stopped"))
         else:
             checks.append(not_run(GROUP, name, f"id {can_id} not heard in {seconds:g} s; a Sito sends only once "
                                                "enabled and has no read request",
@@ -159,9 +166,12 @@ def can_checks(hardware: HardwareConfig, *, interface: str | None = None, channe
     except PrimeError as exc:
         return checks + [failed(GROUP, "bus", str(exc))]
     try:
-        heard = listen(bus, seconds, enable=wrists.values() if op else ())
+        heard = listen(bus, seconds)  # unprompted first: wrists that stream are driven by something already
+        probe = op and not heard
+        if probe:
+            heard = listen(bus, seconds, enable=wrists.values())
     except can.CanError as exc:
         return checks + [failed(GROUP, "bus", f"CAN error on {channel}: {exc}", _fix_up(channel, hardware.can.bitrate))]
     finally:
         bus.shutdown()
-    return checks + wrist_checks(wrists, heard, probed=op, seconds=seconds)
+    return checks + wrist_checks(wrists, heard, probed=probe, seconds=seconds, busy=op and not probe)

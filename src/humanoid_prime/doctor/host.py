@@ -124,15 +124,23 @@ def addresses_check(interface: str, found: list[str] | None) -> Check:
                   f"keep the network manager off it: nmcli device set {interface} managed no")
 
 
-def sockets_check(interface: str, owners: dict[int, str]) -> Check:
-    """Other processes with a raw socket on the ring's NIC (an IgH master, another SOEM, a capture)."""
-    others = {pid: comm for pid, comm in owners.items() if pid != os.getpid()}
+def sockets_check(interface: str, holders: dict[str, set[tuple[int, str]]], own_pid: int | None = None) -> Check:
+    """Raw sockets on the ring's NIC that are not this process's: another master (SOEM, a running prime, an IgH
+    master's generic driver) or a capture. A scan beside a running master would take its slaves to INIT."""
+    own = os.getpid() if own_pid is None else own_pid
+    others = {inode: held for inode, held in holders.items() if not any(pid == own for pid, _ in held)}
     if not others:
-        return passed(GROUP, "nic.users", f"no other process has a raw socket on {interface}")
-    who = ", ".join(f"pid {pid} ({comm})" for pid, comm in sorted(others.items()))
-    return failed(GROUP, "nic.users", f"{who} has a raw socket on {interface}: a second master, or a capture, on "
-                                      "the ring", f"stop it (kill {' '.join(map(str, sorted(others)))}), or give "
-                                                  "Prime a NIC of its own")
+        return passed(GROUP, "nic.users", f"no other program has a raw socket on {interface}")
+    named = sorted({who for held in others.values() for who in held})
+    parts = [f"pid {pid} ({comm})" for pid, comm in named]
+    unseen = sum(1 for held in others.values() if not held)
+    if unseen:
+        parts.append(f"{unseen} socket{'s' if unseen > 1 else ''} of no process this user may see (the kernel's: "
+                     "an IgH master's generic driver?)")
+    fix = (f"stop it (kill {' '.join(str(pid) for pid, _ in named)})" if named else "stop that master") \
+        + ", or give Prime a NIC of its own"
+    return failed(GROUP, "nic.users", f"{'; '.join(parts)}: a raw socket on {interface}, a second master or a "
+                                      "capture on the ring", fix)
 
 
 @dataclass

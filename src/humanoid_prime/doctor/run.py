@@ -72,14 +72,15 @@ class _Watch:
 
 
 def _nic(report: Report, system: System, capabilities: int | None, interface: str, key: str,
-         watch_s: float) -> _Watch | None:
-    """The checks of the ring's NIC; the watch on it when the ring can be scanned (then the EtherCAT checks run)."""
+         watch_s: float) -> tuple[_Watch | None, bool]:
+    """The checks of the ring's NIC; the watch on it where a raw socket may be opened, and whether the ring may be
+    scanned (nothing else holds the NIC)."""
     nic = nic_state(interface, *ip_link(interface), system)
     nic_part = host.nic_checks(nic, key, ip_links())
     raw = host.raw_socket_check(capabilities, interface)
     report.add(*nic_part, raw)
     if nic.exists:
-        users = host.sockets_check(interface, system.socket_owners(system.packet_sockets(nic.ifindex or -1)))
+        users = host.sockets_check(interface, system.socket_holders(system.packet_sockets(nic.ifindex or -1)))
         report.add(host.addresses_check(interface, host.addresses(interface)), users,
                    host.irq_check(interface, system.interrupts_of(interface), system.isolated_cpus()))
     else:
@@ -87,12 +88,18 @@ def _nic(report: Report, system: System, capabilities: int | None, interface: st
         report.add(not_run(host.GROUP, "nic.addresses", f"no interface {interface!r}"), users,
                    not_run(host.GROUP, "nic.irq", f"no interface {interface!r}"))
     usable = all(c.verdict.value != "fail" for c in nic_part)
-    if usable and raw.verdict.value == "pass":
-        return _Watch(interface, watch_s, users)
-    why = f"{interface} is not usable" if not usable else "no CAP_NET_RAW"
-    report.checks.insert(report.checks.index(users) + 1, not_run(host.GROUP, "nic.traffic", why))
-    report.add(*(not_run(ethercat_checks.GROUP, name, why) for name in ethercat_checks.CHECKS))
-    return None
+    if not usable or raw.verdict.value != "pass":
+        why = f"{interface} is not usable" if not usable else "no CAP_NET_RAW"
+        report.checks.insert(report.checks.index(users) + 1, not_run(host.GROUP, "nic.traffic", why))
+        report.add(*(not_run(ethercat_checks.GROUP, name, why) for name in ethercat_checks.CHECKS))
+        return None, False
+    if users.verdict.value == "fail":  # a master may be running the ring: a scan would take its slaves to INIT
+        report.add(*(not_run(ethercat_checks.GROUP, name, f"another program has a raw socket on {interface} "
+                                                          "(host nic.users); scanning beside a running master "
+                                                          "would take its slaves to INIT")
+                     for name in ethercat_checks.CHECKS))
+        return _Watch(interface, watch_s, users), False
+    return _Watch(interface, watch_s, users), True
 
 
 def _timed(report: Report, stage: str, work: Callable[[], list[Check]]) -> list[Check]:
@@ -116,6 +123,7 @@ def run_doctor(options: DoctorOptions) -> Report:
     hardware = loaded.robot.hardware if loaded.robot is not None else None
     capabilities, rights = host.host_rights(system)
     watch: _Watch | None = None
+    scan = False
     interface = ""
     if "ec" in options.backends and hardware is None:
         report.add(*(not_run(host.GROUP, name, "the hardware file did not load") for name in NIC_CHECKS))
@@ -123,7 +131,7 @@ def run_doctor(options: DoctorOptions) -> Report:
         interface = options.interface or hardware.ethercat.interface
         key = options.interface_source if options.interface else f"buses.ethercat.interface in {hardware.path}"
         report.context["ethercat_interface"] = interface
-        watch = _nic(report, system, capabilities, interface, key, options.watch_s)
+        watch, scan = _nic(report, system, capabilities, interface, key, options.watch_s)
     report.add(*rights, *host.kernel_checks(system))
     periods = []
     if loaded.controllers is not None:
@@ -132,7 +140,7 @@ def run_doctor(options: DoctorOptions) -> Report:
     if options.rate is not None:
         periods.append((1.0 / options.rate, f"--rate {options.rate:g} Hz"))
     report.add(*_timed(report, "latency", lambda: [_latency(options, periods)]))
-    if watch is not None and hardware is not None:
+    if scan and hardware is not None:
         update_rate = options.rate or (loaded.controllers.update_rate if loaded.controllers else 50.0)
         bringup_rate = loaded.controllers.bringup_rate if loaded.controllers else DEFAULT_BRINGUP_RATE_HZ
         report.add(*_timed(report, "ethercat", lambda: ethercat_checks.ethercat_checks(

@@ -121,23 +121,23 @@ class System:
                     inodes.add(f"socket:[{fields[8]}]")
         return inodes
 
-    def socket_owners(self, inodes: set[str]) -> dict[int, str]:
-        """pid -> command name of every process holding one of these sockets."""
-        owners: dict[int, str] = {}
+    def socket_holders(self, inodes: set[str]) -> dict[str, set[tuple[int, str]]]:
+        """Each of these sockets -> the processes (pid, command name) that hold it; none where no process this user
+        may look into holds it (the kernel's own, an IgH master's generic driver, or another user's)."""
+        holders: dict[str, set[tuple[int, str]]] = {inode: set() for inode in inodes}
         if not inodes:
-            return owners
-        proc = self.root / "proc"
+            return holders
         with contextlib.suppress(OSError):
-            for entry in proc.iterdir():
+            for entry in (self.root / "proc").iterdir():
                 if not entry.name.isdigit():
                     continue
                 with contextlib.suppress(OSError):
                     for fd in (entry / "fd").iterdir():
                         with contextlib.suppress(OSError):
-                            if os.readlink(fd) in inodes:
-                                owners[int(entry.name)] = (self.value(f"proc/{entry.name}/comm") or "?")
-                                break
-        return owners
+                            target = os.readlink(fd)
+                            if target in holders:
+                                holders[target].add((int(entry.name), self.value(f"proc/{entry.name}/comm") or "?"))
+        return holders
 
     # ---------------------------------------------------------------------------------------------- process
     def capabilities(self) -> int | None:

@@ -19,10 +19,9 @@ from humanoid_prime.cli._common import (
     ring_options,
     write_summary,
 )
+from humanoid_prime.doctor import BACKENDS
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S
 from humanoid_prime.errors import PrimeError
-
-BACKENDS = ("ec", "can")
 
 
 def backends(text: str) -> tuple[str, ...]:

@@ -39,6 +39,7 @@ from humanoid_prime.errors import PrimeError
 GROUP = "ethercat"
 SOFTWARE_VERSION = 0x100A  # manufacturer software version (CiA 301), a visible string
 SDO_TIMEOUT_S = 0.7
+PRE_OP_RATE_HZ = 50.0  # what the master is made with where no rate is known: nothing runs cyclic in PRE-OP
 OP_CYCLES = 5  # exchanges in OP before the drives' statuswords are read from the process data
 CHECKS = ("scan", "identity", "revision", "al_status", "dc", "mailbox", "rated_torque", "errors", "history")
 
@@ -196,7 +197,8 @@ def dc_check(readings: Sequence[DriveReading]) -> Check:
 
 
 def mailbox_check(hardware: HardwareConfig) -> Check:
-    """Which layer does the bring-up's mailbox work. The one place the doctor reports it."""
+    """Which layer does the bring-up's mailbox work, as ``hardware`` decides it: the one place the doctor reports
+    it (today there is one layer, and no key chooses another)."""
     return passed(GROUP, "mailbox", "the bring-up's SDOs go through Prime's request-matched CoE layer "
                                     "(drivers/ethercat/mailbox.py) beside SOEM")
 
@@ -273,14 +275,15 @@ def history_check(readings: Sequence[DriveReading]) -> Check:
 
 
 # --------------------------------------------------------------------------------------------------------- the run
-def ethercat_checks(hardware: HardwareConfig, interface: str, *, update_rate: float, bringup_rate: float,
+def ethercat_checks(hardware: HardwareConfig, interface: str, *, rates: tuple[float, float] | None,
                     op: bool = False) -> list[Check]:
     """Every EtherCAT check, against the ring on ``interface``: scanned into PRE-OP, read, and left in INIT (with
-    ``op``, first taken to OP with the drives disabled)."""
+    ``op``, first taken to OP at ``rates``, SYNC0's and the bring-up loop's, with the drives disabled)."""
     from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 
     expected = expected_ring(hardware.erob_slaves)
     joints = {e.position: e.joint for e in expected}
+    update_rate, bringup_rate = rates or (PRE_OP_RATE_HZ, PRE_OP_RATE_HZ)
     master = SoemMaster(interface, update_rate=update_rate, bringup_rate=bringup_rate)
     with master:
         try:
@@ -306,7 +309,9 @@ def ethercat_checks(hardware: HardwareConfig, interface: str, *, update_rate: fl
             checks += [rated_torque_check(readings, hardware), errors_check(readings), history_check(readings)]
         else:
             checks += [not_run(GROUP, name, "no eRob to ask") for name in ("rated_torque", "errors", "history")]
-        if op:
+        if op and rates is None:
+            checks.append(not_run(GROUP, "op", "the controllers file did not load: no rate to run the ring at"))
+        elif op:
             checks.append(op_check(master, expected, checks[1].verdict.value == "pass", joints))
     return checks
 

@@ -13,18 +13,18 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.location import ConfigFiles
+from humanoid_prime.doctor import BACKENDS, host, latency
 from humanoid_prime.doctor import can as can_checks
 from humanoid_prime.doctor import ethercat as ethercat_checks
-from humanoid_prime.doctor import host, latency
 from humanoid_prime.doctor.report import Check, Report, not_run
 from humanoid_prime.doctor.robot import robot_checks
 from humanoid_prime.doctor.system import Json, System, ip_link, ip_links, nic_state
+from humanoid_prime.runtime.session import default_bringup_rate
 
-BACKENDS = ("ec", "can")
 NIC_CHECKS = ("nic", "nic.up", "nic.carrier", "nic.speed", "cap_net_raw", "nic.addresses", "nic.users", "nic.traffic",
               "nic.irq")
-DEFAULT_BRINGUP_RATE_HZ = 1000.0
 
 
 @dataclass
@@ -141,10 +141,9 @@ def run_doctor(options: DoctorOptions) -> Report:
         periods.append((1.0 / options.rate, f"--rate {options.rate:g} Hz"))
     report.add(*_timed(report, "latency", lambda: [_latency(options, periods)]))
     if scan and hardware is not None:
-        update_rate = options.rate or (loaded.controllers.update_rate if loaded.controllers else 50.0)
-        bringup_rate = loaded.controllers.bringup_rate if loaded.controllers else DEFAULT_BRINGUP_RATE_HZ
+        rates = _ring_rates(options.rate, loaded.controllers)
         report.add(*_timed(report, "ethercat", lambda: ethercat_checks.ethercat_checks(
-            hardware, interface, update_rate=update_rate, bringup_rate=bringup_rate, op=options.op)))
+            hardware, interface, rates=rates, op=options.op)))
     if watch is not None:
         traffic = _timed(report, "watch", lambda: [watch.check()])[0]
         report.checks.insert(report.checks.index(watch.after) + 1, traffic)
@@ -158,6 +157,15 @@ def run_doctor(options: DoctorOptions) -> Report:
                 hardware, interface=options.can_interface, channel=options.can_channel, op=options.op,
                 seconds=options.listen_s)))
     return report
+
+
+def _ring_rates(rate: float | None, controllers: ControllersConfig | None) -> tuple[float, float] | None:
+    """(SYNC0 rate, bring-up loop rate) a bring-up takes the ring to OP at: ``--rate``, else the controllers file's
+    update_rate, and the bring-up loop as a bring-up derives it; None where the controllers file did not load."""
+    if controllers is None:
+        return None
+    update_rate = rate or controllers.update_rate
+    return update_rate, default_bringup_rate(controllers.bringup_rate, update_rate)
 
 
 def _latency(options: DoctorOptions, periods: list[tuple[float, str]]) -> Check:

@@ -91,6 +91,12 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
             data = yaml.load(text, Loader=_FastUniqueKeyLoader)  # noqa: S506 (a SafeLoader)
         except yaml.YAMLError:
             data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow: no mark, a position in the text
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - text.rfind("\n", 0, exc.position)
+        what = "a NUL byte (0x00)" if exc.character == 0 else f"the character U+{exc.character:04X}"
+        raise ConfigError(path, f"line {line}, column {column}", f"{what}, which YAML does not allow (a binary file, "
+                          "or one a crash left unfinished?)", "remove it, or restore the file from a copy") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -28,12 +28,18 @@ def _duplicate_top_key(path: Path, source: Path) -> None:
     path.write_text(text + "\n" + first + "\n")
 
 
+def _nul_bytes(path: Path, source: Path) -> None:
+    first, rest = source.read_bytes().split(b"\n", 1)
+    path.write_bytes(first + b"\n\x00\x00" + rest)  # as a crash can leave a file: a run of NULs
+
+
 CORRUPTIONS = {  # kind -> (how to make the file, what the error line must contain)
     "binary": (lambda p, s: p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe\x00garbage"), "not UTF-8 text"),
     "empty": (lambda p, s: _text(p, ""), "empty"),
     "a list": (lambda p, s: _text(p, "- a\n- b\n"), "expected a mapping"),
     "bad syntax": (lambda p, s: _text(p, "joints: [\n  - a\n"), "malformed YAML"),
     "duplicate key": (_duplicate_top_key, "duplicate key"),
+    "NUL bytes": (_nul_bytes, "line 2, column 1: a NUL byte"),
     "missing": (lambda p, s: None, "file not found"),
     "a folder": (lambda p, s: p.mkdir(), "is a folder"),
 }

@@ -143,6 +143,37 @@ def test_discover_probe_fails_when_a_probed_id_is_silent(emulated, capsys):
     assert "not heard: 23 (left_wrist_pitch)" in capsys.readouterr().out
 
 
+def test_discover_counts_only_frames_the_protocol_accepts_as_a_wrist_s_feedback(capsys):
+    # 0xB2 on wrist 22 in 3 bytes and in a 64-byte CAN FD frame (monitor calls both INVALID); wrist 23 is healthy
+    channel = f"sito-cli-{uuid.uuid4().hex}"
+    ident = 0x050616B2
+    frames = [can.Message(arbitration_id=ident, is_extended_id=True, data=bytes(3)),
+              can.Message(arbitration_id=ident, is_extended_id=True, is_fd=True, data=bytes(64)),
+              message(23, Feedback2(0, 10430))]
+    assert all("INVALID" in describe(f, TA40_50, JOINTS) for f in frames[:2])
+    stop = threading.Event()
+
+    def stream() -> None:
+        with can.Bus(interface="virtual", channel=channel) as bus:
+            while not stop.wait(0.005):
+                for frame in frames:
+                    bus.send(frame)
+
+    sender = threading.Thread(target=stream)
+    sender.start()
+    try:
+        code = main(["can", "discover", "--interface", "virtual", "--channel", channel, "--seconds", "1",
+                     "--json"])
+    finally:
+        stop.set()
+        sender.join()
+    result = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert [entry["can_id"] for entry in result["heard"]] == [23]
+    assert [(e["can_id"], e["joint"]) for e in result["invalid"]] == [(22, "left_wrist_roll")]
+    assert {"can_id": 22, "joint": "left_wrist_roll"} in result["not_heard"]
+
+
 def test_bad_ids_exit_with_one_line(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["can", "discover", "--probe", "--ids", "22,abc"])

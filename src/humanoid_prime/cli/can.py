@@ -37,6 +37,7 @@ from humanoid_prime.drivers.sito.protocol import (
     Enable,
     Feedback1,
     Feedback2,
+    Frame,
     FrameType,
     Gains,
     InvalidFrame,
@@ -72,10 +73,8 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
         return f"foreign id 0x{msg.arbitration_id:X} dlc {msg.dlc}: {raw}"
     can_id, frame_type = split
     who = f"id {can_id:3d} {joints.get(can_id, '(not configured)'):<18s}"
-    if msg.is_remote_frame:
-        return f"{who} INVALID remote frame type 0x{frame_type:02X}"
     try:
-        frame = parse(frame_type, bytes(msg.data[:msg.dlc]))
+        frame = _parse(frame_type, msg)
     except InvalidFrame as exc:
         return f"{who} INVALID type 0x{frame_type:02X} ({exc}): {raw}"
     match frame:
@@ -103,6 +102,11 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
         case UndecodedFeedback(kind, payload):
             text = f"feedback 0x{kind:02X} (layout undocumented, ignored by the driver): {payload.hex(' ')}"
     return f"{who} {text}"
+
+
+def _parse(frame_type: int, msg: can.Message) -> Frame:
+    """The Sito frame ``msg`` carries (its id in the Sito range); InvalidFrame as the protocol judges it."""
+    return parse(frame_type, bytes(msg.data[:msg.dlc]), remote=msg.is_remote_frame, fd=msg.is_fd)
 
 
 def _ids(text: str) -> list[int]:
@@ -245,6 +249,7 @@ def _discover(args: argparse.Namespace) -> int:
     joints = _joint_names(hardware)
     probed = (args.ids or sorted(joints)) if args.probe else []
     heard: dict[int, Counter[str]] = {}
+    invalid: dict[int, tuple[int, str]] = {}  # CAN id -> (frames, the last one's problem)
     try:
         for can_id in probed:
             for frame in (Gains(0.0, 0.0), Enable(MODE_MIT, (PROBE_FEEDBACK_MS, PROBE_FEEDBACK_MS, 0)),
@@ -260,8 +265,15 @@ def _discover(args: argparse.Namespace) -> int:
             if msg is None or msg.is_error_frame or not msg.is_extended_id:
                 continue
             split = split_arbitration_id(msg.arbitration_id)
-            if split is not None and split[1] in MOTOR_FRAME_TYPES:
-                heard.setdefault(split[0], Counter())[FrameType(split[1]).name.lower()] += 1
+            if split is None or split[1] not in MOTOR_FRAME_TYPES:
+                continue  # foreign traffic, or a host's frame
+            can_id, frame_type = split
+            try:
+                _parse(frame_type, msg)
+            except InvalidFrame as exc:  # a motor's frame type that breaks the protocol: no wrist's feedback
+                invalid[can_id] = (invalid[can_id][0] + 1 if can_id in invalid else 1, str(exc))
+                continue
+            heard.setdefault(can_id, Counter())[FrameType(frame_type).name.lower()] += 1
     except can.CanError as exc:
         raise PrimeError(f"CAN error on {args.channel or hardware.can.channel}: {exc}; check that the interface "
                          "is up") from None
@@ -278,6 +290,8 @@ def _discover(args: argparse.Namespace) -> int:
         "probed": probed,
         "heard": [{"can_id": i, "joint": joints.get(i), "frames": dict(heard[i])} for i in sorted(heard)],
         "not_heard": [{"can_id": i, "joint": joints.get(i)} for i in missing],
+        "invalid": [{"can_id": i, "joint": joints.get(i), "frames": invalid[i][0], "problem": invalid[i][1]}
+                    for i in sorted(invalid)],
     }
     if args.json:
         print_json(result)
@@ -286,6 +300,10 @@ def _discover(args: argparse.Namespace) -> int:
             frames = ", ".join(f"{k} x{v}" for k, v in sorted(entry["frames"].items()))
             joint = entry["joint"] or f"not in {hardware.path.name}"
             print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  {frames}")
+        for entry in result["invalid"]:
+            joint = entry["joint"] or f"not in {hardware.path.name}"
+            print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  INVALID x{entry['frames']} "
+                  f"({entry['problem']}): not counted as feedback")
         if missing:
             names = ", ".join(f"{i} ({joints.get(i, 'unconfigured')})" for i in missing)
             print(f"not heard: {names}")

@@ -151,6 +151,7 @@ ARGUMENT_CASES = [  # (id, arguments, what the line must contain)
     ("can ids open range", ["can", "discover", "--ids", "1-", "--interface", "virtual"], "--ids"),
     ("can ids out of range", ["can", "discover", "--ids", "300", "--interface", "virtual"], "--ids"),
     ("can seconds inf", ["can", "monitor", "--seconds", "inf", "--interface", "virtual"], "--seconds"),
+    ("emulate on a NIC that does not exist", ["emulate", "ec", "--interface", "nonexistent0"], "nonexistent0"),
     ("sdo write of a negative untyped value", ["ec", "sdo", "write", "3", "0x2382:01", "-5",
                                                "--interface", "nonexistent0"], "-5"),
     ("sdo address garbage", ["ec", "sdo", "read", "3", "0x23zz:01", "--interface", "nonexistent0"], "0x23zz"),

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -185,6 +187,16 @@ def test_missing_interface_is_one_line_and_exit_1(capsys):
     assert main(["can", "monitor", "--channel", "can_missing0", "--seconds", "0.1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "ip link set can_missing0 up" in err[0]
+
+
+@pytest.mark.parametrize("action", ["monitor", "discover", "emulate"])
+def test_a_channel_that_cannot_be_opened_is_one_line_and_nothing_after_it(action):
+    # python-can's "UdpMulticastBus was not properly shut down" used to follow, from the half-opened bus
+    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "can", action, "--interface", "udp_multicast",
+                           "--channel", "notanip", "--seconds", "0.1"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert proc.stderr.startswith("prime can: cannot open CAN channel 'notanip' (udp_multicast)")
+    assert proc.stderr.count("\n") == 1, proc.stderr
 
 
 def test_emulate_answers_as_the_wrists(channel, tmp_path):

@@ -174,9 +174,10 @@ def _summary_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace) -> tuple[HardwareConfig, can.BusABC, SitoModel]:
-    hardware = load_hardware(args.hardware)
-    bus = open_bus(hardware, interface=args.interface, channel=args.channel)
-    return hardware, bus, sito_model(args.model)
+    """The hardware file, the bus, the Sito model; the bus last, so nothing can fail between it and the caller's
+    ``finally: bus.shutdown()``."""
+    hardware, model = load_hardware(args.hardware), sito_model(args.model)
+    return hardware, open_bus(hardware, interface=args.interface, channel=args.channel), model
 
 
 def _emulate(args: argparse.Namespace) -> int:
@@ -186,24 +187,23 @@ def _emulate(args: argparse.Namespace) -> int:
     if interface == "socketcan" and not channel.startswith("vcan"):
         raise PrimeError(f"refusing to emulate wrists on SocketCAN channel {channel!r}, where real ones may live; "
                          "use a vcan channel or a virtual interface, e.g. --interface udp_multicast")
-    bus = open_bus(robot.hardware, interface=args.interface, channel=args.channel)
     plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
-    emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
-    ids = ", ".join(str(i) for i in emulator.motors)
-    # python-can's virtual bus lives in one process: another command cannot hear these wrists.
-    reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
-             "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
-    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
-    deadline = time.monotonic() + args.duration if args.duration else float("inf")
-    emulator.start()
-    try:
-        while time.monotonic() < deadline:
-            time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
-    except KeyboardInterrupt:
-        pass
-    finally:
-        emulator.stop()
-        bus.shutdown()
+    with open_bus(robot.hardware, interface=args.interface, channel=args.channel) as bus:  # shut down on every path
+        emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
+        ids = ", ".join(str(i) for i in emulator.motors)
+        # python-can's virtual bus lives in one process: another command cannot hear these wrists.
+        reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
+                 "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
+        print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
+        deadline = time.monotonic() + args.duration if args.duration else float("inf")
+        emulator.start()
+        try:
+            while time.monotonic() < deadline:
+                time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+        except KeyboardInterrupt:
+            pass
+        finally:
+            emulator.stop()
     enabled = [str(i) for i, m in emulator.motors.items() if m.enabled]
     write_summary(args, {"interface": interface, "channel": channel, "ids": list(emulator.motors),
                          "seconds": round(emulator.time, 3), "enabled_at_end": [int(i) for i in enabled],

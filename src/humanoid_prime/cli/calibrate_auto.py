@@ -275,6 +275,8 @@ class TerminalOperator:
     """The person at the robot, at this terminal (cbreak mode): Enter moves a joint, any other key skips it; a key
     pressed while a joint moves stops the run (``on_key``); questions are answered with y or n."""
 
+    answered_by = "the operator's answer"
+
     def __init__(self, console: Console, stream: Any = None) -> None:
         self.console = console
         self.stream = stream if stream is not None else sys.stdin

@@ -257,7 +257,8 @@ def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: An
     options = BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True,
                              emulated=virtual is not None, hardware_file=args.hardware,
                              controllers_file=args.controllers, control_socket=args.socket,
-                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict())
+                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict(),
+                             state_folder=args.config.folder.state)
     if virtual is not None:
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel

@@ -45,6 +45,11 @@ class RobotFolder:
     named: bool  # the user named it (it must exist to be read)
     robot: str | None
 
+    @property
+    def state(self) -> Path:
+        """Where commands keep what they must remember about this robot between runs (created when written)."""
+        return self.path / "state"
+
     def init_command(self) -> str:
         return "prime config init" + (f" --robot {self.robot}" if self.robot else "")
 

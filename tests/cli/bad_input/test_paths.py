@@ -6,6 +6,8 @@ was."""
 
 from __future__ import annotations
 
+import subprocess
+
 import pytest
 
 from cli.bad_input.harness import check
@@ -146,3 +148,22 @@ def test_a_calibration_whose_own_file_cannot_be_written_is_refused_before_it_mov
     # no --output: the result goes to the robot's own file, in a folder where nothing can be created
     monkeypatch.setenv("PRIME_CONFIG_DIR", "/proc")
     check(argv, folder, monkeypatch, needles=("the calibration", "in /proc", "--output"))
+
+
+@pytest.fixture
+def immutable(folder):
+    """A folder of the case's whose files can be read and replaced by nobody, root included (chattr +i)."""
+    place = folder / "immutable"
+    place.mkdir()
+    (place / "prime_hardware.yaml").write_bytes(bundled("prime_hardware.yaml").read_bytes())
+    if subprocess.run(["chattr", "+i", str(place)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available on this file system")
+    yield place
+    subprocess.run(["chattr", "-i", str(place)], check=True)
+
+
+def test_apply_into_a_hardware_file_that_cannot_be_replaced_is_refused_before_it_moves_a_joint(folder, immutable,
+                                                                                               monkeypatch):
+    hardware = immutable / "prime_hardware.yaml"
+    check(["calibrate", "--auto", "--sim", "--apply", "--hardware", str(hardware), "--output", "{tmp}/cal.yaml"],
+          folder, monkeypatch, needles=("--apply's hardware file", f"in {immutable}"))

@@ -12,6 +12,7 @@ from doubles.kernel import can_link, link
 from doubles.sito import wait_until
 from humanoid_prime.doctor import can as doctor_can
 from humanoid_prime.doctor.report import Verdict
+from humanoid_prime.drivers.sito.probe import Heard
 from humanoid_prime.drivers.sito.protocol import MODE_MIT, Enable, FrameType, Gains, pack_frame
 from humanoid_prime.virtual.plant import InertiaPlant
 from humanoid_prime.virtual.sito import SitoEmulator
@@ -82,19 +83,28 @@ def test_an_ethernet_link_named_as_the_can_channel_fails():
 
 
 def test_wrists_unheard_without_a_probe_are_not_checked_and_name_the_probe():
-    checks = doctor_can.wrist_checks({"left_wrist_roll": 22}, {}, probed=False, seconds=0.5)
+    checks = doctor_can.wrist_checks({"left_wrist_roll": 22}, Heard(), probed=False, seconds=0.5)
     assert not checks[0].ran
     assert "a Sito sends only once enabled" in checks[0].found and checks[0].fix.startswith("prime doctor --op")
 
 
 def test_a_wrist_silent_to_the_probe_fails_and_others_heard_are_named():
     checks = doctor_can.wrist_checks({"left_wrist_roll": 22, "left_wrist_pitch": 23},
-                                     {22: Counter(feedback1=5, feedback2=5), 40: Counter(feedback2=1)},
+                                     Heard({22: Counter(feedback1=5, feedback2=5), 40: Counter(feedback2=1)}),
                                      probed=True, seconds=0.5)
     assert [(c.name, c.verdict) for c in checks] == [("wrist.left_wrist_roll", Verdict.PASS),
                                                       ("wrist.left_wrist_pitch", Verdict.FAIL),
                                                       ("wrist.others", Verdict.WARN)]
     assert "id 23 is silent" in checks[1].found and "--ids 1-255" in checks[1].fix
+
+
+def test_a_wrist_heard_only_in_frames_the_protocol_refuses_fails_with_the_problem():
+    checks = doctor_can.wrist_checks({"left_wrist_roll": 22}, Heard(invalid={22: (3, "3 data bytes, every Sito frame "
+                                                                                  "has 8")}),
+                                     probed=True, seconds=0.5)
+    assert checks[0].verdict is Verdict.FAIL
+    assert checks[0].found == ("id 22 sent 3 frames the Sito protocol refuses (3 data bytes, every Sito frame has 8) "
+                               "and no valid feedback")
 
 
 @pytest.fixture

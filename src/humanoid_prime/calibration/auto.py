@@ -130,6 +130,8 @@ def distal_first(robot: Robot, joints: Sequence[str]) -> list[str]:
 class Operator(Protocol):
     """The person (or the virtual robot's scripted operator) at the robot."""
 
+    answered_by: str  # where an answer comes from, in the report: "the operator's answer", ...
+
     def begin(self, joints: Sequence[str]) -> None:
         """Before anything moves (on the robot: the e-stop reminder)."""
 
@@ -146,6 +148,8 @@ class Operator(Protocol):
 
 class Unattended:
     """No one at the robot: every joint may move, no question can be answered."""
+
+    answered_by = "nobody"
 
     def begin(self, joints: Sequence[str]) -> None:
         pass
@@ -857,8 +861,8 @@ class AutoCalibration:
             spec = self.robot.joints[i]
             outcome.calibration = flip_direction(outcome.calibration, spec.lower, spec.upper)
         outcome.status = "done"
-        outcome.direction_source = "operator"
-        outcome.message = ("direction from the operator's answer"
+        outcome.direction_source = self.operator.answered_by
+        outcome.message = (f"direction from {self.operator.answered_by}"
                            + ("" if same else ": it is wired the other way round, the flip is written"))
         self._know(i, outcome.calibration)
 

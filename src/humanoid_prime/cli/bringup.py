@@ -123,7 +123,8 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
         duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
         erob_config_dir=args.erob_config_dir, control_socket=args.socket, update_rate=args.rate,
-        realtime=args.realtime, cpu=args.cpu, uncalibrated=args.uncalibrated, config=args.config.as_dict())
+        realtime=args.realtime, cpu=args.cpu, uncalibrated=args.uncalibrated, config=args.config.as_dict(),
+        state_folder=args.config.folder.state)
 
 
 def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:

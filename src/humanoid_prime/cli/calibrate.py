@@ -54,6 +54,7 @@ from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.location import write_target
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.run import run_loop
 from humanoid_prime.runtime.session import (
     BACKENDS,
@@ -139,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
     if virtual and args.output is None and not args.verify and not virtual_may_replace(target, hardware):
         raise PrimeError(f"{target} holds offsets measured on a physical robot, and this run is on a virtual one "
                          "(--emulate or --sim): give --output FILE for its result")
+    _check_results_writable(args, target)
     # The prior is the file being replaced, never identity: a run cannot weaken what it did not sweep.
     prior = load_calibration(hardware, args.prior or (target if target.is_file() else args.calibration))
     checked = load_calibration(hardware, args.calibration) if args.verify else None
@@ -159,6 +161,18 @@ def run(args: argparse.Namespace) -> int:
     asked = tuple(_joint_list(args.joints)) or (
         tuple(_joint_list(args.scripted)) if args.scripted and args.scripted != "all" else run_joints)
     return _calibrate(args, prior, target, asked, emulator)
+
+
+def _check_results_writable(args: argparse.Namespace, target: Path) -> None:
+    """Refuse, before anything moves, a run whose result could not be written at its end: the calibration
+    (the robot's own file where --output is not given), and with --apply the hardware file."""
+    ends = [] if args.verify else [(target, "the calibration", "give --output FILE")]
+    if args.apply:
+        ends.append((Path(args.hardware), "--apply's hardware file", "give --hardware FILE"))
+    for path, what, fix in ends:
+        problem = output_problem(path)
+        if problem is not None:
+            raise PrimeError(f"{what} could not be written at the end of this run: {problem}; {fix} where it can")
 
 
 def _run_joints(robot: Robot, backends: str) -> tuple[str, ...]:
@@ -243,7 +257,8 @@ def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: An
     options = BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True,
                              emulated=virtual is not None, hardware_file=args.hardware,
                              controllers_file=args.controllers, control_socket=args.socket,
-                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict())
+                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict(),
+                             state_folder=args.config.folder.state)
     if virtual is not None:
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel

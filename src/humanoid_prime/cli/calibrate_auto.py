@@ -200,7 +200,8 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         # The loop real-time as in bringup: on a busy machine a loop at normal priority misses the ring's frames.
         options = BringupOptions(backends=args.backends, calibration=identity_from(prior), broadcaster_only=True,
                                  realtime=True, emulated=virtual is not None, hardware_file=args.hardware,
-                                 controllers_file=args.controllers, control_socket=args.socket)
+                                 controllers_file=args.controllers, control_socket=args.socket,
+                                 state_folder=args.config.folder.state)
         if virtual is not None:
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
@@ -274,6 +275,8 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
 class TerminalOperator:
     """The person at the robot, at this terminal (cbreak mode): Enter moves a joint, any other key skips it; a key
     pressed while a joint moves stops the run (``on_key``); questions are answered with y or n."""
+
+    answered_by = "the operator's answer"
 
     def __init__(self, console: Console, stream: Any = None) -> None:
         self.console = console

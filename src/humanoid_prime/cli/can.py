@@ -35,6 +35,7 @@ from humanoid_prime.drivers.sito.protocol import (
     Enable,
     Feedback1,
     Feedback2,
+    Frame,
     Gains,
     InvalidFrame,
     SitoModel,
@@ -67,10 +68,8 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
         return f"foreign id 0x{msg.arbitration_id:X} dlc {msg.dlc}: {raw}"
     can_id, frame_type = split
     who = f"id {can_id:3d} {joints.get(can_id, '(not configured)'):<18s}"
-    if msg.is_remote_frame:
-        return f"{who} INVALID remote frame type 0x{frame_type:02X}"
     try:
-        frame = parse(frame_type, bytes(msg.data[:msg.dlc]))
+        frame = _parse(frame_type, msg)
     except InvalidFrame as exc:
         return f"{who} INVALID type 0x{frame_type:02X} ({exc}): {raw}"
     match frame:
@@ -98,6 +97,11 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
         case UndecodedFeedback(kind, payload):
             text = f"feedback 0x{kind:02X} (layout undocumented, ignored by the driver): {payload.hex(' ')}"
     return f"{who} {text}"
+
+
+def _parse(frame_type: int, msg: can.Message) -> Frame:
+    """The Sito frame ``msg`` carries (its id in the Sito range); InvalidFrame as the protocol judges it."""
+    return parse(frame_type, bytes(msg.data[:msg.dlc]), remote=msg.is_remote_frame, fd=msg.is_fd)
 
 
 def _ids(text: str) -> list[int]:
@@ -165,9 +169,10 @@ def _summary_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace) -> tuple[HardwareConfig, can.BusABC, SitoModel]:
-    hardware = load_hardware(args.hardware)
-    bus = open_bus(hardware, interface=args.interface, channel=args.channel)
-    return hardware, bus, sito_model(args.model)
+    """The hardware file, the bus, the Sito model; the bus last, so nothing can fail between it and the caller's
+    ``finally: bus.shutdown()``."""
+    hardware, model = load_hardware(args.hardware), sito_model(args.model)
+    return hardware, open_bus(hardware, interface=args.interface, channel=args.channel), model
 
 
 def _emulate(args: argparse.Namespace) -> int:
@@ -177,24 +182,23 @@ def _emulate(args: argparse.Namespace) -> int:
     if interface == "socketcan" and not channel.startswith("vcan"):
         raise PrimeError(f"refusing to emulate wrists on SocketCAN channel {channel!r}, where real ones may live; "
                          "use a vcan channel or a virtual interface, e.g. --interface udp_multicast")
-    bus = open_bus(robot.hardware, interface=args.interface, channel=args.channel)
     plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
-    emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
-    ids = ", ".join(str(i) for i in emulator.motors)
-    # python-can's virtual bus lives in one process: another command cannot hear these wrists.
-    reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
-             "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
-    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
-    deadline = time.monotonic() + args.duration if args.duration else float("inf")
-    emulator.start()
-    try:
-        while time.monotonic() < deadline:
-            time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
-    except KeyboardInterrupt:
-        pass
-    finally:
-        emulator.stop()
-        bus.shutdown()
+    with open_bus(robot.hardware, interface=args.interface, channel=args.channel) as bus:  # shut down on every path
+        emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
+        ids = ", ".join(str(i) for i in emulator.motors)
+        # python-can's virtual bus lives in one process: another command cannot hear these wrists.
+        reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
+                 "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
+        print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
+        deadline = time.monotonic() + args.duration if args.duration else float("inf")
+        emulator.start()
+        try:
+            while time.monotonic() < deadline:
+                time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+        except KeyboardInterrupt:
+            pass
+        finally:
+            emulator.stop()
     enabled = [str(i) for i, m in emulator.motors.items() if m.enabled]
     write_summary(args, {"interface": interface, "channel": channel, "ids": list(emulator.motors),
                          "seconds": round(emulator.time, 3), "enabled_at_end": [int(i) for i in enabled],
@@ -240,19 +244,21 @@ def _discover(args: argparse.Namespace) -> int:
     joints = _joint_names(hardware)
     probed = (args.ids or sorted(joints)) if args.probe else []
     try:
-        heard = listen(bus, args.duration, enable=probed)
+        listened = listen(bus, args.duration, enable=probed)
     except can.CanError as exc:
         raise PrimeError(f"CAN error on {args.channel or hardware.can.channel}: {exc}; check that the interface "
                          "is up") from None
     finally:
         bus.shutdown()
-
+    heard, invalid = listened.frames, listened.invalid
     missing = [i for i in (probed or sorted(joints)) if i not in heard]
     result = {
         "channel": args.channel or hardware.can.channel,
         "probed": probed,
         "heard": [{"can_id": i, "joint": joints.get(i), "frames": dict(heard[i])} for i in sorted(heard)],
         "not_heard": [{"can_id": i, "joint": joints.get(i)} for i in missing],
+        "invalid": [{"can_id": i, "joint": joints.get(i), "frames": invalid[i][0], "problem": invalid[i][1]}
+                    for i in sorted(invalid)],
     }
     if args.json:
         print_json(result)
@@ -261,6 +267,10 @@ def _discover(args: argparse.Namespace) -> int:
             frames = ", ".join(f"{k} x{v}" for k, v in sorted(entry["frames"].items()))
             joint = entry["joint"] or f"not in {hardware.path.name}"
             print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  {frames}")
+        for entry in result["invalid"]:
+            joint = entry["joint"] or f"not in {hardware.path.name}"
+            print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  INVALID x{entry['frames']} "
+                  f"({entry['problem']}): not counted as feedback")
         if missing:
             names = ", ".join(f"{i} ({joints.get(i, 'unconfigured')})" for i in missing)
             print(f"not heard: {names}")

@@ -8,15 +8,13 @@ unless wrists already stream unprompted: then a program drives the bus, and the 
 
 from __future__ import annotations
 
-from collections import Counter
-
 import can
 
 from humanoid_prime.config.hardware import HardwareConfig
 from humanoid_prime.doctor.report import Check, failed, not_run, passed, warned
 from humanoid_prime.doctor.system import Json, ip_link, member, strings
 from humanoid_prime.drivers.sito.bus import open_bus
-from humanoid_prime.drivers.sito.probe import listen
+from humanoid_prime.drivers.sito.probe import Heard, listen
 from humanoid_prime.errors import PrimeError
 
 GROUP = "can"
@@ -112,8 +110,8 @@ def txqueue_check(channel: str, txqueuelen: object, wrists: int) -> Check:
     return passed(GROUP, "txqueuelen", f"{channel} queues {txqueuelen} frames")
 
 
-def wrist_checks(mit_joints: dict[str, int], heard: dict[int, Counter[str]], *, probed: bool,
-                 seconds: float, busy: bool = False) -> list[Check]:
+def wrist_checks(mit_joints: dict[str, int], heard: Heard, *, probed: bool, seconds: float,
+                 busy: bool = False) -> list[Check]:
     """One line per wrist of the hardware file: heard, or not, and whether it was probed. ``busy``: the probe was
     asked for but not sent, the wrists already streaming (something drives them; the probe's disable would stop
     them)."""
@@ -121,10 +119,16 @@ def wrist_checks(mit_joints: dict[str, int], heard: dict[int, Counter[str]], *, 
     how = "to the limp probe" if probed else "unprompted"
     for joint, can_id in mit_joints.items():
         name = f"wrist.{joint}"
-        frames = heard.get(can_id)
+        frames = heard.frames.get(can_id)
         if frames:
             counted = ", ".join(f"{count} {kind}" for kind, count in sorted(frames.items()))
             checks.append(passed(GROUP, name, f"id {can_id} answered {how}: {counted} in {seconds:g} s"))
+        elif can_id in heard.invalid:
+            count, problem = heard.invalid[can_id]
+            checks.append(failed(GROUP, name, f"id {can_id} sent {count} frames the Sito protocol refuses ({problem}) "
+                                              "and no valid feedback",
+                                 "check the wrist's firmware and that no other device uses its id "
+                                 "(`prime can monitor` shows each frame)"))
         elif probed:
             checks.append(failed(GROUP, name, f"id {can_id} is silent: no feedback {seconds:g} s after the limp "
                                               "probe enabled it",
@@ -139,7 +143,7 @@ def wrist_checks(mit_joints: dict[str, int], heard: dict[int, Counter[str]], *, 
                                                "enabled and has no read request",
                                   "prime doctor --op (enables each wrist limp for the probe: zero gains, zero current, "
                                   "disabled after)"))
-    strangers = sorted(set(heard) - set(mit_joints.values()))
+    strangers = sorted(set(heard.frames) - set(mit_joints.values()))
     if strangers:
         checks.append(warned(GROUP, "wrist.others", f"ids {', '.join(map(str, strangers))} heard on the bus, not in "
                                                     "joints.mit_joints", "give each wrist its id in joints.mit_joints"))
@@ -167,7 +171,7 @@ def can_checks(hardware: HardwareConfig, *, interface: str | None = None, channe
         return checks + [failed(GROUP, "bus", str(exc))]
     try:
         heard = listen(bus, seconds)  # unprompted first: wrists that stream are driven by something already
-        probe = op and not heard
+        probe = op and not heard.frames
         if probe:
             heard = listen(bus, seconds, enable=wrists.values())
     except can.CanError as exc:

@@ -29,6 +29,8 @@ from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 
+from humanoid_prime.calibration.journal import OverrideJournal
+from humanoid_prime.calibration.limp import restore_left
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.controllers import ControllersConfig, check_command_limits, load_controllers
 from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SITO_BLOCK
@@ -58,6 +60,7 @@ if TYPE_CHECKING:
     from humanoid_prime.drivers.sito.system import SitoSystem
 
 BACKENDS = tuple(BACKEND_BLOCKS)
+BUS_READY_S = 5.0  # the longest a run waits for its ring to carry SDOs (as the impedance manager does)
 MOVING_MODES = (Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE)  # modes whose commands drive joints to targets
 
 
@@ -87,6 +90,8 @@ class BringupOptions:
     cpu: int | None = None  # (with realtime) pin the loop thread to this CPU
     uncalibrated: bool = False  # on the robot, allow the modes that move joints with an identity calibration
     config: dict[str, dict[str, object]] | None = None  # the files used (path, sha256, source), for the reports
+    # the robot's state folder: a drive a killed `prime limp` left limp there is restored once the ring is up
+    state_folder: Path | None = None
 
 
 @dataclass
@@ -388,6 +393,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     session.bringup_seconds = t - plan.began
 
     ethercat = session.ethercat
+    if ethercat is not None and options.state_folder is not None and not options.emulated:
+        _restore_left_overrides(session, options.state_folder)  # before anything arms a gate
     if ethercat is not None and not plan.broadcaster_only:
         master = ethercat.master
         assert master is not None  # opened when the manager started
@@ -399,13 +406,37 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         stack.callback(lambda: session.gate_reset_failures.extend(impedance.close()))
         # The bus is ready and joint states have flowed (the first tick); the worker arms the gate (while the
         # loop already ticks) and follows the mode.
-        impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0,
+        impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=BUS_READY_S,
                         why_not_ready=master.readiness, dropped=ethercat)
         plan.stage("impedance manager started", t)
     if plan.control is not None:
         serve(session, plan.control)
         stack.callback(plan.control.detach)  # answering stops, and limp joints are reset, before teardown
     return session
+
+
+def _restore_left_overrides(session: Session, folder: Path) -> None:
+    """Drives an override left as it made them (``calibration.journal``: a `prime limp` killed outright) on this
+    robot's ring, through this run's control socket or an IgH master, are restored from their records before
+    anything else writes a drive, and each is said on stderr and among the run's faults. An emulated ring is new
+    and is never restored from records (the robot's records stay for the robot)."""
+    control = session.plan.control
+    ways = ["igh", *([f"socket {control.path.absolute()}"] if control is not None else [])]
+    journals = [journal for journal in (OverrideJournal(folder, way) for way in ways) if journal.left()]
+    ethercat = session.ethercat
+    if not journals or ethercat is None:
+        return
+    deadline = time.monotonic() + BUS_READY_S
+    while not ethercat.bus_ready:  # mailbox traffic before every slave is in OP faults a drive
+        if time.monotonic() > deadline:
+            raise PrimeError(f"drives left limp by a killed `prime limp` wait to be restored, and the ring did not "
+                             f"come up within {BUS_READY_S:g} s to restore them")
+        time.sleep(0.005)
+    assert ethercat.master is not None  # opened when the manager started
+    for journal in journals:
+        for position, line in restore_left(ethercat.master, journal):
+            print(line, file=sys.stderr, flush=True)
+            session.record_fault(f"limp/ring{position}", line, Level.WARN)
 
 
 def serve(session: Session, server: ControlServer) -> None:

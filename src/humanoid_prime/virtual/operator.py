@@ -146,6 +146,8 @@ class WatchingOperator:
     move, and answers the direction question as a person watching the robot does, from the joint's true motion
     (``true_angles()``: every joint's true angle, description frame) seen along the axis the question names."""
 
+    answered_by = "the simulated operator's answer (it saw the joint's true motion; no one was asked)"
+
     def __init__(self, robot: Robot, true_angles: Callable[[], Mapping[str, float]],
                  model: GravityModel | None = None) -> None:
         self.robot = robot

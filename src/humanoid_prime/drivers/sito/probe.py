@@ -12,6 +12,7 @@ import contextlib
 import time
 from collections import Counter
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 
 import can
 
@@ -24,7 +25,9 @@ from humanoid_prime.drivers.sito.protocol import (
     Frame,
     FrameType,
     Gains,
+    InvalidFrame,
     pack_frame,
+    parse,
     split_arbitration_id,
 )
 
@@ -39,12 +42,21 @@ def _send(bus: can.BusABC, can_id: int, frames: Iterable[Frame]) -> None:
         bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
 
 
-def listen(bus: can.BusABC, seconds: float, *, enable: Iterable[int] = ()) -> dict[int, Counter[str]]:
-    """CAN id -> feedback frames heard from it (by frame type) in ``seconds``. The ids in ``enable`` are enabled
-    limp first and disabled again on every exit path (the module's docstring); raises can.CanError when the bus
-    refuses a frame."""
+@dataclass
+class Heard:
+    """What a listen heard: CAN id -> the valid feedback frames from it (by frame type), and CAN id -> (frames, the
+    last one's problem) for frames of a motor's type that the protocol refuses (not counted as feedback)."""
+
+    frames: dict[int, Counter[str]] = field(default_factory=dict)
+    invalid: dict[int, tuple[int, str]] = field(default_factory=dict)
+
+
+def listen(bus: can.BusABC, seconds: float, *, enable: Iterable[int] = ()) -> Heard:
+    """The feedback heard from each CAN id in ``seconds``, each frame judged by the protocol (``parse``). The ids
+    in ``enable`` are enabled limp first and disabled again on every exit path (the module's docstring); raises
+    can.CanError when the bus refuses a frame."""
     probed = list(enable)
-    heard: dict[int, Counter[str]] = {}
+    heard = Heard()
     try:
         for can_id in probed:
             _send(bus, can_id, LIMP_PROBE)
@@ -57,8 +69,16 @@ def listen(bus: can.BusABC, seconds: float, *, enable: Iterable[int] = ()) -> di
             if msg is None or msg.is_error_frame or not msg.is_extended_id:
                 continue
             split = split_arbitration_id(msg.arbitration_id)
-            if split is not None and split[1] in MOTOR_FRAME_TYPES:
-                heard.setdefault(split[0], Counter())[FrameType(split[1]).name.lower()] += 1
+            if split is None or split[1] not in MOTOR_FRAME_TYPES:
+                continue  # foreign traffic, or a host's frame
+            can_id, frame_type = split
+            try:
+                parse(frame_type, bytes(msg.data[:msg.dlc]), remote=msg.is_remote_frame, fd=msg.is_fd)
+            except InvalidFrame as exc:  # a motor's frame type that breaks the protocol: no wrist's feedback
+                count = heard.invalid[can_id][0] + 1 if can_id in heard.invalid else 1
+                heard.invalid[can_id] = (count, str(exc))
+                continue
+            heard.frames.setdefault(can_id, Counter())[FrameType(frame_type).name.lower()] += 1
     finally:
         for can_id in probed:
             with contextlib.suppress(can.CanError):

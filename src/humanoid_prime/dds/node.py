@@ -11,10 +11,10 @@ settings (``domain.py``) and then ``CYCLONEDDS_URI``.
 
 from __future__ import annotations
 
+import contextlib
 import threading
-from typing import Any
 
-from cyclonedds.core import DDSException
+from cyclonedds.core import DDSException, Listener
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.internal import InvalidSample
@@ -46,7 +46,7 @@ def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool
             data_type: type[IdlStruct] | None = None) -> Qos:
     """ROS 2's QoS profile as rmw_cyclonedds maps it: reliable, volatile, keep-last ``depth`` (the default
     profile), or transient-local for a latched topic; with ``data_type``, its type hash in the user data."""
-    policies: list[Any] = [
+    policies: list[object] = [
         Policy.Reliability.Reliable(duration(milliseconds=100)) if reliable else Policy.Reliability.BestEffort,
         Policy.History.KeepLast(depth),
         Policy.DataRepresentation(use_cdrv0_representation=True),  # XCDR1 only, as both ROS 2 middlewares
@@ -64,7 +64,7 @@ def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool
     return Qos(*policies)
 
 
-def take(reader: DataReader, n: int = 64, **conditions: Any) -> list[Any]:
+def take(reader: DataReader, n: int = 64, **conditions: object) -> list[IdlStruct]:
     """Up to ``n`` samples from ``reader``, without the data-less ones (a writer gone away, an instance
     disposed) that DDS also delivers."""
     return [s for s in reader.take(N=n, **conditions) if not isinstance(s, InvalidSample)]
@@ -101,7 +101,7 @@ class _Domains:
 _domains = _Domains()
 
 
-def _gid(entity: Any) -> msg.Gid:
+def _gid(entity: DomainParticipant | DataWriter | DataReader) -> msg.Gid:
     """An entity's ROS 2 GID: its DDS GUID, as every rmw implementation takes it (wire order)."""
     return msg.Gid(data=list(entity.guid.bytes))
 
@@ -142,17 +142,20 @@ class DdsNode:
             self._topics[name] = Topic(self.participant, name, data_type)
         return self._topics[name]
 
-    def writer(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH) -> DataWriter:
+    def writer(self, topic: str, data_type: type[IdlStruct], *, latched: bool = False, depth: int = DEFAULT_DEPTH,
+               reliable: bool = True, listener: Listener | None = None) -> DataWriter:
         writer = DataWriter(self.participant, self._topic(topic, data_type),
-                            qos=ros_qos(latched=latched, depth=depth, data_type=data_type))
+                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type),
+                            listener=listener)
         self._writers.append(writer)
         self.announce()
         return writer
 
-    def reader(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH,
-               reliable: bool = True) -> DataReader:
+    def reader(self, topic: str, data_type: type[IdlStruct], *, latched: bool = False, depth: int = DEFAULT_DEPTH,
+               reliable: bool = True, listener: Listener | None = None) -> DataReader:
         reader = DataReader(self.participant, self._topic(topic, data_type),
-                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type))
+                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type),
+                            listener=listener)
         self._readers.append(reader)
         self.announce()
         return reader
@@ -170,10 +173,18 @@ class DdsNode:
             self._discovery.write(self.entities_info())
 
     def close(self) -> None:
-        """Delete the participant (and with it every reader, writer and topic: peers see them go at once)."""
+        """Leave the graph: first the node (``ros_discovery_info`` without it, then that instance disposed and
+        unregistered, as rmw does when a node is destroyed, so a peer's node list drops it at once), then the
+        participant (with every reader, writer and topic: peers see them go at once)."""
         participant = getattr(self, "participant", None)
         if participant is None:
             return
+        if self._discovery is not None:
+            gone = msg.ParticipantEntitiesInfo(gid=_gid(participant), node_entities_info_seq=[])
+            with contextlib.suppress(DDSException):
+                self._discovery.write(gone)
+                self._discovery.dispose(gone)
+                self._discovery.unregister_instance(gone)
         self._readers.clear()
         self._writers.clear()
         self._topics.clear()

@@ -18,14 +18,13 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, REMOTE_COMMAND, SAFETY_STATUS
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.bridge import MODE_REQUEST
+from humanoid_prime.dds.graph import MODE_REQUEST
 from humanoid_prime.dds.node import DdsNode, take
 
 NODE_NAME = "prime_remote"
@@ -182,7 +181,7 @@ class Tracking:
             np.minimum(bounds[0], values, out=bounds[0])
             np.maximum(bounds[1], values, out=bounds[1])
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, float | int | None]:
         if not self.samples:
             return {"samples": 0, "max_rad": None, "offset_rad": None, "residual_rms_rad": None, "range_ratio": None}
         mean = self._sum / self.samples

@@ -1,5 +1,6 @@
-"""``--dds``: the run is node ``prime`` on the ROS 2 graph (``dds/bridge.py``); its figures in the summary
-under ``dds``."""
+"""``--dds``: the run is node ``prime`` on the ROS 2 graph, as an rclpy node where rclpy can be imported
+(``dds/rclpy_node.py``) or as one bare Cyclone DDS participant (``dds/bridge.py``), ``--ros-backend`` to choose;
+its figures in the summary under ``dds``."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import contextlib
 
 from humanoid_prime.cli._common import add_dds_options, dds_options
 from humanoid_prime.cli.addons import Run, Summary
+from humanoid_prime.control.flags import Level
 
 
 def options(parser: argparse.ArgumentParser) -> None:
@@ -19,16 +21,30 @@ def check(args: argparse.Namespace) -> bool:
 
 
 def attach(run: Run, args: argparse.Namespace, stack: contextlib.ExitStack) -> Summary:
-    from humanoid_prime.dds.bridge import bridge_manager
-
     dds = dds_options(args)
+    assert dds is not None  # check() said the user asked for it
+
+    def log(line: str, level: Level | None) -> None:
+        run.report(line if level is None else f"{level.name.lower()}: {line}")
+
     network = run.host_graph() if run.host_graph is not None else contextlib.nullcontext(True)
     with network as on_host:
-        bridge = bridge_manager(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
-                                request_mode=run.request_mode, epoch_offset=run.epoch_offset,
-                                sim_clock=run.sim_clock, settings=dds.discovery)
+        if dds.backend == "rclpy":
+            from humanoid_prime.dds.rclpy_node import rclpy_bridge
+
+            bridge = rclpy_bridge(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
+                                  request_mode=run.request_mode, switch=run.switch, epoch_offset=run.epoch_offset,
+                                  sim_clock=run.sim_clock, report=log)
+            started = bridge.started()
+        else:
+            from humanoid_prime.dds.bridge import bridge_manager
+
+            bridge = bridge_manager(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
+                                    request_mode=run.request_mode, epoch_offset=run.epoch_offset,
+                                    sim_clock=run.sim_clock, settings=dds.discovery, report=log)
+            started = f"DDS: {dds.describe()}"
     stack.callback(bridge.close)  # off the graph before the run's teardown
     where = "" if on_host else (" (inside the emulation's private network namespace: only processes in it can "
                                 "join; run as root to put the node on this machine's graph)")
-    run.report(f"DDS: {dds.describe()}{where}")
+    run.report(f"{started}{where}")
     return bridge.summary

@@ -220,9 +220,10 @@ def test_the_node_is_announced_with_every_endpoint_and_its_type_hash(manager, br
     (node,) = info.node_entities_info_seq
     assert (node.node_namespace, node.node_name) == ("/", "prime")
     # The endpoints announced are the ones a peer matches on each of Prime's topics (their GUIDs as GIDs).
-    outgoing = {"/prime/joint_states": msg.JointState, "/control_mode": msg.String, "/safety_status": msg.DiagnosticArray,
-                "/diagnostics": msg.DiagnosticArray, "/robot_description": msg.String, "/tf_static": msg.TFMessage,
-                "/tf": msg.TFMessage, "/clock": msg.Clock}
+    outgoing = {"/prime/joint_states": msg.JointState, "/control_mode": msg.String,
+                "/safety_status": msg.DiagnosticArray, "/diagnostics": msg.DiagnosticArray,
+                "/robot_description": msg.String, "/tf_static": msg.TFMessage, "/tf": msg.TFMessage,
+                "/clock": msg.Clock}
     readers = [peer.reader(topic, kind, latched=topic in ("/control_mode", "/safety_status", "/robot_description",
                                                           "/tf_static"), depth=1) for topic, kind in outgoing.items()]
     writers = [peer.writer(MODE_REQUEST, msg.String), peer.writer("/remote_policy_controller/command", msg.MitCommand)]

@@ -38,6 +38,7 @@ from cyclonedds.util import duration
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.tap import SLOTS, TickTap
+from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.domain import Discovery
 from humanoid_prime.dds.graph import MODE_REQUEST, NODE_NAME, GraphBridge, Report
 from humanoid_prime.dds.node import DdsNode, take
@@ -65,22 +66,24 @@ class DdsBridge(GraphBridge):
                          sim_clock=sim_clock, clock=clock, report=report)
         self.node = node
         self._stop = threading.Event()
-        self._writers: dict[str, DataWriter] = {}
-        self._readers: dict[str, DataReader] = {}
+        self._writers: dict[str, DataWriter[IdlStruct]] = {}
         for topic, spec in self.specs.items():
-            listener = self._listener(topic)
             if spec.direction == "out":
                 self._writers[topic] = node.writer(topic, spec.message, latched=spec.latched, depth=spec.depth,
-                                                   listener=listener)
-            else:
-                self._readers[topic] = node.reader(topic, spec.message, latched=spec.latched, depth=spec.depth,
-                                                   listener=listener)
+                                                   listener=self._listener(topic))
+        self._commands: DataReader[msg.MitCommand] | None = None
+        self._mode_requests: DataReader[msg.String] | None = None
+        if control:
+            self._commands = node.reader(self.remote_topic, msg.MitCommand, listener=self._listener(self.remote_topic))
+            self._mode_requests = node.reader(MODE_REQUEST, msg.String, listener=self._listener(MODE_REQUEST))
         self.publish_static()
         self._guard = GuardCondition(node.participant)
         self._waitset = WaitSet(node.participant)
         self._waitset.attach(self._guard)
         mask = SampleState.NotRead | ViewState.Any | InstanceState.Any
-        self._conditions = {topic: ReadCondition(reader, mask) for topic, reader in self._readers.items()}
+        self._conditions = {topic: ReadCondition(reader, mask) for topic, reader in
+                            ((self.remote_topic, self._commands), (MODE_REQUEST, self._mode_requests))
+                            if reader is not None}
         for condition in self._conditions.values():
             self._waitset.attach(condition)
         self._reader = threading.Thread(target=self._read_loop, name="dds-read", daemon=True)
@@ -90,7 +93,7 @@ class DdsBridge(GraphBridge):
 
     def _listener(self, topic: str) -> Listener:
         """Cyclone's incompatible-QoS statuses of ``topic``'s endpoint (called on Cyclone's own thread)."""
-        return Listener(
+        return Listener(  # type: ignore[no-untyped-call]  # Cyclone's Listener takes its callbacks untyped
             on_offered_incompatible_qos=lambda _, status: self.qos_mismatch(topic, _policy(status), "subscription"),
             on_requested_incompatible_qos=lambda _, status: self.qos_mismatch(topic, _policy(status), "publisher"))
 
@@ -120,15 +123,14 @@ class DdsBridge(GraphBridge):
             if not self.control:
                 continue
             try:
-                for sample in self._take(self.remote_topic):
-                    self.on_command(sample)
-                for sample in self._take(MODE_REQUEST):
-                    self.on_mode_request(sample)
+                if self._commands is not None:
+                    for command in take(self._commands, READ_BATCH, self._conditions[self.remote_topic]):
+                        self.on_command(command)
+                if self._mode_requests is not None:
+                    for request in take(self._mode_requests, READ_BATCH, self._conditions[MODE_REQUEST]):
+                        self.on_mode_request(request)
             except Exception as exc:
                 self.set_flag("read", f"DDS read failed: {type(exc).__name__}: {exc}", Level.WARN)
-
-    def _take(self, topic: str) -> list[IdlStruct]:
-        return take(self._readers[topic], READ_BATCH, condition=self._conditions[topic])
 
     # ---- the run's end ---------------------------------------------------------------------------
 

@@ -300,7 +300,7 @@ class GraphBridge(SafetyFlags):
     def summary(self) -> dict[str, object]:
         topics_seen = {topic: counts.as_dict() for topic, counts in self.counts.items()}
         remote = self.manager.controllers.get(Mode.REMOTE.controller)
-        if isinstance(remote, RemotePolicyController) and self.control:  # every refusal of a command from the graph is REMOTE's
+        if isinstance(remote, RemotePolicyController) and self.control:  # every refusal from the graph is REMOTE's
             topics_seen[self.remote_topic].update(refused=remote.rejected, last_refusal=remote.last_rejection)
         latency = self._latency[np.isfinite(self._latency)] * 1e6
         return {

@@ -39,7 +39,7 @@ def run_parameters(manager: ControllerManager, *, backend: str, control: bool) -
     robot, config = manager.robot, manager.config
     names = list(robot.names)
     found: list[RunParameter] = [
-        RunParameter("backend", backend, "how Prime is on the ROS 2 graph: rclpy (this node) or dds (bare Cyclone DDS)"),
+        RunParameter("backend", backend, "how Prime is on the ROS 2 graph: rclpy (this node) or dds (bare Cyclone)"),
         RunParameter("robot", robot_name(robot.description.urdf), "the robot description's name"),
         RunParameter("robot_description_source", str(robot.description.source), "the robot description's file"),
         RunParameter("joints", names, "the joints in canonical order (the order of every array here and on the "

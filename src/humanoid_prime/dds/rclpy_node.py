@@ -24,10 +24,12 @@ from __future__ import annotations
 import importlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from types import ModuleType
+from typing import Protocol
 
 import numpy as np
+import numpy.typing as npt
 import rclpy
 from cyclonedds.idl import IdlStruct
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -54,6 +56,9 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.switching import SwitchAnswer, describe, mode_switcher
 
+Array = npt.NDArray[np.float64]
+
+STRICT = 2  # controller_manager_msgs/SwitchController's strictness: refuse a request that cannot be done as asked
 DEFAULT_WAIT_S = 2.0  # how long a service waits for the loop to apply a switch or reset when not told
 FEEDBACK_PERIOD_S = 0.02  # action feedback at 50 Hz at most
 EXECUTOR_THREADS = 4  # services that wait for the loop, goals that run for seconds, and everything else
@@ -61,6 +66,93 @@ NOT_CONTROLLING = "this run takes no commands from the ROS 2 graph (start Prime 
 LEVELS = {Level.WARN: "warning", Level.ERROR: "error"}
 
 Switch = Callable[[Mode, float], SwitchAnswer]
+
+
+# The fields Prime reads and writes of the ROS 2 messages it serves (rclpy's generated classes, untyped).
+class _Publisher(Protocol):
+    def publish(self, message: bytes) -> None: ...
+
+
+class _Duration(Protocol):
+    sec: int
+    nanosec: int
+
+
+class _SwitchModeRequest(Protocol):
+    mode: str
+    timeout: float
+
+
+class _SwitchModeResponse(Protocol):
+    success: bool
+    outcome: str
+    active_mode: str
+    message: str
+
+
+class _ResetFaultsResponse(Protocol):
+    success: bool
+    faults: list[str]
+    message: str
+
+
+class _ListControllersResponse(Protocol):
+    controller: list[object]
+
+
+class _SwitchControllerRequest(Protocol):
+    activate_controllers: Sequence[str]
+    deactivate_controllers: Sequence[str]
+    strictness: int
+    timeout: _Duration
+
+
+class _SwitchControllerResponse(Protocol):
+    ok: bool
+    message: str
+
+
+class _Tolerance(Protocol):
+    name: str
+    position: float
+    velocity: float
+
+
+class _Point(Protocol):
+    positions: Sequence[float]
+    velocities: Sequence[float]
+    time_from_start: _Duration
+
+
+class _Trajectory(Protocol):
+    joint_names: Sequence[str]
+    points: Sequence[_Point]
+
+
+class _MultiDofTrajectory(Protocol):
+    points: Sequence[object]
+
+
+class _GoalRequest(Protocol):
+    trajectory: _Trajectory
+    multi_dof_trajectory: _MultiDofTrajectory
+    path_tolerance: Sequence[_Tolerance]
+    goal_tolerance: Sequence[_Tolerance]
+    goal_time_tolerance: _Duration
+
+
+class _GoalHandle(Protocol):
+    request: _GoalRequest
+    is_cancel_requested: bool
+
+    def abort(self) -> None: ...
+    def succeed(self) -> None: ...
+    def canceled(self) -> None: ...
+    def publish_feedback(self, feedback: object) -> None: ...
+
+
+def _seconds(duration: _Duration) -> float:
+    return float(duration.sec + duration.nanosec * 1e-9)
 
 
 def _interface(name: str) -> ModuleType | None:
@@ -90,7 +182,7 @@ class RclpyBridge(GraphBridge):
                  request_mode: Callable[[str], object] | None = None, switch: Switch | None = None,
                  epoch_offset: float = 0.0, sim_clock: bool = False, report: Report | None = None,
                  slots: int = SLOTS, clock: Callable[[], float] = time.perf_counter,
-                 gravity: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+                 gravity: Callable[[Array], Array] | None = None) -> None:
         super().__init__(manager, request_mode=request_mode, control=control, epoch_offset=epoch_offset,
                          sim_clock=sim_clock, clock=clock, report=None)
         self.outer_report = report
@@ -126,8 +218,8 @@ class RclpyBridge(GraphBridge):
 
     # ---- topics ----------------------------------------------------------------------------------
 
-    def _make_topics(self) -> dict[str, object]:
-        publishers: dict[str, object] = {}
+    def _make_topics(self) -> dict[str, _Publisher]:
+        publishers: dict[str, _Publisher] = {}
         for topic, spec in self.specs.items():
             package, kind, name = spec.ros_type.split("/")
             module = _interface(f"{package}.{kind}")
@@ -159,7 +251,7 @@ class RclpyBridge(GraphBridge):
         super().on_mode(message)
 
     def write(self, topic: str, message: IdlStruct) -> None:
-        self._publishers[topic].publish(message.serialize())  # type: ignore[attr-defined]
+        self._publishers[topic].publish(message.serialize())
 
     def _on_command_bytes(self, data: bytes) -> None:
         self.on_command(msg.MitCommand.deserialize(data))
@@ -236,25 +328,24 @@ class RclpyBridge(GraphBridge):
         except PrimeError as exc:
             return {"mode": mode.value, "outcome": "refused", "reason": str(exc)}
 
-    def _switch_mode(self, request: object, response: object) -> object:
-        text = str(getattr(request, "mode", ""))
+    def _switch_mode(self, request: _SwitchModeRequest, response: _SwitchModeResponse) -> _SwitchModeResponse:
         try:
-            mode = Mode.parse(text)
+            mode = Mode.parse(request.mode)
         except ValueError as exc:
-            answer: SwitchAnswer = {"mode": text, "outcome": "refused", "reason": str(exc)}
+            answer: SwitchAnswer = {"mode": request.mode, "outcome": "refused", "reason": str(exc)}
         else:
-            answer = self._switch(mode, float(getattr(request, "timeout", 0.0)))
-        response.success = answer["outcome"] == "active"  # type: ignore[attr-defined]
-        response.outcome = answer["outcome"]  # type: ignore[attr-defined]
-        response.active_mode = answer.get("active") or ""  # type: ignore[attr-defined]
+            answer = self._switch(mode, request.timeout)
+        response.success = answer["outcome"] == "active"
+        response.outcome = answer["outcome"]
+        response.active_mode = answer.get("active") or ""
         response.message = describe(answer) if answer["outcome"] != "refused" else \
-            f"{answer['mode']} refused: {answer.get('reason', '')}"  # type: ignore[attr-defined]
-        self._log(f"~/switch_mode: {response.message}", None if response.success else Level.WARN)  # type: ignore[attr-defined]
+            f"{answer['mode']} refused: {answer.get('reason', '')}"
+        self._log(f"~/switch_mode: {response.message}", None if response.success else Level.WARN)
         return response
 
-    def _reset_faults(self, request: object, response: object) -> object:
+    def _reset_faults(self, request: object, response: _ResetFaultsResponse) -> _ResetFaultsResponse:
         if not self.control:
-            response.success, response.message = False, NOT_CONTROLLING  # type: ignore[attr-defined]
+            response.success, response.message = False, NOT_CONTROLLING
             return response
         before = self.manager.resets
         faults = self.manager.request_reset()
@@ -262,15 +353,15 @@ class RclpyBridge(GraphBridge):
         while self.manager.resets == before and time.monotonic() < deadline:
             time.sleep(self.manager.period / 2)
         applied = self.manager.resets != before
-        response.success = applied  # type: ignore[attr-defined]
-        response.faults = list(faults)  # type: ignore[attr-defined]
-        response.message = (f"reset applied; {len(faults)} latched fault(s) before it" if applied else  # type: ignore[attr-defined]
+        response.success = applied
+        response.faults = list(faults)
+        response.message = (f"reset applied; {len(faults)} latched fault(s) before it" if applied else
                             f"the control loop did not apply the reset within {DEFAULT_WAIT_S:g} s")
-        self._log(f"~/reset_faults: {response.message}", None if applied else Level.WARN)  # type: ignore[attr-defined]
+        self._log(f"~/reset_faults: {response.message}", None if applied else Level.WARN)
         return response
 
-    def _list_controllers(self, request: object, response: object) -> object:
-        states = []
+    def _list_controllers(self, request: object, response: _ListControllersResponse) -> _ListControllersResponse:
+        states: list[object] = []
         for info in controllers(self.manager):
             state = self._cm_msg.ControllerState()
             state.name, state.state, state.type, state.update_rate = info.name, info.state, info.type, info.update_rate
@@ -278,28 +369,26 @@ class RclpyBridge(GraphBridge):
             state.required_command_interfaces = list(info.required_command_interfaces)
             state.required_state_interfaces = list(info.required_state_interfaces)
             states.append(state)
-        response.controller = states  # type: ignore[attr-defined]
+        response.controller = states
         return response
 
-    def _switch_controller(self, request: object, response: object) -> object:
-        activate = list(getattr(request, "activate_controllers", []))
-        deactivate = list(getattr(request, "deactivate_controllers", []))
-        strict = int(getattr(request, "strictness", 0)) == 2  # SwitchController.STRICT
-        timeout = getattr(request, "timeout", None)
-        wait_s = (timeout.sec + timeout.nanosec * 1e-9) if timeout is not None else 0.0
+    def _switch_controller(self, request: _SwitchControllerRequest,
+                           response: _SwitchControllerResponse) -> _SwitchControllerResponse:
+        strict = request.strictness == STRICT
         try:
-            mode = mode_to_activate(self.manager, activate, deactivate, strict)
+            mode = mode_to_activate(self.manager, list(request.activate_controllers),
+                                    list(request.deactivate_controllers), strict)
         except SwitchRefused as exc:
-            response.ok, response.message = False, str(exc)  # type: ignore[attr-defined]
+            response.ok, response.message = False, str(exc)
         else:
             if mode is None:
-                response.ok, response.message = True, "nothing to switch"  # type: ignore[attr-defined]
+                response.ok, response.message = True, "nothing to switch"
             else:
-                answer = self._switch(mode, wait_s)
-                response.ok = answer["outcome"] == "active"  # type: ignore[attr-defined]
+                answer = self._switch(mode, _seconds(request.timeout))
+                response.ok = answer["outcome"] == "active"
                 response.message = describe(answer) if answer["outcome"] != "refused" else \
-                    f"{mode.controller} refused: {answer.get('reason', '')}"  # type: ignore[attr-defined]
-        self._log(f"switch_controller: {response.message}", None if response.ok else Level.WARN)  # type: ignore[attr-defined]
+                    f"{mode.controller} refused: {answer.get('reason', '')}"
+        self._log(f"switch_controller: {response.message}", None if response.ok else Level.WARN)
         return response
 
     # ---- the trajectory actions ------------------------------------------------------------------
@@ -318,25 +407,19 @@ class RclpyBridge(GraphBridge):
                 goal_callback=lambda goal, n=name, j=joints: self._accept(goal, n, j),
                 cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=self._group))
 
-    def _goal(self, request: object) -> Goal:
-        trajectory = request.trajectory  # type: ignore[attr-defined]
-
-        def seconds(duration: object) -> float:
-            return float(duration.sec + duration.nanosec * 1e-9)  # type: ignore[attr-defined]
-
-        def tolerances(items: object) -> tuple[Tolerance, ...]:
-            return tuple(Tolerance(t.name, t.position, t.velocity) for t in items)  # type: ignore[attr-defined]
+    def _goal(self, request: _GoalRequest) -> Goal:
+        def tolerances(items: Sequence[_Tolerance]) -> tuple[Tolerance, ...]:
+            return tuple(Tolerance(t.name, t.position, t.velocity) for t in items)
 
         return Goal(
-            joint_names=tuple(trajectory.joint_names),
-            points=tuple(Point(seconds(p.time_from_start), list(p.positions), list(p.velocities))
-                         for p in trajectory.points),
-            path_tolerance=tolerances(request.path_tolerance),  # type: ignore[attr-defined]
-            goal_tolerance=tolerances(request.goal_tolerance),  # type: ignore[attr-defined]
-            goal_time_tolerance_s=seconds(request.goal_time_tolerance),  # type: ignore[attr-defined]
-            multi_dof=bool(request.multi_dof_trajectory.points))  # type: ignore[attr-defined]
+            joint_names=tuple(request.trajectory.joint_names),
+            points=tuple(Point(_seconds(p.time_from_start), list(p.positions), list(p.velocities))
+                         for p in request.trajectory.points),
+            path_tolerance=tolerances(request.path_tolerance), goal_tolerance=tolerances(request.goal_tolerance),
+            goal_time_tolerance_s=_seconds(request.goal_time_tolerance),
+            multi_dof=bool(request.multi_dof_trajectory.points))
 
-    def _accept(self, request: object, name: str, joints: tuple[str, ...]) -> GoalResponse:
+    def _accept(self, request: _GoalRequest, name: str, joints: tuple[str, ...]) -> GoalResponse:
         if not self.control:
             self._log(f"{name}: goal rejected: {NOT_CONTROLLING}", Level.WARN)
             return GoalResponse.REJECT
@@ -353,18 +436,18 @@ class RclpyBridge(GraphBridge):
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
-    def _execute(self, handle: object, joints: tuple[str, ...]) -> object:
+    def _execute(self, handle: _GoalHandle, joints: tuple[str, ...]) -> object:
         result = self._fjt.Result()
         try:
-            execution = self.trajectories.start(self._goal(handle.request), joints)  # type: ignore[attr-defined]
+            execution = self.trajectories.start(self._goal(handle.request), joints)
         except Refused as exc:
             result.error_code, result.error_string = exc.code, exc.reason
-            handle.abort()  # type: ignore[attr-defined]
+            handle.abort()
             return result
         feedback = self._fjt.Feedback()
         feedback.joint_names = list(execution.joint_names)
         while not execution.done.wait(FEEDBACK_PERIOD_S):
-            if handle.is_cancel_requested:  # type: ignore[attr-defined]
+            if handle.is_cancel_requested:
                 self.trajectories.cancel(execution)
             elif execution.feedback is not None:
                 desired_q, desired_qd, q, qd, _index = execution.feedback
@@ -375,15 +458,16 @@ class RclpyBridge(GraphBridge):
                 if hasattr(feedback, "index"):  # Kilted's feedback has it, Jazzy's not
                     feedback.index = _index
                 feedback.header.stamp = self.node.get_clock().now().to_msg()
-                handle.publish_feedback(feedback)  # type: ignore[attr-defined]
+                handle.publish_feedback(feedback)
         result.error_code, result.error_string = execution.code, execution.reason
         if execution.cancelled:
-            handle.canceled()  # type: ignore[attr-defined]
+            handle.canceled()
         elif execution.code == 0:
-            handle.succeed()  # type: ignore[attr-defined]
+            handle.succeed()
         else:
-            handle.abort()  # type: ignore[attr-defined]
-        self._log(f"trajectory on {', '.join(joints[:1])}...: {'cancelled' if execution.cancelled else (execution.reason or 'done')}",
+            handle.abort()
+        ended = "cancelled" if execution.cancelled else (execution.reason or "done")
+        self._log(f"trajectory of {len(joints)} joints ({joints[0]}, ...): {ended}",
                   None if execution.code == 0 else Level.WARN)
         return result
 

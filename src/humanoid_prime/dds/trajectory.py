@@ -85,8 +85,9 @@ class Refused(Exception):
 
 @dataclass
 class Plan:
-    """A checked goal, in the goal's joint order: the joints it moves (canonical indices), knots (seconds from the start) and the
-    positions and velocities there (``velocities`` None: linear between points), tolerances per moved joint."""
+    """A checked goal, in the goal's joint order: the joints it moves (canonical indices), knots (seconds from the
+    start) and the positions and velocities there (``velocities`` None: linear between points), tolerances per
+    moved joint."""
 
     joints: npt.NDArray[np.intp]
     times: Array

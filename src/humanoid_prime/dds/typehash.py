@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 from functools import cache
+from typing import get_args
 
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl._type_normalize import get_extended_type_hints
@@ -39,9 +40,9 @@ def _field_type(annotation: object) -> tuple[Json, type[IdlStruct] | None]:
     if isinstance(annotation, array):
         offset, capacity, element = ARRAY, int(annotation.length), annotation.subtype
     elif isinstance(annotation, sequence):
-        bounded = annotation.max_length is not None
-        offset = BOUNDED_SEQUENCE if bounded else UNBOUNDED_SEQUENCE
-        capacity, element = (int(annotation.max_length) if bounded else 0), annotation.subtype
+        bound = annotation.max_length
+        offset = UNBOUNDED_SEQUENCE if bound is None else BOUNDED_SEQUENCE
+        capacity, element = (0 if bound is None else int(bound)), annotation.subtype
     nested: type[IdlStruct] | None = None
     string_capacity = 0
     if isinstance(element, type) and issubclass(element, IdlStruct):
@@ -51,7 +52,7 @@ def _field_type(annotation: object) -> tuple[Json, type[IdlStruct] | None]:
     elif isinstance(element, bounded_str):
         base, string_capacity = "bounded_string", element.max_length
     else:
-        base = str(element.__metadata__[0])  # cyclonedds' primitives: Annotated[int, 'int32']
+        base = str(get_args(element)[1])  # cyclonedds' primitives: Annotated[int, 'int32']
     return ({"type_id": FIELD_TYPE_IDS[base] + offset, "capacity": capacity, "string_capacity": string_capacity,
              "nested_type_name": ros_type_name(nested) if nested is not None else ""}, nested)
 

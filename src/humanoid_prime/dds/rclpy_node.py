@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from types import ModuleType
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -66,6 +66,8 @@ NOT_CONTROLLING = "this run takes no commands from the ROS 2 graph (start Prime 
 LEVELS = {Level.WARN: "warning", Level.ERROR: "error"}
 
 Switch = Callable[[Mode, float], SwitchAnswer]
+R = TypeVar("R")
+S = TypeVar("S")
 
 
 # The fields Prime reads and writes of the ROS 2 messages it serves (rclpy's generated classes, untyped).
@@ -194,7 +196,9 @@ class RclpyBridge(GraphBridge):
         self._closed = False
         self._flags_logged: dict[str, str] = {}
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+        # Prime prints its own lines (the node's go to /rosout); its signals are its own to handle.
+        rclpy.init(args=["--ros-args", "--disable-stdout-logs"], context=self.context, domain_id=domain,
+                   signal_handler_options=SignalHandlerOptions.NO)
         try:
             self.node = Node(NODE_NAME, namespace=namespace, context=self.context,
                              parameter_overrides=[Parameter("use_sim_time", value=sim_clock)])
@@ -269,8 +273,13 @@ class RclpyBridge(GraphBridge):
         self._flags_logged = dict(message.flags)
 
     def _log(self, text: str, level: Level | None, outer: bool = True) -> None:
-        logger = self.node.get_logger()
-        {None: logger.info, Level.WARN: logger.warning, Level.ERROR: logger.error}[level](text)
+        logger = self.node.get_logger()  # one call per severity: rclpy keeps one severity per call site
+        if level is None:
+            logger.info(text)
+        elif level is Level.WARN:
+            logger.warning(text)
+        else:
+            logger.error(text)
         if outer and self.outer_report is not None:
             self.outer_report(text, level)
 
@@ -301,23 +310,42 @@ class RclpyBridge(GraphBridge):
 
     # ---- services --------------------------------------------------------------------------------
 
+    def _guarded(self, name: str, handler: Callable[[R, S], S]) -> Callable[[R, S], S]:
+        """``handler``, answering even when it fails (an exception would leave the caller waiting forever): the
+        failure is flagged and said in the answer's ``message``."""
+
+        def answer(request: R, response: S) -> S:
+            try:
+                return handler(request, response)
+            except Exception as exc:  # noqa: BLE001 - said in the answer and on /safety_status
+                text = f"{name} failed: {type(exc).__name__}: {exc}"
+                self.set_flag("service", text, Level.WARN)
+                if hasattr(response, "message"):
+                    response.message = text
+                return response
+
+        return answer
+
     def _services(self) -> None:
         prime = _interface("prime_msgs.srv")
         if prime is None:
             self.missing.append("prime_msgs (~/switch_mode, ~/reset_faults left out)")
         else:
-            self.node.create_service(prime.SwitchMode, "~/switch_mode", self._switch_mode, callback_group=self._group)
-            self.node.create_service(prime.ResetFaults, "~/reset_faults", self._reset_faults,
-                                     callback_group=self._group)
+            self.node.create_service(prime.SwitchMode, "~/switch_mode",
+                                     self._guarded("~/switch_mode", self._switch_mode), callback_group=self._group)
+            self.node.create_service(prime.ResetFaults, "~/reset_faults",
+                                     self._guarded("~/reset_faults", self._reset_faults), callback_group=self._group)
         cm = _interface("controller_manager_msgs.srv")
         if cm is None:
             self.missing.append("controller_manager_msgs (the controller manager's services left out)")
         else:
             self._cm_msg = importlib.import_module("controller_manager_msgs.msg")
             where = in_namespace(self.namespace, NAMESPACE)
-            self.node.create_service(cm.ListControllers, f"{where}/list_controllers", self._list_controllers,
+            self.node.create_service(cm.ListControllers, f"{where}/list_controllers",
+                                     self._guarded("list_controllers", self._list_controllers),
                                      callback_group=self._group)
-            self.node.create_service(cm.SwitchController, f"{where}/switch_controller", self._switch_controller,
+            self.node.create_service(cm.SwitchController, f"{where}/switch_controller",
+                                     self._guarded("switch_controller", self._switch_controller),
                                      callback_group=self._group)
 
     def _switch(self, mode: Mode, wait_s: float) -> SwitchAnswer:
@@ -516,12 +544,12 @@ class RclpyBridge(GraphBridge):
 
     def _teardown(self) -> None:
         self._closed = True
+        spinner = getattr(self, "_spinner", None)
+        if spinner is not None:
+            spinner.join(2.0)  # its spin_once returns within 0.1 s and sees _closed
         executor = getattr(self, "executor_", None)
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
-        spinner = getattr(self, "_spinner", None)
-        if spinner is not None:
-            spinner.join(2.0)
         node = getattr(self, "node", None)
         if node is not None:
             for server in getattr(self, "_actions_", []):

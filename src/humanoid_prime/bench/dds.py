@@ -155,10 +155,13 @@ def bench_dds(seconds: float = 10.0) -> dict[str, Any]:
                                    "added_tick_us_median": paired["paired_us"]["added"],
                                    "tap_added_tick_us_median": tapped["paired_us"]["added"],
                                    "across_runs_added_tick_us_median": _added(plain, bridged)}
-        if rclpy:  # the rclpy node's hand-off, in the same run, beside the bare one and the floor
+        if rclpy:  # the rclpy node in the same run, beside the bare one and the floor: its hand-off paired, and
+            # the whole node (its executor threads too) against the run without it
             rclpy_paired = _run(robot, config, rate, seconds, dds=True, paired=True, backend="rclpy")
-            results[f"{rate:g}_hz"].update(rclpy_paired=rclpy_paired,
-                                           rclpy_added_tick_us_median=rclpy_paired["paired_us"]["added"])
+            rclpy_run = _run(robot, config, rate, seconds, dds=True, backend="rclpy")
+            results[f"{rate:g}_hz"].update(rclpy_paired=rclpy_paired, rclpy_with=rclpy_run,
+                                           rclpy_added_tick_us_median=rclpy_paired["paired_us"]["added"],
+                                           rclpy_across_runs_added_tick_us_median=_added(plain, rclpy_run))
     results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] for rate in RATES_HZ)
     results["rclpy"] = "measured" if rclpy else "rclpy cannot be imported here: only the bare backend measured"
     if rclpy:

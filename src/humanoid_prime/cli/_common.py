@@ -91,6 +91,7 @@ class DdsOptions:
     control: bool
     discovery: Discovery
     backend: str = "dds"
+    backend_asked: bool = False  # --ros-backend given (else chosen by what can be imported)
 
     def describe(self) -> str:
         node = "/prime" if self.namespace == "/" else f"{self.namespace}/prime"
@@ -114,7 +115,7 @@ def dds_options(args: argparse.Namespace) -> DdsOptions | None:
             raise PrimeError(f"{', '.join(given)} needs --dds")
         return None
     return DdsOptions(domain_id(args.domain), node_namespace(namespace), control, discovery(),
-                      ros_backend(backend))
+                      ros_backend(backend), backend is not None)
 
 
 ROS_BACKENDS = ("rclpy", "dds")

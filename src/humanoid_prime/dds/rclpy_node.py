@@ -73,6 +73,7 @@ S = TypeVar("S")
 # The fields Prime reads and writes of the ROS 2 messages it serves (rclpy's generated classes, untyped).
 class _Publisher(Protocol):
     def publish(self, message: bytes) -> None: ...
+    def get_subscription_count(self) -> int: ...
 
 
 class _Duration(Protocol):
@@ -509,6 +510,10 @@ class RclpyBridge(GraphBridge):
                 if self._closed or not self.context.ok():
                     return
                 self.set_flag("executor", f"rclpy executor: {type(exc).__name__}: {exc}", Level.WARN)
+
+    def joint_state_readers(self) -> int:
+        """How many subscriptions of the joint states this node is matched with now."""
+        return self._publishers[self.joint_states_topic].get_subscription_count()
 
     def pause(self) -> None:
         """Stop taking the loop's ticks (the node and everything it serves stay on the graph)."""

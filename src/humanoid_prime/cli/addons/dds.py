@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 
 from humanoid_prime.cli._common import add_dds_options, dds_options
 from humanoid_prime.cli.addons import Run, Summary
 from humanoid_prime.control.flags import Level
+from humanoid_prime.errors import PrimeError
 
 
 def options(parser: argparse.ArgumentParser) -> None:
@@ -27,11 +29,19 @@ def attach(run: Run, args: argparse.Namespace, stack: contextlib.ExitStack) -> S
     def log(line: str, level: Level | None) -> None:
         run.report(line if level is None else f"{level.name.lower()}: {line}")
 
+    backend = dds.backend
+    if backend == "rclpy":
+        try:
+            from humanoid_prime.dds.rclpy_node import rclpy_bridge
+        except ImportError as exc:  # found but broken (a ROS 2 install half sourced, a library missing)
+            if dds.backend_asked:
+                raise PrimeError(f"--ros-backend rclpy: rclpy does not import here ({exc}); source the ROS 2 install "
+                                 "completely, or run with --ros-backend dds") from None
+            run.report(f"rclpy does not import here ({exc}): the bare DDS node instead")
+            backend = "dds"
     network = run.host_graph() if run.host_graph is not None else contextlib.nullcontext(True)
     with network as on_host:
-        if dds.backend == "rclpy":
-            from humanoid_prime.dds.rclpy_node import rclpy_bridge
-
+        if backend == "rclpy":
             bridge = rclpy_bridge(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
                                   request_mode=run.request_mode, switch=run.switch, epoch_offset=run.epoch_offset,
                                   sim_clock=run.sim_clock, report=log)
@@ -42,7 +52,7 @@ def attach(run: Run, args: argparse.Namespace, stack: contextlib.ExitStack) -> S
             bridge = bridge_manager(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
                                     request_mode=run.request_mode, epoch_offset=run.epoch_offset,
                                     sim_clock=run.sim_clock, settings=dds.discovery, report=log)
-            started = f"DDS: {dds.describe()}"
+            started = f"DDS: {dataclasses.replace(dds, backend=backend).describe()}"
     stack.callback(bridge.close)  # off the graph before the run's teardown
     where = "" if on_host else (" (inside the emulation's private network namespace: only processes in it can "
                                 "join; run as root to put the node on this machine's graph)")

@@ -93,10 +93,17 @@ def sessions(ros_clients, tmp_path_factory):
     if failures:
         raise failures[0]
     for (distro, backend), (report, summary, _) in found.items():  # the figures, for `pytest -s`
-        trajectory = report.get("trajectory", {}).get("followed", {})
-        print(f"\n{distro}/{backend}: gone {report['gone_after_exit_s']:.3f} s after exit; qos mismatches "
-              f"{summary['dds']['qos_mismatches']}; trajectory feedback {trajectory.get('feedback')}, "
-              f"joint states {len(trajectory.get('during', []))}")
+        line = (f"\n{distro}/{backend} ({report['rmw']}): gone {report['gone_after_exit_s']:.3f} s after exit; QoS "
+                f"mismatches {summary['dds']['qos_mismatches']}")
+        if backend == "rclpy":
+            followed = report["trajectory"]["followed"]
+            errors = [abs(e) for errors in followed["feedback_errors"] for e in errors]
+            final = np.abs(np.array(followed["after"][0]) - np.array(report["trajectory"]["goal"]["points"][-1]))
+            line += (f"; {len(report['parameters']['listed'])} parameters, {len(report['rosout'])} /rosout lines, "
+                     f"{len(report['switching']['steps'])} switches; trajectory: {followed['feedback']} feedback, "
+                     f"{len(followed['during'])} joint states, largest error {max(errors):.4f} rad, at the end "
+                     f"{final.max():.4f} rad")
+        print(line)
     return found
 
 

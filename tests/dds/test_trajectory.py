@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from humanoid_prime.control.tap import TickSample
-from humanoid_prime.control.topics import ControlMode, MitCommand, TopicBus
+from humanoid_prime.control.topics import ControlMode, JointState, MitCommand, TopicBus
 from humanoid_prime.dds.controllers import arm_controllers
 from humanoid_prime.dds.trajectory import (
     GOAL_TOLERANCE_VIOLATED,
@@ -185,3 +185,17 @@ def test_a_newer_goal_on_the_same_joints_replaces_the_running_one(executor, sim_
     second = executor.start(goal(left, [Point(2.0, q[joints] - 0.1)]), left)
     assert first.done.is_set() and first.reason == "replaced by a newer goal on the same joints"
     assert not second.done.is_set()
+
+
+def test_a_tap_running_behind_the_loop_still_commands_the_next_tick(executor, sim_robot, left, config):
+    """The sample handed over is old (the machine was busy) but the loop is already further on: the command is for
+    the tick after the newest one, not for a tick long past."""
+    q = rest(sim_robot)
+    joints = [sim_robot.index(j) for j in left]
+    executor.start(goal(left, [Point(1.0, q[joints] + 0.5)]), left)
+    tick(executor, 0.0, q)
+    executor.topics.publish(config.joint_states_topic, JointState(0.5, sim_robot.names, q, q * 0, q * 0))
+    tick(executor, 0.01, q)  # a sample from 0.49 s ago
+    command = executor.sent_commands[-1]
+    np.testing.assert_allclose(command.position[joints], q[joints] + 0.5 * 0.51)
+    assert command.stamp == 0.5

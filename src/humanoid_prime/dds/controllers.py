@@ -9,6 +9,7 @@ switch``. Deactivating the active mode with nothing in its place is refused: Pri
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from humanoid_prime.control.interfaces import COMMAND_NAMES
@@ -61,6 +62,22 @@ def controllers(manager: ControllerManager) -> list[ControllerInfo]:
                                      f"prime_controllers/{type(controller).__name__}", rate,
                                      commands if on else (), commands, states))
     return listed
+
+
+@dataclass(frozen=True)
+class SwitchResult:
+    """What became of a mode switch asked for from the graph, as the services answer it."""
+
+    outcome: str  # active, fell_back, superseded, gains_failed, pending or refused
+    active: str  # the mode active once the request was applied ('': not applied)
+    message: str  # one line for a person
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome == "active"
+
+
+Switch = Callable[[Mode, float], SwitchResult]  # the run's switch, followed to its outcome (as `prime switch`)
 
 
 class SwitchRefused(Exception):

@@ -47,14 +47,21 @@ from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.tap import SLOTS, TickSample, TickTap
 from humanoid_prime.control.topics import ControlMode, SafetyStatus
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.controllers import NAMESPACE, SwitchRefused, arm_controllers, controllers, mode_to_activate
+from humanoid_prime.dds.controllers import (
+    NAMESPACE,
+    Switch,
+    SwitchRefused,
+    SwitchResult,
+    arm_controllers,
+    controllers,
+    mode_to_activate,
+)
 from humanoid_prime.dds.domain import in_namespace
 from humanoid_prime.dds.graph import NODE_NAME, GraphBridge, Report
 from humanoid_prime.dds.parameters import run_parameters
 from humanoid_prime.dds.trajectory import Goal, Point, Refused, Tolerance, TrajectoryExecutor
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.switching import SwitchAnswer, describe, mode_switcher
 
 Array = npt.NDArray[np.float64]
 
@@ -65,7 +72,6 @@ EXECUTOR_THREADS = 4  # services that wait for the loop, goals that run for seco
 NOT_CONTROLLING = "this run takes no commands from the ROS 2 graph (start Prime with --dds-control)"
 LEVELS = {Level.WARN: "warning", Level.ERROR: "error"}
 
-Switch = Callable[[Mode, float], SwitchAnswer]
 R = TypeVar("R")
 S = TypeVar("S")
 
@@ -192,7 +198,7 @@ class RclpyBridge(GraphBridge):
         self.report = self._log
         self.domain = domain
         self.namespace = namespace
-        self.switch = switch or mode_switcher(manager)
+        self.switch = switch
         self.missing: list[str] = []
         self._closed = False
         self._flags_logged: dict[str, str] = {}
@@ -349,27 +355,24 @@ class RclpyBridge(GraphBridge):
                                      self._guarded("switch_controller", self._switch_controller),
                                      callback_group=self._group)
 
-    def _switch(self, mode: Mode, wait_s: float) -> SwitchAnswer:
+    def _switch(self, mode: Mode, wait_s: float) -> SwitchResult:
         if not self.control:
-            return {"mode": mode.value, "outcome": "refused", "reason": NOT_CONTROLLING}
+            return SwitchResult("refused", "", f"{mode.value} refused: {NOT_CONTROLLING}")
+        if self.switch is None:
+            return SwitchResult("refused", "", f"{mode.value} refused: this run switches no modes")
         try:
             return self.switch(mode, wait_s if wait_s > 0 else DEFAULT_WAIT_S)
         except PrimeError as exc:
-            return {"mode": mode.value, "outcome": "refused", "reason": str(exc)}
+            return SwitchResult("refused", "", str(exc))
 
     def _switch_mode(self, request: _SwitchModeRequest, response: _SwitchModeResponse) -> _SwitchModeResponse:
         try:
-            mode = Mode.parse(request.mode)
+            answer = self._switch(Mode.parse(request.mode), request.timeout)
         except ValueError as exc:
-            answer: SwitchAnswer = {"mode": request.mode, "outcome": "refused", "reason": str(exc)}
-        else:
-            answer = self._switch(mode, request.timeout)
-        response.success = answer["outcome"] == "active"
-        response.outcome = answer["outcome"]
-        response.active_mode = answer.get("active") or ""
-        response.message = describe(answer) if answer["outcome"] != "refused" else \
-            f"{answer['mode']} refused: {answer.get('reason', '')}"
-        self._log(f"~/switch_mode: {response.message}", None if response.success else Level.WARN)
+            answer = SwitchResult("refused", "", str(exc))
+        response.success, response.outcome = answer.ok, answer.outcome
+        response.active_mode, response.message = answer.active, answer.message
+        self._log(f"~/switch_mode: {answer.message}", None if answer.ok else Level.WARN)
         return response
 
     def _reset_faults(self, request: object, response: _ResetFaultsResponse) -> _ResetFaultsResponse:
@@ -414,9 +417,7 @@ class RclpyBridge(GraphBridge):
                 response.ok, response.message = True, "nothing to switch"
             else:
                 answer = self._switch(mode, _seconds(request.timeout))
-                response.ok = answer["outcome"] == "active"
-                response.message = describe(answer) if answer["outcome"] != "refused" else \
-                    f"{mode.controller} refused: {answer.get('reason', '')}"
+                response.ok, response.message = answer.ok, answer.message
         self._log(f"switch_controller: {response.message}", None if response.ok else Level.WARN)
         return response
 

@@ -27,7 +27,7 @@ import numpy.typing as npt
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.tap import TickSample
-from humanoid_prime.control.topics import ControlMode, MitCommand, SafetyStatus, TopicBus
+from humanoid_prime.control.topics import ControlMode, JointState, MitCommand, SafetyStatus, TopicBus
 from humanoid_prime.modes import Mode
 
 Array = npt.NDArray[np.float64]
@@ -225,6 +225,7 @@ class TrajectoryExecutor:
         self.names = robot.names
         self.topics = topics
         self.remote_topic = config.remote.topic
+        self.joint_states_topic = config.joint_states_topic
         self.period = period
         self.gravity = gravity
         limits = robot.hardware.command_limits
@@ -266,6 +267,10 @@ class TrajectoryExecutor:
 
     def on_tick(self, sample: TickSample) -> None:
         q, qd = sample.data[0], sample.data[1]
+        # The command is for the tick after the newest one, which may be later than this sample's when the tap
+        # runs behind the loop (a busy machine): a target computed for an old tick would lag the path.
+        newest = self.topics.latest(self.joint_states_topic)
+        now = max(sample.stamp, newest.stamp) if isinstance(newest, JointState) else sample.stamp
         with self._lock:
             if not self.remote_active:
                 self._hold = None
@@ -277,16 +282,19 @@ class TrajectoryExecutor:
                 self._hold = np.where(np.isfinite(q), q, 0.0)
             target, velocity = self._hold.copy(), np.zeros(len(q))
             for execution in running:
-                self._step(execution, sample.stamp, q, qd, target, velocity)
+                self._step(execution, sample.stamp, now, q, qd, target, velocity)
             self._running = [e for e in running if not e.done.is_set()]
         effort = np.zeros(len(q)) if self.gravity is None else np.clip(self.gravity(target), -self.effort_limits,
                                                                        self.effort_limits)
         self.topics.publish(self.remote_topic, MitCommand(
             joint_names=self.names, position=target, velocity=velocity, effort=effort,
-            stiffness=self.stiffness.copy(), damping=self.damping.copy(), stamp=sample.stamp))
+            stiffness=self.stiffness.copy(), damping=self.damping.copy(), stamp=now))
         self.sent += 1
 
-    def _step(self, execution: Execution, now: float, q: Array, qd: Array, target: Array, velocity: Array) -> None:
+    def _step(self, execution: Execution, measured_at: float, now: float, q: Array, qd: Array, target: Array,
+              velocity: Array) -> None:
+        """One goal's part of the command for the tick after ``now``, from the state measured at ``measured_at``
+        (its path and goal checked there)."""
         plan = execution.plan
         joints = plan.joints
         hold = self._hold
@@ -297,7 +305,7 @@ class TrajectoryExecutor:
             execution.finish(SUCCESSFUL, "cancelled")
             return
         if execution.knots is None:  # the first tick: from the measured state to the first point
-            execution.started_at = now
+            execution.started_at = measured_at
             start_q, start_qd = q[joints].copy(), np.zeros(len(joints))
             first = plan.times[0]
             reach = float(np.max(np.abs(plan.positions[0] - start_q) / (self.speed_limits[joints] *
@@ -315,7 +323,7 @@ class TrajectoryExecutor:
             execution.knots = (times, positions, velocities)
         assert execution.started_at is not None
         times, positions, velocities = execution.knots
-        elapsed = now - execution.started_at
+        elapsed = measured_at - execution.started_at
         desired_now, desired_velocity_now = sample(times, positions, velocities, elapsed)
         error = q[joints] - desired_now
         index = int(np.searchsorted(times[-len(plan.times):], elapsed, side="left"))  # the point being approached
@@ -330,7 +338,7 @@ class TrajectoryExecutor:
                                                       f"{abs(error[i]):.4f} rad from its path, beyond the path "
                                                       f"tolerance {plan.path_tolerance[i]:.4f} rad")
             return
-        next_q, next_qd = sample(times, positions, velocities, elapsed + self.period)
+        next_q, next_qd = sample(times, positions, velocities, now - execution.started_at + self.period)
         target[joints] = next_q
         velocity[joints] = next_qd
         if elapsed < times[-1]:

@@ -7,11 +7,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+from typing import TYPE_CHECKING
 
 from humanoid_prime.cli._common import add_dds_options, dds_options
 from humanoid_prime.cli.addons import Run, Summary
 from humanoid_prime.control.flags import Level
 from humanoid_prime.errors import PrimeError
+
+if TYPE_CHECKING:  # the options are added without importing the node
+    from humanoid_prime.dds.controllers import Switch
+    from humanoid_prime.modes import Mode
 
 
 def options(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +48,7 @@ def attach(run: Run, args: argparse.Namespace, stack: contextlib.ExitStack) -> S
     with network as on_host:
         if backend == "rclpy":
             bridge = rclpy_bridge(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,
-                                  request_mode=run.request_mode, switch=run.switch, epoch_offset=run.epoch_offset,
+                                  request_mode=run.request_mode, switch=_switch(run), epoch_offset=run.epoch_offset,
                                   sim_clock=run.sim_clock, report=log)
             started = bridge.started()
         else:
@@ -58,3 +63,17 @@ def attach(run: Run, args: argparse.Namespace, stack: contextlib.ExitStack) -> S
                                 "join; run as root to put the node on this machine's graph)")
     run.report(f"{started}{where}")
     return bridge.summary
+
+
+def _switch(run: Run) -> Switch:
+    """The run's mode switch, followed to its outcome as `prime switch` follows it, for the node's services."""
+    from humanoid_prime.dds.controllers import SwitchResult
+    from humanoid_prime.runtime.switching import describe, mode_switcher
+
+    switcher = run.switch or mode_switcher(run.manager)
+
+    def switch(mode: Mode, wait_s: float) -> SwitchResult:
+        answer = switcher(mode, wait_s)
+        return SwitchResult(answer["outcome"], answer.get("active") or "", describe(answer))
+
+    return switch

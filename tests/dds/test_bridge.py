@@ -253,6 +253,14 @@ def test_a_best_effort_publisher_of_mode_requests_is_a_qos_mismatch_flagged_and_
         assert bridged.summary()["topics"][MODE_REQUEST]["qos_mismatches"] >= 1
 
 
+def test_a_transient_local_subscriber_of_the_joint_states_is_a_qos_mismatch(manager, bridged, peer):
+    peer.reader("/prime/joint_states", msg.JointState, latched=True)  # Prime offers them volatile
+    assert wait_for(lambda: bridged.summary()["topics"]["/prime/joint_states"]["qos_mismatches"] >= 1)
+    manager.tick(0.0)
+    flag = manager.topics.latest("/safety_status").flags["dds/qos/prime/joint_states"]
+    assert flag.startswith("QoS mismatch on /prime/joint_states: a subscription with an incompatible durability")
+
+
 def test_tf_clock_description_and_static_frames(manager, bridged, peer, sim_robot):
     frames = frames_from_urdf(sim_robot.description.urdf, sim_robot.names)
     tf = peer.reader("/tf", msg.TFMessage, depth=100)

@@ -140,10 +140,11 @@ def test_parameters_are_the_run_and_refuse_changes_with_a_reason(sessions, distr
     assert got["backend"] == "rclpy" and got["update_rate"] == summary["update_rate"] == 200.0
     assert tuple(got["joints"]) == sim_robot.names
     assert got["config.hardware.sha256"] == summary["config"]["hardware"]["sha256"]
-    assert got["modes.STANDBY.erob_kp"] == 20.0 and got["use_sim_time"] is True
+    assert got["modes.STANDBY.erob_kp"] == 20.0 and got["use_sim_time"] is False
     sets = parameters["sets"]
     assert sets["remote.timeout_s=0.2"] == {"successful": True, "reason": ""}
     assert parameters["timeout_after"] == 0.2
+    assert sets["use_sim_time=True"]["successful"] and parameters["use_sim_time_after"] is True  # honoured
     assert not sets["remote.timeout_s=5.0"]["successful"] and sets["remote.timeout_s=5.0"]["reason"]
     for refused in ("update_rate=100.0", "backend=dds"):
         assert not sets[refused]["successful"] and "read-only" in sets[refused]["reason"], sets[refused]

@@ -54,18 +54,19 @@ def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | No
     with manager:
         manager.start()
         manager.request_mode(Mode.STANDBY)
-        if dds and backend == "rclpy":  # the whole rclpy node, as `prime sim --dds --ros-backend rclpy` has it
-            from humanoid_prime.dds.rclpy_node import rclpy_bridge
-
-            bridge = rclpy_bridge(manager, domain=BENCH_DOMAIN, sim_clock=True)
-        elif dds:
-            from humanoid_prime.dds.bridge import bridge_manager
-
+        if dds:
             if not paired:  # the paired run measures the tick alone
                 listener = subprocess.Popen([sys.executable, "-m", "humanoid_prime.bench.dds", str(BENCH_DOMAIN)],
                                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             # Stamps in the loop clock (CLOCK_MONOTONIC); /clock on, as in simulation.
-            bridge = bridge_manager(manager, domain=BENCH_DOMAIN, sim_clock=True)
+            if backend == "rclpy":  # the whole rclpy node, as `prime sim --dds --ros-backend rclpy` has it
+                from humanoid_prime.dds.rclpy_node import rclpy_bridge
+
+                bridge = rclpy_bridge(manager, domain=BENCH_DOMAIN, sim_clock=True)
+            else:
+                from humanoid_prime.dds.bridge import bridge_manager
+
+                bridge = bridge_manager(manager, domain=BENCH_DOMAIN, sim_clock=True)
             deadline = time.monotonic() + 30.0
             while listener is not None and not bridge.joint_state_readers() and time.monotonic() < deadline:
                 time.sleep(0.01)

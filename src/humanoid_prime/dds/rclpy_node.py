@@ -207,16 +207,17 @@ class RclpyBridge(GraphBridge):
         rclpy.init(args=["--ros-args", "--disable-stdout-logs"], context=self.context, domain_id=domain,
                    signal_handler_options=SignalHandlerOptions.NO)
         try:
-            self.node = Node(NODE_NAME, namespace=namespace, context=self.context,
-                             parameter_overrides=[Parameter("use_sim_time", value=sim_clock)])
+            # use_sim_time stays off, as in any node, even where the stamps are simulated time: following /clock
+            # would cost a callback of the executor's every tick; setting it makes the node's logs follow /clock.
+            self.node = Node(NODE_NAME, namespace=namespace, context=self.context)
             self.rmw = rclpy.get_rmw_implementation_identifier()
             self._group = ReentrantCallbackGroup()
             self._publishers = self._make_topics()
             self.publish_static()
             self._declare_parameters()
             self._services()
-            self.executor_ = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=self.context)
-            self.executor_.add_node(self.node)
+            self._executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=self.context)
+            self._executor.add_node(self.node)
             self._spinner = threading.Thread(target=self._spin, name="rclpy-executor", daemon=True)
             self._spinner.start()
             self.trajectories = TrajectoryExecutor(manager.robot, manager.config, manager.topics,
@@ -425,13 +426,13 @@ class RclpyBridge(GraphBridge):
 
     def _actions(self) -> None:
         action = _interface("control_msgs.action")
-        self._actions_: list[ActionServer] = []
+        self._action_servers: list[ActionServer] = []
         if action is None:
             self.missing.append("control_msgs (the FollowJointTrajectory actions left out)")
             return
         self._fjt = action.FollowJointTrajectory
         for name, joints in arm_controllers(self.manager.robot.names).items():
-            self._actions_.append(ActionServer(
+            self._action_servers.append(ActionServer(
                 self.node, self._fjt, in_namespace(self.namespace, f"/{name}/follow_joint_trajectory"),
                 execute_callback=lambda handle, j=joints: self._execute(handle, j),
                 goal_callback=lambda goal, n=name, j=joints: self._accept(goal, n, j),
@@ -506,7 +507,7 @@ class RclpyBridge(GraphBridge):
     def _spin(self) -> None:
         while self.context.ok() and not self._closed:
             try:
-                self.executor_.spin_once(timeout_sec=0.1)
+                self._executor.spin_once(timeout_sec=0.1)
             except Exception as exc:  # the context shut down under it, or a callback failed: flagged, not fatal
                 if self._closed or not self.context.ok():
                     return
@@ -553,12 +554,12 @@ class RclpyBridge(GraphBridge):
         spinner = getattr(self, "_spinner", None)
         if spinner is not None:
             spinner.join(2.0)  # its spin_once returns within 0.1 s and sees _closed
-        executor = getattr(self, "executor_", None)
+        executor = getattr(self, "_executor", None)
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
         node = getattr(self, "node", None)
         if node is not None:
-            for server in getattr(self, "_actions_", []):
+            for server in getattr(self, "_action_servers", []):
                 server.destroy()
             node.destroy_node()
         self.context.try_shutdown()

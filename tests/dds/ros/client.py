@@ -94,11 +94,12 @@ def parameters(node) -> dict:
     got = {name: parameter_value_to_python(value) for name, value in zip(names, values, strict=True)}
     sets = {}
     for name, value in (("remote.timeout_s", 0.2), ("remote.timeout_s", 5.0), ("update_rate", 100.0),
-                        ("backend", "dds")):
+                        ("backend", "dds"), ("use_sim_time", True)):
         result = wait(node, client.set_parameters([Parameter(name, value=value)])).results[0]
         sets[f"{name}={value}"] = {"successful": result.successful, "reason": result.reason}
-    after = wait(node, client.get_parameters(["remote.timeout_s"])).values[0].double_value
-    return {"listed": list(listed), "got": got, "sets": sets, "timeout_after": after}
+    after = wait(node, client.get_parameters(["remote.timeout_s", "use_sim_time"])).values
+    return {"listed": list(listed), "got": got, "sets": sets, "timeout_after": after[0].double_value,
+            "use_sim_time_after": after[1].bool_value}
 
 
 def call(node, client, request):

@@ -204,3 +204,19 @@ def test_a_cancelled_goal_stops_the_arm(sessions, distro, backend):
 @pytest.mark.parametrize(("distro", "backend"), RCLPY)
 def test_a_goal_outside_the_limits_is_rejected(sessions, distro, backend):
     assert sessions[distro, backend][0]["trajectory"]["out_of_limits_accepted"] is False
+
+
+@pytest.mark.parametrize("distro", ROS_DISTROS)
+def test_prime_is_installed_with_its_extra_beside_rclpy(ros_clients, distro):
+    """The client environment has Prime as `pip install 'humanoid-prime[ros-<distro>]'` installs it (the sessions
+    above run this source tree over it): the installed package imports beside rclpy and declares the extra."""
+    client = ros_clients[distro]
+    done = subprocess.run([client["python"], "-c",
+                           "import importlib.metadata as m, humanoid_prime, rclpy; print(humanoid_prime.__file__); "
+                           "print('\\n'.join(m.requires('humanoid-prime')))"],
+                          env=ros_environment(client, 0), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    where, *requires = done.stdout.splitlines()
+    assert "/site-packages/humanoid_prime/" in where
+    prefix = "ros-jazzy-" if distro == "jazzy" else "ros-"
+    assert f'{prefix}rclpy[fastrtps]; extra == "ros-{distro}"' in requires

@@ -4,14 +4,15 @@
 
 One simulated Prime per distribution and backend serves every assertion of that pair: the ROS 2 user's session
 (``ros/client.py``) starts first, waits for node /prime, does what a user does, and then reports how soon /prime
-left its graph after Prime's process exited (Ctrl-C). The two distributions run side by side, each in a domain of
-its own.
+left its graph after Prime's process exited (Ctrl-C against Jazzy, SIGTERM against Kilted). The two distributions
+run side by side, each in a domain of its own.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -50,7 +51,11 @@ def _session(client: dict[str, str], distro: str, backend: str, folder: Path) ->
     try:
         ready = _read_line(user, 400)
         assert ready == "ready", f"{distro}/{backend}: {ready}{user.stderr.read()[-3000:] if user.poll() else ''}"
-        stop(prime)
+        if distro == "kilted":  # the other way out: as a service manager stops it
+            prime.send_signal(signal.SIGTERM)
+            prime.wait(timeout=60)
+        else:
+            stop(prime)
         exited = time.monotonic()
         out, err = user.communicate(f"exited {exited}\n", timeout=60)
         assert user.returncode == 0, f"{distro}/{backend}: {out[-2000:]}{err[-3000:]}"

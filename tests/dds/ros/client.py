@@ -27,6 +27,7 @@ from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointTolerance
 from controller_manager_msgs.srv import ListControllers, SwitchController
 from diagnostic_msgs.msg import DiagnosticArray
+from prime_msgs.msg import MitCommand
 from prime_msgs.srv import SwitchMode
 from rcl_interfaces.msg import Log
 from rclpy.action import ActionClient
@@ -171,7 +172,7 @@ def trajectory(node, seen: Seen) -> dict:
             wait(node, handle.cancel_goal_async())
         result = wait(node, result_future)
         ended = len(seen.joint_states)
-        spin_until(node, lambda: False, 1.5)  # the arm after the end
+        spin_until(node, lambda: len(seen.joint_states) >= ended + 150, 60)  # the arm after the end: 0.75 s of ticks
         indices = [names.index(j) for j in arm]
         during = [[s[2][i] for i in indices] for s in seen.joint_states[began:ended]]
         after = [[s[2][i] for i in indices] for s in seen.joint_states[ended:]]
@@ -205,6 +206,22 @@ def trajectory(node, seen: Seen) -> dict:
     return report
 
 
+def topics_in(node, seen: Seen) -> dict:
+    """A MitCommand stream (every joint held where it is) in REMOTE, then DAMPING asked for on the mode topic."""
+    commands = node.create_publisher(MitCommand, "/remote_policy_controller/command", 10)
+    requests = node.create_publisher(String, "/prime/mode_request", 10)
+    spin_until(node, lambda: commands.get_subscription_count() > 0 and requests.get_subscription_count() > 0)
+    _, names, position, _ = seen.joint_states[-1]
+    for _ in range(20):
+        commands.publish(MitCommand(name=names, position=position, velocity=[0.0] * len(names),
+                                    effort=[0.0] * len(names), stiffness=[20.0] * len(names),
+                                    damping=[2.0] * len(names)))
+        spin_until(node, lambda: False, 0.02)
+    requests.publish(String(data="DAMPING"))
+    spin_until(node, lambda: seen.modes[-1] == "DAMPING", 30)
+    return {"sent_commands": 20, "modes_after": seen.modes[-2:]}
+
+
 def main() -> int:
     spec = json.loads(sys.argv[1])
     rclpy.init()
@@ -225,6 +242,7 @@ def main() -> int:
         report["parameters"] = parameters(node)
         report["switching"] = switching(node, seen)
         report["trajectory"] = trajectory(node, seen)
+        report["topics_in"] = topics_in(node, seen)
         spin_until(node, lambda: any("started" in text or "on rclpy" in text for _, _, text in seen.rosout), 10)
         report["rosout"] = seen.rosout
     spin_until(node, lambda: any("QoS mismatch" in message for _, _, message in seen.safety), 30)

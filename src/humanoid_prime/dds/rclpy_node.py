@@ -2,14 +2,13 @@
 backend (``graph.py``: the same names, types, QoS and bytes) and what only a real ROS 2 node serves:
 
 - parameters: the run, read-only, and ``remote.timeout_s`` settable within its bounds (``parameters.py``);
-  ``use_sim_time`` as every rclpy node has it (on in simulation, where the stamps are simulated time);
+  ``use_sim_time`` as every rclpy node has it (off unless set, even in simulation);
 - logs on ``/rosout``: the start-up line, each flag of /safety_status at its level as it appears, and QoS
   mismatches;
-- services ``~/switch_mode`` and ``~/reset_faults`` (prime_msgs), answered once the loop has applied them, as
-  ``prime switch`` and ``prime reset`` are, and the controller manager's ``list_controllers`` and
-  ``switch_controller`` (``controllers.py``);
-- ``control_msgs/action/FollowJointTrajectory`` for each arm and both (``/<arm>_controller/follow_joint_trajectory``
-  as joint_trajectory_controller names it), executed through REMOTE (``trajectory.py``).
+- services ``~/switch_mode`` and ``~/reset_faults`` (prime_msgs), and the controller manager's ``list_controllers``
+  and ``switch_controller`` (``rclpy_services.py``);
+- ``control_msgs/action/FollowJointTrajectory`` for each arm and both, executed through REMOTE
+  (``rclpy_actions.py``).
 
 What moves the robot (mode requests, MitCommands, the mode and reset services, switch_controller and trajectory
 goals) is taken only when the run takes control from the graph (``--dds-control``); without it each is refused
@@ -21,18 +20,15 @@ wheels) leave out what needs them, and the start-up line says which.
 
 from __future__ import annotations
 
-import importlib
 import threading
 import time
-from collections.abc import Callable, Sequence
-from types import ModuleType
-from typing import Protocol, TypeVar
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 import rclpy
 from cyclonedds.idl import IdlStruct
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -47,129 +43,22 @@ from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.tap import SLOTS, TickSample, TickTap
 from humanoid_prime.control.topics import ControlMode, SafetyStatus
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.controllers import (
-    NAMESPACE,
-    Switch,
-    SwitchRefused,
-    SwitchResult,
-    arm_controllers,
-    controllers,
-    mode_to_activate,
-)
+from humanoid_prime.dds.controllers import Switch
 from humanoid_prime.dds.domain import in_namespace
 from humanoid_prime.dds.graph import NODE_NAME, GraphBridge, Report
 from humanoid_prime.dds.parameters import run_parameters
-from humanoid_prime.dds.trajectory import Goal, Point, Refused, Tolerance, TrajectoryExecutor
-from humanoid_prime.errors import PrimeError
-from humanoid_prime.modes import Mode
+from humanoid_prime.dds.rclpy_actions import TrajectoryActions
+from humanoid_prime.dds.rclpy_services import ModeServices, interface
+from humanoid_prime.dds.trajectory import TrajectoryExecutor
 
 Array = npt.NDArray[np.float64]
 
-STRICT = 2  # controller_manager_msgs/SwitchController's strictness: refuse a request that cannot be done as asked
-DEFAULT_WAIT_S = 2.0  # how long a service waits for the loop to apply a switch or reset when not told
-FEEDBACK_PERIOD_S = 0.02  # action feedback at 50 Hz at most
 EXECUTOR_THREADS = 4  # services that wait for the loop, goals that run for seconds, and everything else
-NOT_CONTROLLING = "this run takes no commands from the ROS 2 graph (start Prime with --dds-control)"
-LEVELS = {Level.WARN: "warning", Level.ERROR: "error"}
-
-R = TypeVar("R")
-S = TypeVar("S")
 
 
-# The fields Prime reads and writes of the ROS 2 messages it serves (rclpy's generated classes, untyped).
-class _Publisher(Protocol):
+class _Publisher(Protocol):  # what Prime uses of an rclpy publisher
     def publish(self, message: bytes) -> None: ...
     def get_subscription_count(self) -> int: ...
-
-
-class _Duration(Protocol):
-    sec: int
-    nanosec: int
-
-
-class _SwitchModeRequest(Protocol):
-    mode: str
-    timeout: float
-
-
-class _SwitchModeResponse(Protocol):
-    success: bool
-    outcome: str
-    active_mode: str
-    message: str
-
-
-class _ResetFaultsResponse(Protocol):
-    success: bool
-    faults: list[str]
-    message: str
-
-
-class _ListControllersResponse(Protocol):
-    controller: list[object]
-
-
-class _SwitchControllerRequest(Protocol):
-    activate_controllers: Sequence[str]
-    deactivate_controllers: Sequence[str]
-    strictness: int
-    timeout: _Duration
-
-
-class _SwitchControllerResponse(Protocol):
-    ok: bool
-    message: str
-
-
-class _Tolerance(Protocol):
-    name: str
-    position: float
-    velocity: float
-
-
-class _Point(Protocol):
-    positions: Sequence[float]
-    velocities: Sequence[float]
-    time_from_start: _Duration
-
-
-class _Trajectory(Protocol):
-    joint_names: Sequence[str]
-    points: Sequence[_Point]
-
-
-class _MultiDofTrajectory(Protocol):
-    points: Sequence[object]
-
-
-class _GoalRequest(Protocol):
-    trajectory: _Trajectory
-    multi_dof_trajectory: _MultiDofTrajectory
-    path_tolerance: Sequence[_Tolerance]
-    goal_tolerance: Sequence[_Tolerance]
-    goal_time_tolerance: _Duration
-
-
-class _GoalHandle(Protocol):
-    request: _GoalRequest
-    is_cancel_requested: bool
-
-    def abort(self) -> None: ...
-    def succeed(self) -> None: ...
-    def canceled(self) -> None: ...
-    def publish_feedback(self, feedback: object) -> None: ...
-
-
-def _seconds(duration: _Duration) -> float:
-    return float(duration.sec + duration.nanosec * 1e-9)
-
-
-def _interface(name: str) -> ModuleType | None:
-    """``pkg.msg`` (or ``.srv``, ``.action``), or None where the package is not installed."""
-    try:
-        return importlib.import_module(name)
-    except ImportError:
-        return None
 
 
 def _qos(latched: bool, depth: int) -> QoSProfile:
@@ -182,7 +71,7 @@ def _policy(event: object) -> str:
     return str(getattr(kind, "name", kind)).lower().replace("_", " ")
 
 
-class RclpyBridge(GraphBridge):
+class RclpyBridge(GraphBridge, ModeServices, TrajectoryActions):
     """Node ``prime`` on rclpy (module docstring); ``close`` takes it off the graph."""
 
     backend = "rclpy"
@@ -234,7 +123,7 @@ class RclpyBridge(GraphBridge):
         publishers: dict[str, _Publisher] = {}
         for topic, spec in self.specs.items():
             package, kind, name = spec.ros_type.split("/")
-            module = _interface(f"{package}.{kind}")
+            module = interface(f"{package}.{kind}")
             if module is None:
                 self.missing.append(f"{package} ({topic} left out)")
                 self.counts.pop(topic)
@@ -317,190 +206,6 @@ class RclpyBridge(GraphBridge):
         self.node.add_on_set_parameters_callback(on_set)
 
     # ---- services --------------------------------------------------------------------------------
-
-    def _guarded(self, name: str, handler: Callable[[R, S], S]) -> Callable[[R, S], S]:
-        """``handler``, answering even when it fails (an exception would leave the caller waiting forever): the
-        failure is flagged and said in the answer's ``message``."""
-
-        def answer(request: R, response: S) -> S:
-            try:
-                return handler(request, response)
-            except Exception as exc:  # noqa: BLE001 - said in the answer and on /safety_status
-                text = f"{name} failed: {type(exc).__name__}: {exc}"
-                self.set_flag("service", text, Level.WARN)
-                if hasattr(response, "message"):
-                    response.message = text
-                return response
-
-        return answer
-
-    def _services(self) -> None:
-        prime = _interface("prime_msgs.srv")
-        if prime is None:
-            self.missing.append("prime_msgs (~/switch_mode, ~/reset_faults left out)")
-        else:
-            self.node.create_service(prime.SwitchMode, "~/switch_mode",
-                                     self._guarded("~/switch_mode", self._switch_mode), callback_group=self._group)
-            self.node.create_service(prime.ResetFaults, "~/reset_faults",
-                                     self._guarded("~/reset_faults", self._reset_faults), callback_group=self._group)
-        cm = _interface("controller_manager_msgs.srv")
-        if cm is None:
-            self.missing.append("controller_manager_msgs (the controller manager's services left out)")
-        else:
-            self._cm_msg = importlib.import_module("controller_manager_msgs.msg")
-            where = in_namespace(self.namespace, NAMESPACE)
-            self.node.create_service(cm.ListControllers, f"{where}/list_controllers",
-                                     self._guarded("list_controllers", self._list_controllers),
-                                     callback_group=self._group)
-            self.node.create_service(cm.SwitchController, f"{where}/switch_controller",
-                                     self._guarded("switch_controller", self._switch_controller),
-                                     callback_group=self._group)
-
-    def _switch(self, mode: Mode, wait_s: float) -> SwitchResult:
-        if not self.control:
-            return SwitchResult("refused", "", f"{mode.value} refused: {NOT_CONTROLLING}")
-        if self.switch is None:
-            return SwitchResult("refused", "", f"{mode.value} refused: this run switches no modes")
-        try:
-            return self.switch(mode, wait_s if wait_s > 0 else DEFAULT_WAIT_S)
-        except PrimeError as exc:
-            return SwitchResult("refused", "", str(exc))
-
-    def _switch_mode(self, request: _SwitchModeRequest, response: _SwitchModeResponse) -> _SwitchModeResponse:
-        try:
-            answer = self._switch(Mode.parse(request.mode), request.timeout)
-        except ValueError as exc:
-            answer = SwitchResult("refused", "", str(exc))
-        response.success, response.outcome = answer.ok, answer.outcome
-        response.active_mode, response.message = answer.active, answer.message
-        self._log(f"~/switch_mode: {answer.message}", None if answer.ok else Level.WARN)
-        return response
-
-    def _reset_faults(self, request: object, response: _ResetFaultsResponse) -> _ResetFaultsResponse:
-        if not self.control:
-            response.success, response.message = False, NOT_CONTROLLING
-            return response
-        before = self.manager.resets
-        faults = self.manager.request_reset()
-        deadline = time.monotonic() + DEFAULT_WAIT_S
-        while self.manager.resets == before and time.monotonic() < deadline:
-            time.sleep(self.manager.period / 2)
-        applied = self.manager.resets != before
-        response.success = applied
-        response.faults = list(faults)
-        response.message = (f"reset applied; {len(faults)} latched fault(s) before it" if applied else
-                            f"the control loop did not apply the reset within {DEFAULT_WAIT_S:g} s")
-        self._log(f"~/reset_faults: {response.message}", None if applied else Level.WARN)
-        return response
-
-    def _list_controllers(self, request: object, response: _ListControllersResponse) -> _ListControllersResponse:
-        states: list[object] = []
-        for info in controllers(self.manager):
-            state = self._cm_msg.ControllerState()
-            state.name, state.state, state.type, state.update_rate = info.name, info.state, info.type, info.update_rate
-            state.claimed_interfaces = list(info.claimed_interfaces)
-            state.required_command_interfaces = list(info.required_command_interfaces)
-            state.required_state_interfaces = list(info.required_state_interfaces)
-            states.append(state)
-        response.controller = states
-        return response
-
-    def _switch_controller(self, request: _SwitchControllerRequest,
-                           response: _SwitchControllerResponse) -> _SwitchControllerResponse:
-        strict = request.strictness == STRICT
-        try:
-            mode = mode_to_activate(self.manager, list(request.activate_controllers),
-                                    list(request.deactivate_controllers), strict)
-        except SwitchRefused as exc:
-            response.ok, response.message = False, str(exc)
-        else:
-            if mode is None:
-                response.ok, response.message = True, "nothing to switch"
-            else:
-                answer = self._switch(mode, _seconds(request.timeout))
-                response.ok, response.message = answer.ok, answer.message
-        self._log(f"switch_controller: {response.message}", None if response.ok else Level.WARN)
-        return response
-
-    # ---- the trajectory actions ------------------------------------------------------------------
-
-    def _actions(self) -> None:
-        action = _interface("control_msgs.action")
-        self._action_servers: list[ActionServer] = []
-        if action is None:
-            self.missing.append("control_msgs (the FollowJointTrajectory actions left out)")
-            return
-        self._fjt = action.FollowJointTrajectory
-        for name, joints in arm_controllers(self.manager.robot.names).items():
-            self._action_servers.append(ActionServer(
-                self.node, self._fjt, in_namespace(self.namespace, f"/{name}/follow_joint_trajectory"),
-                execute_callback=lambda handle, j=joints: self._execute(handle, j),
-                goal_callback=lambda goal, n=name, j=joints: self._accept(goal, n, j),
-                cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=self._group))
-
-    def _goal(self, request: _GoalRequest) -> Goal:
-        def tolerances(items: Sequence[_Tolerance]) -> tuple[Tolerance, ...]:
-            return tuple(Tolerance(t.name, t.position, t.velocity) for t in items)
-
-        return Goal(
-            joint_names=tuple(request.trajectory.joint_names),
-            points=tuple(Point(_seconds(p.time_from_start), list(p.positions), list(p.velocities))
-                         for p in request.trajectory.points),
-            path_tolerance=tolerances(request.path_tolerance), goal_tolerance=tolerances(request.goal_tolerance),
-            goal_time_tolerance_s=_seconds(request.goal_time_tolerance),
-            multi_dof=bool(request.multi_dof_trajectory.points))
-
-    def _accept(self, request: _GoalRequest, name: str, joints: tuple[str, ...]) -> GoalResponse:
-        if not self.control:
-            self._log(f"{name}: goal rejected: {NOT_CONTROLLING}", Level.WARN)
-            return GoalResponse.REJECT
-        try:
-            from humanoid_prime.dds.trajectory import plan
-
-            plan(self.manager.robot, self._goal(request), joints, self.trajectories.speed_limits)
-        except Refused as exc:
-            self._log(f"{name}: goal rejected: {exc.reason}", Level.WARN)
-            return GoalResponse.REJECT
-        if not self.trajectories.remote_active:
-            self._log(f"{name}: goal rejected: the trajectory controllers run in REMOTE; switch to REMOTE first",
-                      Level.WARN)
-            return GoalResponse.REJECT
-        return GoalResponse.ACCEPT
-
-    def _execute(self, handle: _GoalHandle, joints: tuple[str, ...]) -> object:
-        result = self._fjt.Result()
-        try:
-            execution = self.trajectories.start(self._goal(handle.request), joints)
-        except Refused as exc:
-            result.error_code, result.error_string = exc.code, exc.reason
-            handle.abort()
-            return result
-        feedback = self._fjt.Feedback()
-        feedback.joint_names = list(execution.joint_names)
-        while not execution.done.wait(FEEDBACK_PERIOD_S):
-            if handle.is_cancel_requested:
-                self.trajectories.cancel(execution)
-            elif execution.feedback is not None:
-                desired_q, desired_qd, q, qd, _index = execution.feedback
-                feedback.desired.positions, feedback.desired.velocities = desired_q.tolist(), desired_qd.tolist()
-                feedback.actual.positions, feedback.actual.velocities = q.tolist(), qd.tolist()
-                feedback.error.positions = (desired_q - q).tolist()
-                feedback.error.velocities = (desired_qd - qd).tolist()
-                if hasattr(feedback, "index"):  # Kilted's feedback has it, Jazzy's not
-                    feedback.index = _index
-                feedback.header.stamp = self.node.get_clock().now().to_msg()
-                handle.publish_feedback(feedback)
-        result.error_code, result.error_string = execution.code, execution.reason
-        if execution.cancelled:
-            handle.canceled()
-        elif execution.code == 0:
-            handle.succeed()
-        else:
-            handle.abort()
-        ended = "cancelled" if execution.cancelled else (execution.reason or "done")
-        self._log(f"trajectory of {len(joints)} joints ({joints[0]}, ...): {ended}",
-                  None if execution.code == 0 else Level.WARN)
-        return result
 
     # ---- the executor and the run's end ----------------------------------------------------------
 

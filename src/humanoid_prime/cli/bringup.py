@@ -41,6 +41,7 @@ from humanoid_prime.runtime.session import (
     plan_session,
 )
 from humanoid_prime.runtime.signals import stop_on_signals
+from humanoid_prime.runtime.switching import mode_switcher
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -176,8 +177,9 @@ def run(args: argparse.Namespace) -> int:
 
             host_graph = host_network
         # Stamps in the system clock, as ROS 2 nodes on the robot.
+        switch = None if session.manager.broadcaster_only else mode_switcher(session.manager, session.impedance)
         addons.attach(Run(session.manager, report=report, epoch_offset=time.time() - time.monotonic(),
-                          host_graph=host_graph), args, stack)
+                          host_graph=host_graph, switch=switch), args, stack)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:

@@ -25,17 +25,8 @@ from collections.abc import Callable, Sequence
 import pysoem
 
 from doubles.link import EmulatedClock, RingHub
-from humanoid_prime.drivers.ethercat.link import (
-    APRD,
-    APWR,
-    BRD,
-    BWR,
-    FPRD,
-    FPWR,
-    Request,
-    build_frame,
-    frame_index,
-)
+from humanoid_prime.drivers.ethercat.link import Request, build_frame, frame_index
+from humanoid_prime.drivers.ethercat.wire import Command
 from humanoid_prime.virtual.ring.firmware import sii_content
 
 EC_MAXBUF = 16
@@ -47,8 +38,6 @@ EC_TIMEOUTRXM = 0.700
 EC_TIMEOUTSTATE = 2.0
 EC_LOCALDELAY = 0.0002
 STATION_BASE = 0x1001
-LRW = 0x0C
-FRMW = 0x0E
 _HEADER = struct.Struct("<BBHHHH")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
@@ -175,23 +164,25 @@ class FakeSoemSlave:
 
     # ---- registers ------------------------------------------------------------------------------------------
     def _fprd(self, address: int, size: int, timeout_us: int = 2000) -> bytes:
-        replies = self._master.frames.srconfirm([Request(FPRD, self.station, address, size=size)], timeout_us / 1e6)
+        request = Request(Command.FPRD, self.station, address, size=size)
+        replies = self._master.frames.srconfirm([request], timeout_us / 1e6)
         if replies is None or replies[0].wkc != 1:
             raise pysoem.WkcError()
         return replies[0].data
 
     def _fpwr(self, address: int, data: bytes, timeout_us: int = 2000) -> None:
-        replies = self._master.frames.srconfirm([Request(FPWR, self.station, address, data=bytes(data))],
+        replies = self._master.frames.srconfirm([Request(Command.FPWR, self.station, address, data=bytes(data))],
                                                 timeout_us / 1e6)
         if replies is None or replies[0].wkc != 1:
             raise pysoem.WkcError()
 
     def _rd(self, address: int, size: int, timeout_s: float = EC_TIMEOUTRET) -> tuple[int, bytes]:
-        replies = self._master.frames.srconfirm([Request(FPRD, self.station, address, size=size)], timeout_s)
+        replies = self._master.frames.srconfirm([Request(Command.FPRD, self.station, address, size=size)], timeout_s)
         return (0, bytes(size)) if replies is None else (replies[0].wkc, replies[0].data)
 
     def _wr(self, address: int, data: bytes, timeout_s: float = EC_TIMEOUTRET) -> int:
-        replies = self._master.frames.srconfirm([Request(FPWR, self.station, address, data=bytes(data))], timeout_s)
+        request = Request(Command.FPWR, self.station, address, data=bytes(data))
+        replies = self._master.frames.srconfirm([request], timeout_s)
         return 0 if replies is None else replies[0].wkc
 
     def write_state(self) -> int:
@@ -221,14 +212,14 @@ class FakeSoemSlave:
     def recover(self, timeout: int = 500) -> int:
         """ecx_recover_slave: its station address read by position; a slave found without one gets it back."""
         frames = self._master.frames
-        replies = frames.srconfirm([Request(APRD, (-self.position) & 0xFFFF, 0x0010, size=2)], timeout / 1e6)
+        replies = frames.srconfirm([Request(Command.APRD, (-self.position) & 0xFFFF, 0x0010, size=2)], timeout / 1e6)
         if replies is None or replies[0].wkc <= 0:
             return 0
         address = _U16.unpack(replies[0].data)[0]
         if address == self.station:
             return 1
         if address == 0:
-            frames.srconfirm([Request(APWR, (-self.position) & 0xFFFF, 0x0010, data=_U16.pack(self.station))],
+            frames.srconfirm([Request(Command.APWR, (-self.position) & 0xFFFF, 0x0010, data=_U16.pack(self.station))],
                              timeout / 1e6)
             return 1
         return 0
@@ -397,12 +388,13 @@ class FakeSoemMaster:
         """ecx_config_init: reset every slave, count them (a broadcast read, EC_TIMEOUTSAFE), address each,
         program its mailbox SyncManagers from the SII and ask for PRE-OP."""
         frames = self.frames
-        frames.srconfirm([Request(BWR, 0, 0x0120, data=_U16.pack(0x11))], EC_TIMEOUTRET3)
-        replies = frames.srconfirm([Request(BRD, 0, 0x0000, size=1)], EC_TIMEOUTSAFE)
+        frames.srconfirm([Request(Command.BWR, 0, 0x0120, data=_U16.pack(0x11))], EC_TIMEOUTRET3)
+        replies = frames.srconfirm([Request(Command.BRD, 0, 0x0000, size=1)], EC_TIMEOUTSAFE)
         count = 0 if replies is None else replies[0].wkc
         self.slaves = [FakeSoemSlave(self, k) for k in range(count)]
         for k, slave in enumerate(self.slaves):
-            frames.srconfirm([Request(APWR, (-k) & 0xFFFF, 0x0010, data=_U16.pack(slave.station))], EC_TIMEOUTRET3)
+            address = Request(Command.APWR, (-k) & 0xFFFF, 0x0010, data=_U16.pack(slave.station))
+            frames.srconfirm([address], EC_TIMEOUTRET3)
             out_start, out_size, in_start, in_size = slave.mailbox
             slave._wr(0x0800, struct.pack("<HHBBBB", out_start, out_size, 0x26, 0, 1, 0)
                       + struct.pack("<HHBBBB", in_start, in_size, 0x22, 0, 1, 0), EC_TIMEOUTRET3)
@@ -425,7 +417,7 @@ class FakeSoemMaster:
             self.clock.sleep(0.001)
 
     def write_state(self) -> int:
-        replies = self.frames.srconfirm([Request(BWR, 0, 0x0120, data=_U16.pack(self.state))], EC_TIMEOUTRET3)
+        replies = self.frames.srconfirm([Request(Command.BWR, 0, 0x0120, data=_U16.pack(self.state))], EC_TIMEOUTRET3)
         return 0 if replies is None else replies[0].wkc
 
     # ---- layout ---------------------------------------------------------------------------------------------
@@ -460,7 +452,7 @@ class FakeSoemMaster:
     def config_dc(self) -> bool:
         """ecx_configdc: latch the receive times, then set each slave's offset so its system time reads the
         reference clock's (the first slave's)."""
-        self.frames.srconfirm([Request(BWR, 0, 0x0900, data=bytes(4))], EC_TIMEOUTRET3)
+        self.frames.srconfirm([Request(Command.BWR, 0, 0x0900, data=bytes(4))], EC_TIMEOUTRET3)
         reference = None
         for slave in self.slaves:
             _wkc, data = slave._rd(0x0918, 8)
@@ -474,7 +466,7 @@ class FakeSoemMaster:
     # ---- the cycle ------------------------------------------------------------------------------------------
     def _cycle_requests(self) -> list[Request]:
         image = b"".join(s.output for s in self.slaves) + bytes(self._image_in)
-        return [Request(LRW, 0, 0, data=image), Request(FRMW, STATION_BASE, 0x0910, data=bytes(8))]
+        return [Request(Command.LRW, 0, 0, data=image), Request(Command.FRMW, STATION_BASE, 0x0910, data=bytes(8))]
 
     def send_processdata(self) -> int:
         if self._cycle_index is not None:
@@ -493,14 +485,14 @@ class FakeSoemMaster:
         if frame is None:
             return -1
         got = _datagrams(frame)
-        if not got or got[0][0] != LRW:
-            return -1  # another datagram's frame in this buffer: SOEM counts no LRW in it
+        if not got or got[0][0] != Command.LRW:
+            return -1  # another datagram's frame in this buffer: SOEM counts no Command.LRW in it
         _command, image, wkc = got[0]
         at = self._image_out
         for slave in self.slaves:
             slave.input = image[at:at + len(slave.input)]
             at += len(slave.input)
-        if len(got) > 1 and got[1][0] == FRMW:
+        if len(got) > 1 and got[1][0] == Command.FRMW:
             self.dc_time = _U64.unpack(got[1][1])[0]
         return wkc
 

@@ -16,18 +16,14 @@ from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json, whole
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
-from humanoid_prime.drivers.erob.cia402 import describe_al_status_code, describe_error, drive_state
+from humanoid_prime.drivers.erob.cia402 import describe_error, drive_state
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, RATED_TORQUE, STATUSWORD
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoError
 from humanoid_prime.drivers.ethercat.igh import IGH_TYPES, SHORT_TYPES
-from humanoid_prime.drivers.ethercat.master import (
-    RingError,
-    SdoError,
-    SlaveInfo,
-    check_ring,
-    expected_ring,
-    read_error_history,
-)
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo, check_ring, expected_ring
 from humanoid_prime.drivers.ethercat.sdo import SDO_BACKENDS, open_sdo
+from humanoid_prime.drivers.ethercat.sdo_client import read_error_history
+from humanoid_prime.drivers.ethercat.wire import describe_al_status_code
 from humanoid_prime.errors import PrimeError
 
 _SCAN_CYCLES = 5  # exchanges after OP before statusword and error code are read from the process data

@@ -42,7 +42,7 @@ from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gain
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
-from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
 from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode

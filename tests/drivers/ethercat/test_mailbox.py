@@ -14,7 +14,7 @@ from humanoid_prime.drivers.erob.objects import RATED_TORQUE, TXPDO_MAP
 from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.ethercat.link import FIRST_INDEX, Channel
 from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
-from humanoid_prime.virtual.ring.mailbox import mailbox_message
+from humanoid_prime.drivers.ethercat.wire import mailbox_message
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
 

@@ -17,8 +17,9 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.drivers.ethercat import soem_master
-from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
-from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.ethercat.errors import SdoRefused
+from humanoid_prime.drivers.ethercat.ring import expected_ring
+from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster, packet_sockets, threaded_receive
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason

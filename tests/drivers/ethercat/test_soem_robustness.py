@@ -19,9 +19,9 @@ from doubles.link import EmulatedClock, RingHub
 from doubles.soem import FakeSoemMaster
 from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RATED_TORQUE, RXPDO, TXPDO
 from humanoid_prime.drivers.ethercat.errors import RingError
-from humanoid_prime.drivers.ethercat.master import expected_ring
+from humanoid_prime.drivers.ethercat.ring import expected_ring
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
-from humanoid_prime.virtual.ring.firmware import AlState
+from humanoid_prime.drivers.ethercat.wire import AL_STATE_NAMES
 from humanoid_prime.virtual.ring.od import SdoAbort
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
@@ -51,7 +51,7 @@ class Rig:
 
     def state(self, k: int) -> tuple[str, int]:
         slave = self.ring.slaves[k]
-        return AlState(slave.state).name, slave.esc.al_status_code
+        return AL_STATE_NAMES[slave.state], slave.esc.al_status_code
 
 
 @pytest.fixture
@@ -332,7 +332,7 @@ def test_a_power_cycled_slave_s_clock_is_back_on_the_ring_s_time_before_sync0_st
         master.check_ring()
         slave, reference = rig.ring.slaves[5].esc, rig.ring.slaves[0].esc
         now = round(rig.clock.now * 1e9)
-        assert abs(slave.system_time(now) - reference.system_time(now)) < 10_000
+        assert abs(slave.clock.system_time(now) - reference.clock.system_time(now)) < 10_000
         assert slave.sync_activation == 0x03 and not master.recovery_problems
 
 

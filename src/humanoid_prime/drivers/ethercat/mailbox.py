@@ -33,19 +33,25 @@ from functools import partial
 
 from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.ethercat.link import Channel, fprd, fpwr
+from humanoid_prime.drivers.ethercat.wire import (
+    COE_EMERGENCY,
+    COE_SDO_REQUEST,
+    COE_SDO_RESPONSE,
+    MAILBOX_ERRORS,
+    MAILBOX_HEADER,
+    MAILBOX_TYPE_COE,
+    MAILBOX_TYPE_ERROR,
+    SDO_ABORT,
+    SDO_HEADER,
+    abort_text,
+)
 
-MAILBOX_TYPE_ERROR = 0x00
-MAILBOX_TYPE_COE = 0x03
-COE_EMERGENCY, COE_SDO_REQUEST, COE_SDO_RESPONSE = 1, 2, 3
-SDO_ABORT = 0x80
 FRAME_TIMEOUT_S = 0.05  # a mailbox frame not back by then is lost (a stalled host holds frames for tens of ms)
 POLL_S = 0.0002  # between looks at the read mailbox (SOEM's EC_LOCALDELAY)
 REQUEST_ATTEMPTS = 4  # a request sent afresh after its reply was lost on the way back
 COUNTERS = (2, 3, 4, 5, 6, 7)  # skipping 1: SOEM's first request after a ring scan carries it
-_HEADER = struct.Struct("<HHBB")  # length, address, channel/priority, type | counter << 4
-_SDO = struct.Struct("<HBHB")  # CoE header, command, index, sub-index
-MAILBOX_ERRORS = {1: "syntax", 2: "unsupported protocol", 3: "invalid channel", 4: "service not supported",
-                  5: "invalid header", 6: "size too short", 7: "no more memory", 8: "invalid size"}
+_HEADER = MAILBOX_HEADER
+_SDO = SDO_HEADER
 
 
 @dataclass(frozen=True)
@@ -255,22 +261,3 @@ def describe_message(message: bytes) -> str:
         return "an SDO segment"
     kind = {2: "an upload reply", 3: "a download reply", 4: "an abort"}[command >> 5]
     return f"{kind} for 0x{index:04X}:{sub:02X}"
-
-
-# CiA 301 / ETG.1000.6 SDO abort codes, as SOEM names them (ec_sdoerrorlist)
-ABORT_CODES = {
-    0x05030000: "toggle bit not changed", 0x05040000: "SDO protocol timeout",
-    0x05040001: "client/server command specifier not valid or unknown", 0x05040005: "out of memory",
-    0x06010000: "unsupported access to an object", 0x06010001: "attempt to read a write only object",
-    0x06010002: "attempt to write a read only object", 0x06020000: "the object does not exist",
-    0x06040041: "the object can not be mapped into the PDO",
-    0x06040042: "the number and length of the objects to be mapped would exceed the PDO length",
-    0x06070010: "data type does not match, length of service parameter does not match",
-    0x06090011: "subindex does not exist", 0x06090030: "value range of parameter exceeded",
-    0x08000000: "general error", 0x08000020: "data cannot be transferred or stored to the application",
-    0x08000022: "data cannot be transferred or stored because of the present device state",
-}
-
-
-def abort_text(code: int) -> str:
-    return ABORT_CODES.get(code, "unknown abort code")

@@ -12,7 +12,6 @@ import time
 from collections.abc import Callable, Sequence
 
 from humanoid_prime.drivers.ethercat.link import (
-    BWR,
     FIRST_INDEX,
     LAST_INDEX,
     Channel,
@@ -27,20 +26,27 @@ from humanoid_prime.drivers.ethercat.link import (
     fpwr,
     index_ranges,
 )
+from humanoid_prime.drivers.ethercat.wire import (
+    AL_ERROR,
+    AL_STATE_MASK,
+    EEPROM_BUSY,
+    EEPROM_COMMAND_READ,
+    EEPROM_COMMAND_SHIFT,
+    REG_AL_CONTROL,
+    REG_AL_STATUS,
+    REG_EEPROM_CONFIG,
+    REG_EEPROM_CONTROL,
+    REG_EEPROM_DATA,
+    REG_STATION_ADDRESS,
+    SII_IDENTITY,
+    AlState,
+    Command,
+)
 
 STATION_BASE = 0x1001
 REGISTER_TIMEOUT_S = 0.05  # a register frame: microseconds on a ring, tens of ms behind a stalled host
-REG_STATION_ADDRESS = 0x0010
-REG_EEPROM_CONFIG = 0x0500
-REG_EEPROM_CONTROL = 0x0502  # u16 control/status, then u32 word address
-REG_EEPROM_DATA = 0x0508
-EEPROM_READ = 0x0100
-EEPROM_BUSY = 0x8000
-SII_IDENTITY = (0x08, 0x0A, 0x0C)  # SII words: vendor, product code, revision (u32 each)
-_EEPROM_READ = struct.Struct("<HI")
-REG_AL_CONTROL = 0x0120
-REG_AL_STATUS = 0x0130  # u16 status, u16 reserved, u16 AL status code (0x0134)
-_AL_STATUS = struct.Struct("<HxxH")
+_EEPROM_READ = struct.Struct("<HI")  # 0x0502 control, 0x0504 word address
+_AL_STATUS = struct.Struct("<HxxH")  # 0x0130 status, reserved, 0x0134 AL status code
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 MAX_CHANNELS = (LAST_INDEX - FIRST_INDEX + 1) // 2
@@ -97,7 +103,7 @@ class RingRegisters:
 
     def sii_read(self, k: int, word: int, timeout_s: float = 0.02) -> int:
         """Word ``word`` (and the next) of slave ``k``'s SII EEPROM, as a u32, through its EEPROM interface."""
-        self.write(k, REG_EEPROM_CONTROL, _EEPROM_READ.pack(EEPROM_READ, word))
+        self.write(k, REG_EEPROM_CONTROL, _EEPROM_READ.pack(EEPROM_COMMAND_READ << EEPROM_COMMAND_SHIFT, word))
         deadline = self.clock() + timeout_s
         while _U16.unpack(self.read(k, REG_EEPROM_CONTROL, 2))[0] & EEPROM_BUSY:
             if self.clock() > deadline:
@@ -152,18 +158,17 @@ class RingRegisters:
         if replies is None:
             return None
         together = _U16.unpack(replies[0].data)[0]
-        if replies[0].wkc == self.slaves and together in (0x01, 0x02, 0x04, 0x08):
+        if replies[0].wkc == self.slaves and together in (AlState.INIT, AlState.PRE_OP, AlState.SAFE_OP, AlState.OP):
             return [(together, 0)] * self.slaves
         requests = [fprd(station, REG_AL_STATUS, _AL_STATUS.size) for station in self.stations]
         replies = self._exchange_all(requests, timeout_s)
         if replies is None:
             return None
-        return [(_AL_STATUS.unpack(r.data)[0] & 0x1F, _AL_STATUS.unpack(r.data)[1]) if r.wkc == 1 else None
-                for r in replies]
+        return [_al_status(r.data) if r.wkc == 1 else None for r in replies]
 
     def request_all(self, state: int) -> int:
         """Write AL control of every slave in one broadcast; how many took it (0 when the frame was lost)."""
-        replies = self.ring.exchange([Request(BWR, 0, REG_AL_CONTROL, data=_U16.pack(state))],
+        replies = self.ring.exchange([Request(Command.BWR, 0, REG_AL_CONTROL, data=_U16.pack(state))],
                                      timeout_s=REGISTER_TIMEOUT_S)
         return 0 if replies is None else replies[0].wkc
 
@@ -198,3 +203,9 @@ class RingRegisters:
     def close(self) -> None:
         for channel in (self.ring, *self._channels):
             channel.close()
+
+
+def _al_status(data: bytes) -> tuple[int, int]:
+    """(AL state with its error indication, AL status code) from 0x0130-0x0135."""
+    status, code = _AL_STATUS.unpack(data)
+    return status & (AL_ERROR | AL_STATE_MASK), code

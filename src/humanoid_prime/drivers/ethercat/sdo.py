@@ -14,9 +14,8 @@ from contextlib import contextmanager
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.ethercat.errors import RingError
-from humanoid_prime.drivers.ethercat.master import expected_ring
+from humanoid_prime.drivers.ethercat.ring import expected_ring
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
-from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo as SizedSdo  # re-exported for older imports
 from humanoid_prime.errors import PrimeError
 
 SDO_BACKENDS = ("soem", "igh")

@@ -3,8 +3,10 @@ prime's control socket), and objects written with the size the drive itself repo
 
 from __future__ import annotations
 
+import struct
 from typing import Protocol
 
+from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY
 from humanoid_prime.errors import PrimeError
 
 
@@ -56,3 +58,19 @@ class SizedSdo:
             raise PrimeError(f"ring {position}: {value} does not fit 0x{address[0]:04X}:{address[1]:02X}, "
                              f"which this drive holds in {size} bytes (0..{(1 << (8 * size)) - 1})")
         self.sdo.sdo_write(position, address[0], address[1], value.to_bytes(size, "little"))
+
+
+def read_live_error(sdo: SdoClient, position: int) -> int:
+    """The drive's current error code (0x603F), through any SDO client."""
+    code: int = struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
+    return code
+
+
+def read_error_history(sdo: SdoClient, position: int) -> list[int]:
+    """The drive's stored error codes (0x1003, newest first; the low 16 bits of each entry)."""
+    count = sdo.sdo_read(position, ERROR_HISTORY, 0)[0]
+    codes = []
+    for sub in range(1, count + 1):
+        raw = sdo.sdo_read(position, ERROR_HISTORY, sub)[:4].ljust(4, b"\0")
+        codes.append(struct.unpack("<I", raw)[0] & 0xFFFF)
+    return codes

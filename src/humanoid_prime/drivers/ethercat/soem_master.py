@@ -47,19 +47,11 @@ from humanoid_prime.drivers.ethercat.errors import RingError, SdoError
 from humanoid_prime.drivers.ethercat.link import LateReply, SocketWire, Wire, filter_soem_socket
 from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
 from humanoid_prime.drivers.ethercat.mapping import EscSetup, PdoMapping, mailbox_sync_managers, read_esc_setup
-from humanoid_prime.drivers.ethercat.master import (
-    AL_ERROR,
-    AL_OP,
-    AL_PRE_OP,
-    AL_SAFE_OP,
-    RX_DTYPE,
-    TX_DTYPE,
-    EthercatMaster,
-    SlaveInfo,
-    describe_states,
-)
+from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE, EthercatMaster
 from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo, describe_states
 from humanoid_prime.drivers.ethercat.supervision import RingSupervisor
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, AlState
 
 STATE_TIMEOUT_S = 3.0  # PRE-OP and SAFE-OP for the whole ring, before the cycle starts
 SCAN_ATTEMPTS = 3  # ring scans when SOEM finds fewer slaves than answer our own broadcast read
@@ -159,7 +151,7 @@ class SoemMaster(EthercatMaster):
             raise RingError(f"no network interface {self.interface!r} (buses.ethercat.interface in "
                             "prime_hardware.yaml); list them with `ip link` or pass --interface") from None
         self._scan()
-        return self._await_ring_state(AL_PRE_OP, "did not reach PRE-OP")
+        return self._await_ring_state(AlState.PRE_OP, "did not reach PRE-OP")
 
     def _scan(self) -> None:
         """Open SOEM on the NIC and let it scan the ring; again while it finds fewer slaves than answer our own
@@ -235,7 +227,7 @@ class SoemMaster(EthercatMaster):
         if all(info.al_state == want for info in found):
             return found
         self._store_found(found)
-        if want == AL_PRE_OP:  # straight after a scan: nothing of ours has touched the slaves yet
+        if want == AlState.PRE_OP:  # straight after a scan: nothing of ours has touched the slaves yet
             raise RingError(f"EtherCAT ring on {self.interface} {what}: {describe_states(found, want)}")
         raise Reconfigure(f"the ring {what}: {describe_states(found, want)}")
 
@@ -284,7 +276,7 @@ class SoemMaster(EthercatMaster):
         if [(s.man, s.id) for s in self._pslaves] != before:
             raise RingError(f"the EtherCAT ring on {self.interface} changed while it was being configured again: "
                             f"{len(before)} slaves before, {len(self._pslaves)} now")
-        self._await_ring_state(AL_PRE_OP, "did not reach PRE-OP")
+        self._await_ring_state(AlState.PRE_OP, "did not reach PRE-OP")
 
     def _configure_once(self) -> None:
         m, registers = self._require(), self._registers()
@@ -332,8 +324,8 @@ class SoemMaster(EthercatMaster):
                 clocks.arm_sync0(k, self.sync0_ns)
         except NoReply as exc:
             raise Reconfigure(f"SYNC0 could not be armed: {exc.what}") from None
-        registers.request_all(AL_SAFE_OP)
-        self._await_ring_state(AL_SAFE_OP, "did not reach SAFE-OP")
+        registers.request_all(AlState.SAFE_OP)
+        self._await_ring_state(AlState.SAFE_OP, "did not reach SAFE-OP")
         self.expected_wkc = m.expected_wkc
         self._out_buf = bytearray(n * RX_DTYPE.itemsize)
         self._in_buf = bytearray(n * TX_DTYPE.itemsize)
@@ -362,7 +354,7 @@ class SoemMaster(EthercatMaster):
 
     # ------------------------------------------------------------------------------------------- to OP
     def _request_op(self) -> None:
-        self._registers().request_all(AL_OP)
+        self._registers().request_all(AlState.OP)
 
     def _read_states(self) -> list[tuple[int, int]]:
         states = self.registers.states() if self.registers is not None else None
@@ -373,7 +365,7 @@ class SoemMaster(EthercatMaster):
     def _advance(self, slaves: Sequence[tuple[int, int]]) -> None:
         for k, state in slaves:
             with contextlib.suppress(NoReply):  # asked again at the next look
-                self._registers().request_state(k, AL_SAFE_OP | AL_ERROR if state & AL_ERROR else AL_OP)
+                self._registers().request_state(k, AlState.SAFE_OP | AL_ERROR if state & AL_ERROR else AlState.OP)
 
     def _started(self) -> None:
         # a returning slave's state changes: on the master's clock; in production the wait ends when it closes

@@ -46,8 +46,6 @@ from humanoid_prime.drivers.erob.cia402 import (
     FAULT_PATTERN,
     FAULT_RESET,
     OPERATION_ENABLED_PATTERN,
-    describe_al_state,
-    describe_al_status_code,
     describe_error,
     drive_state,
     enable_step,
@@ -65,16 +63,11 @@ from humanoid_prime.drivers.erob.objects import (
 )
 from humanoid_prime.drivers.ethercat._tick import EcTick
 from humanoid_prime.drivers.ethercat.fold import check_foldable, fold_slave_config, write_folded_configs
-from humanoid_prime.drivers.ethercat.master import (
-    RX_DTYPE,
-    TX_DTYPE,
-    BringupReport,
-    EthercatMaster,
-    ExpectedSlave,
-    check_ring,
-    feeding_priority,
-)
+from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE, BringupReport, EthercatMaster
+from humanoid_prime.drivers.ethercat.priority import feeding_priority
+from humanoid_prime.drivers.ethercat.ring import ExpectedSlave, check_ring
 from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, parse_slave_config
+from humanoid_prime.drivers.ethercat.wire import describe_al_state, describe_al_status_code
 from humanoid_prime.errors import ConfigError, PrimeError
 
 

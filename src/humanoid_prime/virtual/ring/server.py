@@ -30,14 +30,9 @@ from array import array
 from collections.abc import Callable
 from typing import Any
 
+from humanoid_prime.drivers.ethercat.wire import AL_STATE_NAMES, ETHERTYPE, Command
 from humanoid_prime.virtual.ring.drive import Cia402State
-from humanoid_prime.virtual.ring.firmware import AlState
-from humanoid_prime.virtual.ring.frames import (
-    ETHERTYPE_ECAT,
-    Command,
-    Datagram,
-    build_frame,
-)
+from humanoid_prime.virtual.ring.frames import Datagram, build_frame
 from humanoid_prime.virtual.ring.ring import Ring
 
 _TURNAROUND_SAMPLES = 65536
@@ -74,8 +69,8 @@ class EmulatorServer:
         self._last_frame_ns = 0
         self._last_gc_ns = 0
         self._random = random.Random(0x88A4)
-        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
-        self._raw.bind((interface, ETHERTYPE_ECAT))
+        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
+        self._raw.bind((interface, ETHERTYPE))
         self._raw.setblocking(False)
         with contextlib.suppress(FileNotFoundError):
             os.unlink(control_path)
@@ -288,19 +283,19 @@ class EmulatorServer:
             "reachable": slave in ring.reachable,
             "silent": slave.silent,
             "station_address": esc.station_address,
-            "al_state": AlState(slave.state).name,
+            "al_state": AL_STATE_NAMES[slave.state],
             "al_status": esc.al_status,
             "al_status_code": esc.al_status_code,
             "al_pending_op": slave.pending_op,
             "al_change_frames": list(slave.change_frames),
             "dc": {
-                "activation": esc.sync_activation,
-                "sync0_cycle_ns": esc.sync0_cycle_ns,
-                "sync0_running": esc.sync0_running(now),
+                "activation": esc.clock.activation,
+                "sync0_cycle_ns": esc.clock.sync0_cycle_ns,
+                "sync0_running": esc.clock.sync0_running(now),
                 "locked": slave.locked,
                 "lock_count": slave.lock_count,
-                "time_samples": esc.dc_samples,
-                "time_difference_ns": esc.dc_difference_ns,
+                "time_samples": esc.clock.samples,
+                "time_difference_ns": esc.clock.difference_ns,
             },
             "mailbox_faults": slave.mailbox_faults,
             "drive": {

@@ -26,7 +26,7 @@ import pysoem
 
 from doubles.link import EmulatedClock, RingHub
 from humanoid_prime.drivers.ethercat.link import Request, build_frame, frame_index
-from humanoid_prime.drivers.ethercat.wire import Command
+from humanoid_prime.drivers.ethercat.wire import SII_WORD_VENDOR, Command
 from humanoid_prime.virtual.ring.firmware import sii_content
 
 EC_MAXBUF = 16
@@ -70,10 +70,11 @@ class SoemFrames:
 
     EMPTY, TX, RCVD = 0, 2, 3
 
-    def __init__(self, hub: RingHub, clock: EmulatedClock) -> None:
+    def __init__(self, hub: RingHub, clock: EmulatedClock, base: int = 0) -> None:
         self.hub = hub
         self.clock = clock
-        self.port = hub.port(range(EC_MAXBUF))
+        self.base = base  # the index its frames carry for buffer 0 (SOEM's: 0)
+        self.port = hub.port(range(base, base + EC_MAXBUF))
         self.state = [self.EMPTY] * EC_MAXBUF
         self.filed: list[bytes | None] = [None] * EC_MAXBUF
         self.last = 0
@@ -90,7 +91,7 @@ class SoemFrames:
             raise RuntimeError("no free SOEM frame buffer")
 
     def send(self, idx: int, requests: Sequence[Request]) -> None:
-        self.hub.send(build_frame(idx, requests))
+        self.hub.send(build_frame(self.base + idx, requests))
 
     def wait(self, idx: int, timeout_s: float) -> bytes | None:
         """ecx_waitinframe: this index's frame, or one filed for it meanwhile; others filed for their waiters."""
@@ -107,6 +108,7 @@ class SoemFrames:
             if frame is None:
                 continue
             got = frame_index(frame)
+            got = None if got is None else got - self.base
             with self.lock:
                 if got == idx:
                     return frame
@@ -149,7 +151,12 @@ class FakeSoemSlave:
         self.position = position
         self.station = STATION_BASE + position
         content = sii_content(master.hub.ring.options, 0)
-        self.name, self.man, self.id, self.rev = "eRob", content.vendor_id, content.product_code, content.revision
+        image = master.hub.ring.slaves[position].esc.eeprom.image  # the identity as this slave's SII holds it
+        self.name = "eRob"
+        self.man, self.id, self.rev = struct.unpack_from("<III", image, 2 * SII_WORD_VENDOR)
+        if FakeSoemMaster.misread.get(position, 0) > 0:  # an EEPROM read that failed in this scan
+            FakeSoemMaster.misread[position] -= 1
+            self.man = self.id = 0
         self.mailbox = (content.sync_managers[0].start, content.sync_managers[0].length,
                         content.sync_managers[1].start, content.sync_managers[1].length)
         self.state, self.al_status = pysoem.NONE_STATE, 0
@@ -357,6 +364,8 @@ class FakeSoemMaster:
 
     ring: dict[str, tuple[RingHub, EmulatedClock]] = {}
     last: FakeSoemMaster | None = None
+    index_base = 0  # the index of its first frame buffer: SOEM's is 0
+    misread: dict[int, int] = {}  # ring position -> scans in which its identity reads 0 (a failed EEPROM read)
 
     def __init__(self) -> None:
         self.hub: RingHub | None = None
@@ -376,7 +385,7 @@ class FakeSoemMaster:
 
     def open(self, ifname: str, ifname_red: str | None = None) -> None:
         self.hub, self.clock = FakeSoemMaster.ring[ifname]
-        self.frames = SoemFrames(self.hub, self.clock)
+        self.frames = SoemFrames(self.hub, self.clock, FakeSoemMaster.index_base)
 
     def close(self) -> None:
         self.closed = True

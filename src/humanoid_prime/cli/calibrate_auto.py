@@ -200,7 +200,8 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         # The loop real-time as in bringup: on a busy machine a loop at normal priority misses the ring's frames.
         options = BringupOptions(backends=args.backends, calibration=identity_from(prior), broadcaster_only=True,
                                  realtime=True, emulated=virtual is not None, hardware_file=args.hardware,
-                                 controllers_file=args.controllers, control_socket=args.socket)
+                                 controllers_file=args.controllers, control_socket=args.socket,
+                                 ec_mailbox=args.ec_mailbox)
         if virtual is not None:
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel

@@ -1,4 +1,4 @@
-"""Register frames of our own on the ring's NIC, beside SOEM's, each reply matched to its request.
+"""Register frames of Prime's own on the ring's NIC, beside SOEM's, each reply matched to its request.
 
 Why not SOEM's: SOEM files a reply by the index of its frame buffer alone, one of the 16 it cycles through
 (``ecx_inframe``, oshw/linux/nicdrv.c), and checks nothing else. A frame that comes back after SOEM gave up on it
@@ -9,13 +9,13 @@ stale word back to 0x080D-0x080E with the mailbox's enable bit cleared, and the 
 the frame. This belongs fixed in SOEM's frame layer; until it is, Prime sends its register and mailbox frames
 here instead.
 
-Frames here carry datagram indices SOEM never uses (``FIRST_INDEX`` and up; SOEM's are 0..15, ``EC_MAXBUF``).
-Each ``Channel`` owns a range of them and its own raw socket, whose kernel filter passes only replies in that
-range: no other thread's reply is ever read, and none reaches SOEM's socket (``filter_soem_socket`` keeps ours
-out of its queue). A reply is taken only if its index is outstanding and every datagram's command, address and
-length are the request's. An index whose reply did not come in time is not used again until that late reply
-has come (it is counted, with how late it was) or ``QUARANTINE_S`` has passed. Waiting releases the
-interpreter lock.
+The split of frame indices: SOEM's are 0..15 (``EC_MAXBUF``), Prime's ``FIRST_INDEX``..0xFF, and each drops the
+other's replies (``soem_contract.py`` says what that rests on and checks it). Each ``Channel`` owns a range of
+Prime's indices and its own raw socket, whose kernel filter passes only replies in that range: no other thread's
+reply is ever read. A reply is taken only if its index is outstanding and every datagram's command, address and
+length are the request's. An index whose reply did not come in time is not used again until that late reply has
+come (it is counted, with how late it was) or ``QUARANTINE_S`` has passed. Waiting releases the interpreter lock.
+``on_sent`` is told of every frame a channel sends (SOEM's socket gets a copy of its reply).
 
 The socket is one implementation of ``Wire``; the test doubles pass the same frames through the emulated ring
 in-process.
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import collections
 import ctypes
-import os
 import socket
 import struct
 import threading
@@ -166,7 +165,8 @@ class Channel:
     """Request/reply exchanges over ``wire`` with datagram indices ``indices``, one exchange at a time."""
 
     def __init__(self, wire: Wire, indices: Sequence[int], *, clock: Callable[[], float] = time.monotonic,
-                 retry_s: float = RETRY_S, quarantine_s: float = QUARANTINE_S) -> None:
+                 retry_s: float = RETRY_S, quarantine_s: float = QUARANTINE_S,
+                 on_sent: Callable[[], None] | None = None) -> None:
         if len(indices) < 2:
             raise ValueError(f"a channel needs at least 2 datagram indices, got {len(indices)}")
         self.wire = wire
@@ -174,6 +174,7 @@ class Channel:
         self.clock = clock
         self.retry_s = retry_s
         self.quarantine_s = quarantine_s
+        self.on_sent = on_sent
         self.exchanges = 0
         self.resent = 0  # frames sent again because the first was not back within ``retry_s``
         self.unanswered = 0  # exchanges that got no reply at all in their time
@@ -205,6 +206,8 @@ class Channel:
                         self.resent += 1
                     mine.add(index)
                     self._outstanding[index] = (self.clock(), what, requests)
+                    if self.on_sent is not None:
+                        self.on_sent()
                     self.wire.send(build_frame(index, requests))
                     resend_at = self.clock() + self.retry_s
                 now = self.clock()
@@ -292,13 +295,6 @@ def attach_filter(sock: socket.socket, program: bytes) -> None:
     buffer = ctypes.create_string_buffer(program)
     fprog = struct.pack("HL", len(program) // _FILTER.size, ctypes.addressof(buffer))
     sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
-
-
-def filter_soem_socket(fd: int) -> None:
-    """Let SOEM's socket (``fd``) receive only frames with SOEM's indices, so replies to our frames never queue
-    there (SOEM reads its socket only while it waits for a frame of its own)."""
-    with socket.socket(fileno=os.dup(fd)) as sock:
-        attach_filter(sock, index_filter(0, FIRST_INDEX - 1))
 
 
 class SocketWire:

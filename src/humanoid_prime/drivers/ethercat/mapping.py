@@ -28,7 +28,7 @@ from humanoid_prime.drivers.erob.objects import (
     TXPDO_STRUCT,
 )
 from humanoid_prime.drivers.ethercat.errors import SdoError
-from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox
+from humanoid_prime.drivers.ethercat.mailbox import SdoMailbox
 from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
 from humanoid_prime.drivers.ethercat.wire import (
     ESC_FEATURE_DC,
@@ -99,7 +99,7 @@ class PdoMapping:
     """The PRE-OP work on each drive, through its mailbox (``mailboxes[k]``), each transfer with ``timeout_s``.
     ``on_rated_torque(k, raw or None, problem)`` gets what 0x6076 answered."""
 
-    def __init__(self, mailboxes: Sequence[CoeMailbox], timeout_s: float,
+    def __init__(self, mailboxes: Sequence[SdoMailbox], timeout_s: float,
                  on_rated_torque: Callable[[int, bytes | None, str], None]) -> None:
         self.mailboxes = mailboxes
         self.timeout_s = timeout_s
@@ -119,6 +119,7 @@ class PdoMapping:
                                 f"({verdict})")
             raise
         self.problems.pop(k, None)
+        mailbox.reset_counter()  # the last request before SOEM reads the mapping back through this mailbox
         try:
             self.on_rated_torque(k, mailbox.upload(RATED_TORQUE, 0, self.timeout_s), "")
         except SdoError as exc:

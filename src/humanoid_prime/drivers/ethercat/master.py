@@ -137,6 +137,7 @@ class EthercatMaster(ABC):
         # torque that 0x6077 and 0x60B2 count in per mille; why a drive's could not be read.
         self.rated_torque_nm = np.zeros(0)
         self.rated_torque_problems: dict[int, str] = {}
+        self.mailbox = "prime"  # who works the slaves' mailboxes (buses.ethercat.mailbox): Prime's layer, or SOEM's
         self.kept_cycles = 0  # frames the keeper sent while the owner of the cycle was quiet
         self.cycles_answered = 0  # cycle frames that came back answered (each carried the ring's time)
         self._io = threading.Lock()  # one send or receive at a time: the owner's and the keeper's
@@ -283,6 +284,17 @@ class EthercatMaster(ABC):
             self._wkc_mismatch()
         return wkc
 
+    def refresh(self) -> None:
+        """One cycle frame now, between the owner's: a frame in flight is collected first and another sent in its
+        place, for the owner to collect."""
+        with self._io:
+            if self._in_flight:
+                self._receive_now()
+                self._send_now()
+            else:
+                self._send_now()
+                self._receive_now()
+
     def _keep(self) -> None:
         """Once in OP, every cycle period: when the owner of the cycle has been quiet for two periods, send the
         current outputs, and go on every period until it ticks again, so no slave's output watchdog runs out
@@ -355,6 +367,10 @@ class EthercatMaster(ABC):
         self._gate(position, index, sub_index)
         self._sdo_write(position, index, sub_index, bytes(data))
 
+    def mailbox_drops(self) -> dict[str, int]:
+        """The mailbox messages dropped so far, by why (``coe.DROP_REASONS``; empty where none are counted)."""
+        return {}
+
     def live_error(self, position: int) -> int:
         return read_live_error(self, position)
 
@@ -409,14 +425,6 @@ class EthercatMaster(ABC):
 
     def _started(self) -> None:
         """Called once every slave is in OP (e.g. to start ring supervision)."""
-
-    def poll_frames(self, poll: bool) -> bool:
-        """Have every thread that waits for a frame poll the NIC (True) or sleep until a frame arrives (False);
-        returns whether frames are now polled. Polling is for a ring whose cycle a real-time thread owns: a
-        thread of normal priority that polls uses up its share and is put behind the machine's other work.
-        A master without a socket of its own to poll never polls, nor one whose NIC delivers frames from a kernel
-        thread that a polling real-time thread could starve."""
-        return False
 
     @abstractmethod
     def _send(self) -> None:

@@ -32,6 +32,7 @@ from humanoid_prime.drivers.ethercat.wire import (
     EEPROM_BUSY,
     EEPROM_COMMAND_READ,
     EEPROM_COMMAND_SHIFT,
+    EEPROM_TO_PDI,
     REG_AL_CONTROL,
     REG_AL_STATUS,
     REG_EEPROM_CONFIG,
@@ -64,12 +65,12 @@ class RingRegisters:
     """The ring's slaves by ring position, over channels whose wires ``make_wire`` opens (one per index range)."""
 
     def __init__(self, make_wire: Callable[[range], Wire], slaves: int, *,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, on_sent: Callable[[], None] | None = None) -> None:
         self.slaves = slaves
         self.clock = clock
         ranges = index_ranges(min(slaves, MAX_CHANNELS - 1) + 1)
-        self.ring = Channel(make_wire(ranges[0]), ranges[0], clock=clock)
-        self._channels = [Channel(make_wire(r), r, clock=clock) for r in ranges[1:]]
+        self.ring = Channel(make_wire(ranges[0]), ranges[0], clock=clock, on_sent=on_sent)
+        self._channels = [Channel(make_wire(r), r, clock=clock, on_sent=on_sent) for r in ranges[1:]]
         self.stations = [STATION_BASE + k for k in range(slaves)]
 
     def channel(self, k: int) -> Channel:
@@ -111,6 +112,19 @@ class RingRegisters:
         data: int = _U32.unpack(self.read(k, REG_EEPROM_DATA, 4))[0]
         return data
 
+    def sii_identity(self, k: int) -> tuple[int, int, int]:
+        """(vendor, product code, revision) as slave ``k``'s SII holds them, read over our frames; the EEPROM goes back
+        to the slave's firmware afterwards if it had it (a slave needs it in INIT -> PRE-OP)."""
+        pdi = self.read(k, REG_EEPROM_CONFIG, 1)[0] & EEPROM_TO_PDI
+        if pdi:
+            self.write(k, REG_EEPROM_CONFIG, b"\x00")
+        try:
+            vendor, product, revision = (self.sii_read(k, word) for word in SII_IDENTITY)
+            return vendor, product, revision
+        finally:
+            if pdi:
+                self.write(k, REG_EEPROM_CONFIG, bytes((EEPROM_TO_PDI,)))
+
     def readdress(self, k: int, identity: tuple[int, int, int]) -> bool:
         """Slave ``k`` answers at its station address again: True at once if it does; one that answers at its
         ring position without an address (back from a power cycle, in INIT) gets it back when its SII says it is
@@ -123,8 +137,7 @@ class RingRegisters:
             return address == self.stations[k]  # another address is another slave's to keep
         self.ring.exchange([apwr(k, REG_STATION_ADDRESS, _U16.pack(self.stations[k]))], timeout_s=REGISTER_TIMEOUT_S)
         try:
-            self.write(k, REG_EEPROM_CONFIG, b"\x00")  # the EEPROM to the master
-            found = tuple(self.sii_read(k, word) for word in SII_IDENTITY)
+            found: tuple[int, ...] | None = self.sii_identity(k)
         except NoReply:
             found = None
         if found == tuple(identity):

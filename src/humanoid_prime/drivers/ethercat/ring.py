@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.ethercat.errors import RingError
-from humanoid_prime.drivers.ethercat.wire import describe_al_state, describe_al_status_code
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, describe_al_state, describe_al_status_code
 
 HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
 
@@ -67,7 +67,7 @@ def describe_states(slaves: Sequence[SlaveInfo], want: int) -> str:
     for slave in slaves:
         if slave.al_state != want:
             text = f"ring {slave.position} {slave.state_text}"
-            if slave.al_status_code:
+            if slave.al_state & AL_ERROR and slave.al_status_code:  # a code counts with its error indication only
                 code = slave.al_status_code
                 text += f" (AL status 0x{code:04X} {describe_al_status_code(code)})"
             parts.append(text)

@@ -33,6 +33,7 @@ from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.ethercat.mapping import EscSetup
 from humanoid_prime.drivers.ethercat.priority import HELPER_PRIORITY, feeding_priority
 from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
+from humanoid_prime.drivers.ethercat.states import change_timeout
 from humanoid_prime.drivers.ethercat.wire import (
     AL_ERROR,
     AL_STATE_MASK,
@@ -44,7 +45,6 @@ from humanoid_prime.drivers.ethercat.wire import (
 )
 
 STATE_READS = 3  # AL-state reads in a pass while no slave answers them (their frames lost)
-STATE_CHANGE_TIMEOUT_S = 2.0  # a returning slave's state changes, as SOEM's ecx_statecheck waits for them
 STATE_POLL_S = 0.001
 _U16 = struct.Struct("<H")
 
@@ -179,7 +179,7 @@ class RingSupervisor:
                     state == AlState.OP, state, code):
                 if health.slave_ok[k] and state != AlState.OP:
                     health.left_op[k] += 1
-                    health.left_op_code[k] = code
+                    health.left_op_code[k] = code if state & AL_ERROR else 0  # a code counts with its error
                 health.slave_ok[k] = state == AlState.OP
                 health.al_state[k] = state
                 health.al_status_code[k] = code
@@ -227,7 +227,7 @@ class RingSupervisor:
     def _await_state(self, k: int, wanted: int) -> int:
         """Poll slave ``k``'s AL status until it shows ``wanted``, refuses (error flag), the wait runs out or the
         master closes; returns the state (without the error flag)."""
-        deadline = self.clock() + STATE_CHANGE_TIMEOUT_S
+        deadline = self.clock() + change_timeout(wanted)[0]
         while True:
             try:
                 status: int = _U16.unpack(self.registers.read(k, REG_AL_STATUS, 2))[0]

@@ -67,7 +67,7 @@ from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE, BringupRe
 from humanoid_prime.drivers.ethercat.priority import feeding_priority
 from humanoid_prime.drivers.ethercat.ring import ExpectedSlave, check_ring
 from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, parse_slave_config
-from humanoid_prime.drivers.ethercat.wire import describe_al_state, describe_al_status_code
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, describe_al_state, describe_al_status_code
 from humanoid_prime.errors import ConfigError, PrimeError
 
 
@@ -472,7 +472,7 @@ class EthercatSystem(HardwareComponent):
                 continue
             state, code = int(master.al_state[position]), int(master.al_status_code[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
-            if code and not (lost is not None and lost[position]):  # why it left OP, as its ESC says
+            if code and state & AL_ERROR and not (lost is not None and lost[position]):  # why it left, as its ESC says
                 why += f", AL status 0x{code:04X} {describe_al_status_code(code)}"
             problem = master.recovery_problems.get(position)
             if problem:

@@ -137,6 +137,7 @@ class ErobFirmware:
         self.outputs_pending = False
         self.process_data: ProcessData | None = None
         self.mailbox_faults = 0
+        self.refusals: dict[int, int] = {}  # fault injection: requests for a state here are refused with that code
         self.replies_taken = 0  # replies the master read out of the read mailbox (a repeated one counts again)
         self._replies: deque[tuple[int, bytes]] = deque()
         guard_pdo_objects(self.drive.od, self._in_pre_op)
@@ -228,6 +229,9 @@ class ErobFirmware:
         current = self.state
         self.pending_op = False
         if requested == current:
+            return
+        if requested in self.refusals:
+            self._fail(self.refusals[requested])
             return
         if requested == AlState.INIT:
             self._enter(AlState.INIT)

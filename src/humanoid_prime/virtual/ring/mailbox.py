@@ -117,6 +117,7 @@ class CoeServer:
         self.emergencies = 0
         self._last_counter = 0
         self._reply_counter = first_counter % 7  # the next reply carries this + 1
+        self._replies_counted = 0
         self._replies = 0
         self._upload: tuple[int, int, bytes, int, int] | None = None  # index, sub, data, sent, toggle
         self._download: tuple[int, int, bytearray, int, int] | None = None  # index, sub, data, size, toggle
@@ -160,7 +161,9 @@ class CoeServer:
         return replies
 
     def _next_counter(self) -> int:
-        self._reply_counter = self._reply_counter % 7 + 1
+        self._replies_counted += 1
+        if "counter" not in self.quirks or self._replies_counted % 2:  # that profile moves on every other reply
+            self._reply_counter = self._reply_counter % 7 + 1
         return self._reply_counter
 
     def _reply(self, payload: bytes) -> bytes:

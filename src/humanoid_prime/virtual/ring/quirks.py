@@ -14,9 +14,9 @@ PROFILES: dict[str, str] = {
     "reserved-bits": "SDO replies carry the request's low bits where the specification reserves them (0x2F -> 0x6F, "
                      "0x23 -> 0x63), aborts too (0x2F -> 0x8F): KickCAT's slave stack answers in the request's own "
                      "buffer and rewrites only the command specifier (lib/src/CoE/mailbox/response.cc)",
-    "counter": "the mailbox counter of its replies is its own, starting anywhere and never echoing the request's "
-               "(EtherCrab #236: a request with counter 1 answered with 2), and a repeated request counter is served "
-               "again (many slave stacks do not check it)",
+    "counter": "the mailbox counter of its replies is its own: it starts anywhere, never echoes the request's "
+               "(EtherCrab #236: a request with counter 1 answered with 2) and moves on only every other reply; and a "
+               "request that repeats the last one's counter is served again (a slave stack that does not check it)",
     "no-size": "expedited uploads without a size indication: all four data bytes, whatever the object's size "
                "(CiA 301 allows it; canopen-python #395 and lely-core #1 met devices that do it)",
     "normal-upload": "4-byte values answered as normal (not expedited) uploads, the size u32 before the data",

@@ -256,6 +256,12 @@ def _start_load_test(session: Session, virtual, joints: list[str], stop: threadi
 
 
 def _print_report(summary: dict) -> None:
+    ethercat = summary.get("ethercat_bringup") or {}
+    if "mailbox" in ethercat:
+        drops = ethercat["mailbox_drops"]
+        print(f"EtherCAT mailboxes: {ethercat['mailbox']}" + (
+            f"; messages dropped: {drops['late']} late, {drops['other object']} for another object, "
+            f"{drops['unrecognised']} unrecognised, {drops['malformed']} malformed" if drops else ""))
     for switch in summary["mode_switches"]:
         state = "ok" if switch["ok"] else f"FAILED {switch['failed']}"
         if not switch["together"]:

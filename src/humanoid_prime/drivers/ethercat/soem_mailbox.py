@@ -63,4 +63,6 @@ def describe_soem_error(exc: BaseException) -> str:
         return "no reply (working counter 0)"
     if isinstance(exc, SdoError):
         return str(exc)
+    if str(exc) == "unexpected error":  # what pysoem calls an error it has no class for (an emergency among them)
+        return "an error pysoem does not name (an emergency among them)"
     return str(exc) or type(exc).__name__

@@ -219,11 +219,14 @@ class SoemMaster(EthercatMaster):
         for slave in self._pslaves:
             slave.config_func = self._mapping.hook
         m.manual_state_change = 1  # config_map must not ask for SAFE-OP before SYNC0 is set
+        read_back = ""
         try:
             m.config_map()
         except pysoem.ConfigMapError as exc:
-            raise Reconfigure("SOEM could not read the PDO mapping back: "
-                              + "; ".join(describe_soem_error(e) for e in exc.error_list)) from None
+            # pysoem raises it for any error SOEM listed, a slave's emergency too, after the layout is done: the
+            # layout is checked below either way, and these are only the why if it is wrong
+            read_back = "; SOEM's read-back of the mapping reported " + "; ".join(
+                sorted({describe_soem_error(e) for e in exc.error_list}))
         except Exception as exc:
             refused = [p for p in self._mapping.problems.values() if "refused" in p]
             problems = "; ".join(self._mapping.problems.values()) or describe_soem_error(exc)
@@ -236,7 +239,7 @@ class SoemMaster(EthercatMaster):
         for k, slave in enumerate(self._pslaves):
             problem = self._mapping.check(k, (len(slave.output), len(slave.input)))
             if problem is not None:
-                raise Reconfigure(problem)
+                raise Reconfigure(problem + read_back)
         if not m.config_dc():
             raise RingError(f"no slave on {self.interface} supports distributed clocks; eRob CSP needs DC "
                             "(CSP in free run faults the drives with 4616)")

@@ -297,7 +297,7 @@ class CoeServer:
             return _sdo_frame(normal, index, sub, struct.pack("<I", 4) + data)
         if 0 < len(data) <= 4:
             padded = data.ljust(4, b"\x00")
-            if "no-size" in self.quirks:  # e = 1, s = 0: the four data bytes, the object's size unsaid
+            if "no-size" in self.quirks and len(data) == 4:  # e = 1, s = 0: four data bytes, their number unsaid
                 return _sdo_frame(SDO_UPLOAD_RESPONSE | SDO_EXPEDITED | reserved, index, sub, padded)
             return _sdo_frame(sdo_upload_expedited(len(data)) | reserved, index, sub, padded)
         room = self.mailbox_size - MAILBOX_HEADER_SIZE - SDO_MIN_LENGTH

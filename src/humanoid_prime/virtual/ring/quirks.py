@@ -17,8 +17,9 @@ PROFILES: dict[str, str] = {
     "counter": "the mailbox counter of its replies is its own: it starts anywhere, never echoes the request's "
                "(EtherCrab #236: a request with counter 1 answered with 2) and moves on only every other reply; and a "
                "request that repeats the last one's counter is served again (a slave stack that does not check it)",
-    "no-size": "expedited uploads without a size indication: all four data bytes, whatever the object's size "
-               "(CiA 301 allows it; canopen-python #395 and lely-core #1 met devices that do it)",
+    "no-size": "expedited uploads of 4-byte values without a size indication (e = 1, s = 0), which CiA 301 allows "
+               "and canopen-python #395 and lely-core #1 met (a shorter value so sent breaks SOEM's read-back of the "
+               "PDO mapping into 1- and 2-byte buffers, so it is left out here; Prime's layer takes it too)",
     "normal-upload": "4-byte values answered as normal (not expedited) uploads, the size u32 before the data",
     "slow-sii": "an EEPROM that stays busy for milliseconds per read (SOEM #92: a 24LC16B)",
     "slow-states": "state changes that take their time (ZeroErr's eRob_SOEM_linux #19, SOEM #355: eRob slow to PRE-OP "

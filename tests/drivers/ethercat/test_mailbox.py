@@ -11,7 +11,7 @@ import pytest
 from doubles.link import EmulatedClock, RingHub
 from doubles.wire import MAILBOX_IN, MAILBOX_OUT, STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.objects import RATED_TORQUE, TXPDO_MAP
-from humanoid_prime.drivers.ethercat.errors import SdoError
+from humanoid_prime.drivers.ethercat.errors import SdoError, SdoTimeout
 from humanoid_prime.drivers.ethercat.link import FIRST_INDEX, Channel
 from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
 from humanoid_prime.drivers.ethercat.wire import mailbox_message
@@ -119,6 +119,20 @@ def test_a_reply_held_back_by_a_slow_host_is_waited_for_within_the_timeout():
     hub.hold_next(0.020, lambda frame, took_reply: took_reply)
     assert mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.1) == struct.pack("<I", 0x5A65726F)
     assert mailbox.requests_again == 0
+
+
+def test_a_reply_that_never_comes_is_told_from_a_host_too_slow_to_look_for_it():
+    ring, hub, mailbox = make(mailbox_latency_s=0.0005)
+    ring.latency.script(2, 1.0)
+    with pytest.raises(SdoTimeout) as error:
+        mailbox.upload(RATED_TORQUE, 0, timeout_s=0.1)
+    assert error.value.delivered and error.value.looks > 10 and not error.value.host_slow
+    assert error.value.verdict == "the drive did not answer"
+    mailbox.sleep = lambda _s: hub.clock.sleep(0.040)  # every pause between two looks lasts 40 ms: a loaded host
+    with pytest.raises(SdoTimeout) as error:
+        mailbox.upload(RATED_TORQUE, 0, timeout_s=0.1)
+    assert error.value.host_slow and error.value.verdict == "this host did not look in time"
+    assert "this process went 40 ms without a look (a loaded host)" in error.value.problem
 
 
 def request_counters(hub: RingHub) -> list[int]:

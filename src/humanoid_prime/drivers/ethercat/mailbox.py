@@ -47,8 +47,8 @@ from humanoid_prime.drivers.ethercat.coe import (
     upload_value,
     why_dropped,
 )
-from humanoid_prime.drivers.ethercat.errors import SdoError
-from humanoid_prime.drivers.ethercat.link import Channel, fprd, fpwr
+from humanoid_prime.drivers.ethercat.errors import SdoError, SdoTimeout
+from humanoid_prime.drivers.ethercat.link import Channel, Reply, Request, fprd, fpwr
 from humanoid_prime.drivers.ethercat.wire import (
     COE_SDO_REQUEST,
     COE_SERVICE_SHIFT,
@@ -107,6 +107,17 @@ class DroppedReply:
     late_s: float | None = None  # late: how long after the request it answers
 
 
+@dataclass
+class _Wait:
+    """What one transfer's wait saw: the request taken by the write mailbox, looks at the read mailbox, and the
+    longest time between two frames to the slave (``clock`` time)."""
+
+    last: float
+    delivered: bool = False
+    looks: int = 0
+    longest_gap_s: float = 0.0
+
+
 class DropLog:
     """The messages the mailboxes of a ring dropped: a count by reason, and the latest of them."""
 
@@ -151,6 +162,7 @@ class CoeMailbox:
         self.requests_again = 0  # requests sent afresh because their reply was lost on the way back
         self._counter = 0  # the next request carries 0, then 1..7
         self._sent: collections.deque[Expected] = collections.deque(maxlen=REMEMBERED)  # in flight last
+        self._wait = _Wait(0.0)
         self._lock = threading.Lock()
 
     def reset_counter(self) -> None:
@@ -203,12 +215,14 @@ class CoeMailbox:
         in ``timeout_s``."""
         index, sub = expected.index, expected.sub
         deadline = self.clock() + timeout_s
+        self._wait = _Wait(self.clock())
         for _attempt in range(REQUEST_ATTEMPTS):
             message = mailbox_message(payload, MAILBOX_TYPE_COE, self._take_counter())
             message = message.ljust(self.layout.write_size, b"\0")
             sent = Expected(expected.specifier, index, sub, expected.toggle, self.clock())
             if not self._send(message, deadline):
                 break
+            self._wait.delivered = True
             self._sent.append(sent)
             reply = self._await_reply(sent, deadline)
             if reply is not None:
@@ -216,7 +230,9 @@ class CoeMailbox:
             if self.clock() >= deadline:
                 break
             self.requests_again += 1  # the reply was read out but its frame did not come back: ask again
-        raise SdoError(self.position, index, sub, f"no reply within {timeout_s * 1e3:g} ms (mailbox timeout)")
+        wait = self._wait
+        raise SdoTimeout(self.position, index, sub, timeout_s, delivered=wait.delivered, looks=wait.looks,
+                         longest_gap_s=max(wait.longest_gap_s, self.clock() - wait.last))
 
     def _send(self, message: bytes, deadline: float) -> bool:
         """Take out whatever waits in the read mailbox, then put the request in the write mailbox; False when it
@@ -224,7 +240,7 @@ class CoeMailbox:
         layout, station = self.layout, self.station
         flush = fprd(station, layout.read_start, layout.read_size)
         request = fpwr(station, layout.write_start, message)
-        replies = self.channel.exchange([flush, request], timeout_s=self._frame_time(deadline), repeat=False)
+        replies = self._exchange([flush, request], deadline, repeat=False)
         if replies is not None:
             if replies[0].wkc == 1:
                 self._unasked(read_message(replies[0].data))
@@ -232,7 +248,7 @@ class CoeMailbox:
                 return True
         while self.clock() < deadline:  # lost, or refused while the write mailbox still held a request: again
             self.sleep(POLL_S)
-            again = self.channel.exchange([request], timeout_s=self._frame_time(deadline))
+            again = self._exchange([request], deadline)
             if again is not None and again[0].wkc == 1:
                 return True
         return False
@@ -243,9 +259,10 @@ class CoeMailbox:
         layout = self.layout
         read = fprd(self.station, layout.read_start, layout.read_size)
         while self.clock() < deadline:
-            replies = self.channel.exchange([read], timeout_s=self._frame_time(deadline), repeat=False)
+            replies = self._exchange([read], deadline, repeat=False)
             if replies is None:
                 return None
+            self._wait.looks += 1
             if replies[0].wkc != 1:
                 self.sleep(POLL_S)
                 continue
@@ -279,6 +296,16 @@ class CoeMailbox:
         counter = self._counter
         self._counter = counter % 7 + 1
         return counter
+
+    def _exchange(self, requests: Sequence[Request], deadline: float, repeat: bool = True) -> list[Reply] | None:
+        """One frame to the slave, the time since the last one counted (how long this process went without a look)."""
+        wait = self._wait
+        began = self.clock()
+        wait.longest_gap_s = max(wait.longest_gap_s, began - wait.last)
+        try:
+            return self.channel.exchange(requests, timeout_s=self._frame_time(deadline), repeat=repeat)
+        finally:
+            wait.last = self.clock()
 
     def _frame_time(self, deadline: float) -> float:
         return max(min(self.frame_timeout_s, deadline - self.clock()), 1e-4)

@@ -27,7 +27,7 @@ from humanoid_prime.drivers.erob.objects import (
     TXPDO_ASSIGN,
     TXPDO_STRUCT,
 )
-from humanoid_prime.drivers.ethercat.errors import SdoError
+from humanoid_prime.drivers.ethercat.errors import SdoError, SdoTimeout
 from humanoid_prime.drivers.ethercat.mailbox import SdoMailbox
 from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
 from humanoid_prime.drivers.ethercat.wire import (
@@ -114,7 +114,8 @@ class PdoMapping:
             for index, sub_index, data in MAPPING_WRITES:
                 mailbox.download(index, sub_index, data, self.timeout_s)
         except SdoError as exc:
-            verdict = "the drive refused it" if exc.abort_code is not None else "the drive did not answer"
+            verdict = ("the drive refused it" if exc.abort_code is not None else
+                       exc.verdict if isinstance(exc, SdoTimeout) else "the drive did not answer")
             self.problems[k] = (f"ring {k}: PDO mapping write 0x{exc.index:04X}:{exc.sub_index:02X}: {exc.problem} "
                                 f"({verdict})")
             raise

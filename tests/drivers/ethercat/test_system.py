@@ -308,6 +308,18 @@ def test_a_lost_slave_raises_a_flag_naming_the_joint_and_its_state(rig):
     assert "ethercat/ring2/lost" not in rig.system.flags
 
 
+def test_a_lost_slave_s_flag_keeps_why_it_left_once_its_error_is_acknowledged(rig):
+    rig.master.slave_ok[2] = False
+    rig.master.left_op[2] += 1
+    rig.master.left_op_code[2] = 0x001A
+    rig.master.al_state[2] = AlState.SAFE_OP  # the recovery acknowledged the error: the flag and code are gone
+    rig.master.health_version += 1
+    rig.tick()
+    assert rig.system.flags["ethercat/ring2/lost"] == (
+        "left_shoulder_yaw (ring 2): slave lost (in SAFE-OP; it left OP with AL status 0x001A synchronization "
+        "error); recovering")
+
+
 def test_a_lost_slave_s_flag_says_why_its_recovery_cannot_go_on(rig):
     rig.master.slave_ok[2] = False
     rig.master.al_state[2] = AlState.SAFE_OP

@@ -85,8 +85,11 @@ class EthercatFlags(HardwareComponent):
                 continue
             state, code = int(master.al_state[position]), int(master.al_status_code[position])
             why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
-            if code and state & AL_ERROR and not (lost is not None and lost[position]):  # why it left, as its ESC says
+            left_code = int(master.left_op_code[position])  # why it left, as its ESC said then
+            if code and state & AL_ERROR and not (lost is not None and lost[position]):  # why it is not back, now
                 why += f", AL status 0x{code:04X} {describe_al_status_code(code)}"
+            elif left_code:  # its error acknowledged since (the recovery does), the reason it left is kept
+                why += f"; it left OP with AL status 0x{left_code:04X} {describe_al_status_code(left_code)}"
             problem = master.recovery_problems.get(position)
             if problem:
                 why += f"; {problem}"

@@ -13,7 +13,8 @@ from humanoid_prime.doctor.ethercat import DriveReading
 from humanoid_prime.doctor.report import Verdict
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.tested import TESTED_REVISIONS
-from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_PRE_OP, AL_SAFE_OP, SlaveInfo, expected_ring
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo, expected_ring
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, AlState
 from humanoid_prime.errors import PrimeError
 
 
@@ -24,7 +25,8 @@ def expected(robot):
 
 @pytest.fixture
 def found(expected):
-    return [SlaveInfo(e.position, "ZeroErr Driver", VENDOR_ID, PRODUCT_CODE, 0x00000001, AL_PRE_OP) for e in expected]
+    return [SlaveInfo(e.position, "ZeroErr Driver", VENDOR_ID, PRODUCT_CODE, 0x00000001, AlState.PRE_OP)
+            for e in expected]
 
 
 @pytest.fixture
@@ -106,9 +108,9 @@ def test_errors_in_a_drive_s_history_warn_newest_first_with_how_to_clear_them(re
 
 
 def test_an_al_error_fails_and_a_code_left_set_warns(found):
-    found[1] = replace(found[1], al_state=AL_SAFE_OP | AL_ERROR, al_status_code=0x001B)
+    found[1] = replace(found[1], al_state=AlState.SAFE_OP | AL_ERROR, al_status_code=0x001B)
     assert ethercat.al_status_check(found).verdict is Verdict.FAIL
-    found[1] = replace(found[1], al_state=AL_PRE_OP, al_status_code=0x001B)
+    found[1] = replace(found[1], al_state=AlState.PRE_OP, al_status_code=0x001B)
     check = ethercat.al_status_check(found)
     assert check.verdict is Verdict.WARN and "ring 1 0x001B" in check.found
 
@@ -121,3 +123,12 @@ def test_a_drive_without_a_distributed_clock_fails(readings):
 def test_the_doctor_s_sdo_client_writes_nothing():
     with pytest.raises(PrimeError, match="writes to no drive"):
         ethercat.PreopSdo(registers=None).sdo_write(0, 0x2383, 0, b"\x01")  # type: ignore[arg-type]
+
+
+def test_the_mailbox_line_names_the_layer_the_hardware_file_chooses(robot):
+    assert ethercat.mailbox_check(robot.hardware).verdict is Verdict.PASS
+    soem = replace(robot.hardware, ethercat=replace(robot.hardware.ethercat, mailbox="soem"))
+    check = ethercat.mailbox_check(soem)
+    assert check.verdict is Verdict.WARN
+    assert "SOEM does the mailbox work alone (buses.ethercat.mailbox: soem" in check.found
+    assert "remove buses.ethercat.mailbox" in check.fix

@@ -70,7 +70,7 @@ from humanoid_prime.control.topics import JOINT_STATES, SAFETY_STATUS, JointStat
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
 from humanoid_prime.drivers.erob.gains import ErobRegisters, gains_to_registers, registers_to_gains
 from humanoid_prime.drivers.erob.objects import FOLLOWING_ERROR_WINDOW, RATED_TORQUE
-from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, SizedSdo
 from humanoid_prime.drivers.sito.protocol import sito_model
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode

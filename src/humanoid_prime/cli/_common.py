@@ -215,6 +215,10 @@ def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) ->
     parser.add_argument("--rated-torque", type=real(above=0.0, at_most=1000.0), metavar="NM",
                         help="(with --emulate) what the emulated eRob report in 0x6076 (default 23, the nominal "
                              "eRob70 figure; an eRob80H120I reports 31)")
+    parser.add_argument("--quirks", metavar="NAME,...",
+                        help="(with --emulate) the emulated eRob behave as some real slaves do: "
+                             "reserved-bits, counter, no-size, normal-upload, slow-sii, slow-states, emergency, "
+                             "abort-service, or all (docs/hardware.md)")
 
 
 def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
@@ -222,7 +226,7 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     the command line), without --emulate is an error."""
     given = {"--truth": args.truth, "--dc-lock-cycles": args.dc_lock_cycles,
              "--mailbox-latency": args.mailbox_latency, "--gain-bytes": args.gain_bytes,
-             "--rated-torque": args.rated_torque, **more}
+             "--rated-torque": args.rated_torque, "--quirks": args.quirks, **more}
     used = [name for name, value in given.items() if value is not None and value is not False]
     if used and not args.emulate:
         raise PrimeError(f"{', '.join(used)}: only with --emulate (these act on the virtual Prime)")
@@ -240,7 +244,22 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
         options["gain_bytes"] = args.gain_bytes
     if args.rated_torque is not None:
         options["rated_torque_mnm"] = round(args.rated_torque * 1000)
+    if args.quirks is not None:
+        from humanoid_prime.virtual.ring.quirks import Quirks
+
+        try:
+            Quirks.parse(args.quirks)
+        except ValueError as exc:
+            raise PrimeError(f"--quirks: {exc}") from None
+        options["quirks"] = args.quirks
     return options
+
+
+def add_mailbox_option(parser: argparse.ArgumentParser) -> None:
+    """--ec-mailbox: who works the eRob's mailboxes, overriding ``buses.ethercat.mailbox``."""
+    parser.add_argument("--ec-mailbox", choices=("prime", "soem"),
+                        help="who works the eRob's mailboxes (SDO): prime, Prime's CoE layer, or soem, SOEM alone as "
+                             "before that layer (default: buses.ethercat.mailbox in prime_hardware.yaml, else prime)")
 
 
 def add_realtime_options(parser: argparse.ArgumentParser, *, rate_help: str | None) -> None:

@@ -36,6 +36,7 @@ from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
     add_json_option,
+    add_mailbox_option,
     add_realtime_options,
     add_record_option,
     add_socket_option,
@@ -85,6 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="calibration carried through for joints not swept, and the source of the directions "
                         "(default: the file being replaced)")
     add_emulation_options(p, "calibrate the virtual Prime (private network namespace)")
+    add_mailbox_option(p)
     p.add_argument("--scripted", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) a scripted operator sweeps these joints (default: every joint of the "
                         "run) to both stops, then the run ends")
@@ -258,7 +260,7 @@ def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: An
                              emulated=virtual is not None, hardware_file=args.hardware,
                              controllers_file=args.controllers, control_socket=args.socket,
                              realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict(),
-                             state_folder=args.config.folder.state)
+                             state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
     if virtual is not None:
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel

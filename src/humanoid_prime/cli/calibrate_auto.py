@@ -201,7 +201,7 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         options = BringupOptions(backends=args.backends, calibration=identity_from(prior), broadcaster_only=True,
                                  realtime=True, emulated=virtual is not None, hardware_file=args.hardware,
                                  controllers_file=args.controllers, control_socket=args.socket,
-                                 state_folder=args.config.folder.state)
+                                 state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
         if virtual is not None:
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel

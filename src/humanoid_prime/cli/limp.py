@@ -24,7 +24,7 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.drivers.erob.gains import gains_to_registers, registers_to_gains
-from humanoid_prime.drivers.ethercat.sdo import SdoClient
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SocketSdoClient
 

@@ -21,6 +21,7 @@ FAMILIES = ("erob", "sito")
 class EthercatBus:
     interface: str
     master: int
+    mailbox: str = "prime"  # who works the eRob's mailboxes: Prime's CoE layer, or SOEM alone (the way back)
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,7 @@ def _str(value: object, path: Path, key: str) -> str:
 
 LIMIT_NAMES = ("stiffness", "damping", "velocity")
 MAX_MASTER_INDEX = 31  # IgH masters are numbered from 0 on one host; more is a slip of the keyboard
+MAILBOXES = ("prime", "soem")
 MAX_CAN_BITRATE = 1_000_000  # classic CAN's highest rate
 
 
@@ -134,12 +136,16 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     check_keys(path, "buses", buses, ("ethercat", "can"))
     ec = _section(buses, path, "buses.ethercat")
     can = _section(buses, path, "buses.can")
-    check_keys(path, "buses.ethercat", ec, ("interface", "master"))
+    check_keys(path, "buses.ethercat", ec, ("interface", "master", "mailbox"))
     check_keys(path, "buses.can", can, ("interface", "channel", "bitrate"))
     ethercat = EthercatBus(
         interface=_str(ec.get("interface"), path, "buses.ethercat.interface"),
         master=_int(ec.get("master", 0), path, "buses.ethercat.master"),
+        mailbox=_str(ec.get("mailbox", "prime"), path, "buses.ethercat.mailbox"),
     )
+    if ethercat.mailbox not in MAILBOXES:
+        raise ConfigError(path, "buses.ethercat.mailbox", f"must be prime or soem, got {ethercat.mailbox!r}",
+                          "prime: Prime's CoE layer (the default); soem: SOEM does the mailbox work alone")
     if not 0 <= ethercat.master <= MAX_MASTER_INDEX:
         raise ConfigError(path, "buses.ethercat.master", f"must be 0..{MAX_MASTER_INDEX}, got {ethercat.master}",
                           "the IgH master index, 0 for the first")

@@ -44,7 +44,7 @@ from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gain
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
-from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
 from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
@@ -74,6 +74,7 @@ class BringupOptions:
     broadcaster_only: bool | None = None  # default: single-bus runs only
     controllers_file: str | Path | None = None
     interface: str | None = None  # EtherCAT NIC (default: prime_hardware.yaml)
+    ec_mailbox: str | None = None  # who works the eRob's mailboxes, prime or soem (default: prime_hardware.yaml)
     can_interface: str | None = None  # python-can interface (default: prime_hardware.yaml)
     can_channel: str | None = None
     sync0_period_s: float | None = None  # must equal 1/update_rate; only for an explicit cross-check
@@ -321,6 +322,9 @@ class Session:
         ec_bringup = None
         if self.ethercat is not None and self.ethercat.bringup is not None:
             ec_bringup = self.ethercat.bringup.as_dict()
+            master = self.ethercat.master
+            if master is not None:  # who worked the mailboxes, and what they dropped, by why
+                ec_bringup.update(mailbox=master.mailbox, mailbox_drops=master.mailbox_drops())
             ec_bringup["rated_torque_nm"] = {  # 0x6076 of each drive; null: unread, nominal used
                 joint: (float(r) if math.isfinite(r) else None)
                 for joint, r in zip(self.ethercat.joints, self.ethercat.rated_torque_nm, strict=True)}
@@ -370,7 +374,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     stack.callback(sys.setswitchinterval, tighten_switch_interval(1.0 / plan.update_rate))
     settings = ComponentSettings(
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
-        ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
+        ethercat_interface=options.interface, ethercat_mailbox=options.ec_mailbox,
+        sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
         erob_config_dir=options.erob_config_dir, can_interface=options.can_interface,
         can_channel=options.can_channel, emulated=options.emulated)
     manager = assemble(settings, plan.config, BACKEND_BLOCKS[options.backends],

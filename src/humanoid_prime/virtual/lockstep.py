@@ -40,7 +40,7 @@ from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob import objects as obj
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, MODE_CSP
-from humanoid_prime.drivers.ethercat.master import SdoError
+from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD as SITO_COUNTS_PER_RAD
 from humanoid_prime.drivers.sito.protocol import (

@@ -50,6 +50,7 @@ def _out_of_range(value):
 # Keys a file may leave out, by design, each with the default that stands for it.
 OPTIONAL = {
     ("hardware", "buses.ethercat.master"): "0, the first master",
+    ("hardware", "buses.ethercat.mailbox"): "prime, Prime's own CoE layer",
     ("hardware", "buses.can.interface"): "socketcan",
     ("hardware", "torque_efficiency"): "1.0",
     **{("hardware", f"command_limits.{family}.{name}"): "the bundled template's limit"

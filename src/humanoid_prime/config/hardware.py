@@ -15,6 +15,7 @@ CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
 DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
 DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
 FAMILIES = ("erob", "sito")
+MAX_COLLISION_MARGIN_M = 0.2  # more keeps the hands from ever meeting in front of the torso
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,8 @@ class HardwareConfig:
     erob_torque_efficiency: dict[str, float]
     # Per joint given in ``joints.contact_effort_cap`` (Nm): what `prime calibrate --auto` may push a stop with.
     contact_effort_cap: dict[str, float]
+    # ``safety.collision_margin`` (m): how close the command gate lets two bodies of the robot come.
+    collision_margin: float
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -125,11 +128,29 @@ def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLim
     return result
 
 
+def _collision_margin(data: dict[str, object], path: Path) -> float:
+    """``safety.collision_margin``; a file without it (written before the section existed) has the template's."""
+    safety = data.get("safety", {})
+    if not isinstance(safety, dict):
+        raise ConfigError(path, "safety", "expected a mapping with collision_margin")
+    check_keys(path, "safety", safety, ("collision_margin",))
+    template = path == bundled(HARDWARE_FILE)
+    if "collision_margin" not in safety:
+        if template:
+            raise ConfigError(path, "safety.collision_margin", "missing", "the template must give it (m)")
+        return _collision_margin(load_yaml(bundled(HARDWARE_FILE)), bundled(HARDWARE_FILE))
+    margin = _positive_float(safety["collision_margin"], path, "safety.collision_margin")
+    if margin > MAX_COLLISION_MARGIN_M:
+        raise ConfigError(path, "safety.collision_margin", f"{margin:g} m is more than {MAX_COLLISION_MARGIN_M:g} m",
+                          "give the margin in metres, e.g. 0.03 for 3 cm")
+    return margin
+
+
 def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     """Load and validate a hardware file (default: the bundled one)."""
     path = config_path(path) if path is not None else bundled(HARDWARE_FILE)
     data = load_yaml(path)
-    check_keys(path, "", data, ("buses", "joints", "torque_efficiency", "command_limits"))
+    check_keys(path, "", data, ("buses", "joints", "torque_efficiency", "command_limits", "safety"))
     buses = _section(data, path, "buses")
     check_keys(path, "buses", buses, ("ethercat", "can"))
     ec = _section(buses, path, "buses.ethercat")
@@ -247,6 +268,7 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     contact_effort_cap = {j: _positive_float(v, path, f"joints.contact_effort_cap.{j}") for j, v in caps.items()}
 
     command_limits = _command_limits(data, path)
+    collision_margin = _collision_margin(data, path)
 
     return HardwareConfig(
         path=path,
@@ -261,6 +283,7 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         command_limits=command_limits,
         erob_torque_efficiency=erob_efficiency,
         contact_effort_cap=contact_effort_cap,
+        collision_margin=collision_margin,
     )
 
 

@@ -25,7 +25,8 @@ from humanoid_prime.drivers.erob.objects import (
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
-from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
+from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
 
 REGISTER_NAMES = {POS_LOOP_GAIN: "pos_reg 0x2382:01", VEL_LOOP_GAIN: "vel_reg 0x2381:01",
@@ -55,14 +56,16 @@ def _name(address: tuple[int, int]) -> str:
 
 
 class GainOverride:
-    """Context manager: inside the ``with`` block the eRob at ``position`` runs on the registers ``wanted``
-    returns for its snapshot, with the gate armed and each of ``objects`` ((index, sub) -> value) set.
+    """Context manager: inside the ``with`` block the eRob at ``position`` runs on the registers ``wanted`` (or
+    those it returns for the drive's snapshot), with the gate armed and each of ``objects`` ((index, sub) -> value)
+    set.
 
     ``optional`` objects are set only where the drive has them: one that cannot be read is left out and named
     in ``missing`` (object -> why), so the caller can say so. Each of ``objects`` is written before the gate
     and the gains (a wider following-error window must be in place before a softer joint sags)."""
 
-    def __init__(self, sdo: SdoClient, position: int, wanted: Callable[[GainSnapshot], ErobRegisters], *,
+    def __init__(self, sdo: SdoClient, position: int,
+                 wanted: ErobRegisters | Callable[[GainSnapshot], ErobRegisters], *,
                  objects: Mapping[tuple[int, int], int] | None = None,
                  optional: Mapping[tuple[int, int], int] | None = None) -> None:
         self.objects = SizedSdo(sdo)
@@ -93,7 +96,7 @@ class GainOverride:
                 if address in self.extra_snapshot:
                     self._write(address, value)
             self._write(BUS_GAIN_GATE, 1)
-            self.applied = self.wanted(self.snapshot)
+            self.applied = self.wanted if isinstance(self.wanted, ErobRegisters) else self.wanted(self.snapshot)
             for address, value in write_order(self.snapshot.registers, self.applied):
                 self._write(address, value)
             self.check()

@@ -233,7 +233,7 @@ class AutoCalibration:
         self.caps = {j: contact_cap(robot, j) for j in self.joints}
         self.gravity = model or GravityModel(robot)  # the loop's
         self.model = GravityModel(robot, self.gravity.model)  # the sequence's (the threads never share data)
-        self.body = BodyCheck(robot, robot.hardware.collision_margin, self.gravity.model)  # the sequence's
+        self.body = BodyCheck(robot, robot.hardware.collision_margin, model=self.gravity.model)  # the sequence's
         self.prior_direction = prior.direction_array(robot.names)
         self.prior_offset = prior.offset_array(robot.names)
         self.direction = self.prior_direction.copy()  # best knowledge: the prior, the new values where done
@@ -303,8 +303,8 @@ class AutoCalibration:
     # -- the sequence ---------------------------------------------------------------------------------------
     def run(self) -> AutoResult:
         """Calibrate every joint asked for, then ask for the directions the physics could not tell."""
-        self._start()
         try:
+            self._start()
             self.operator.begin(self.joints)
             for joint in self.joints:
                 if self.aborted is not None:
@@ -433,8 +433,8 @@ class AutoCalibration:
                         self._segment(run, Hold(run, None, ANCHOR_S))
         finally:
             controller.capture.add(i)  # held from here where it ended, with the effort it applies there
-            with contextlib.suppress(Aborted):
-                self.ticks.until(lambda: i not in controller.capture)
+            with contextlib.suppress(Aborted):  # (a controller that lost the commands takes nothing)
+                self.ticks.until(lambda: i not in controller.capture or self.manager.active is not controller)
             if i in controller.capture:  # no tick came: take it here
                 controller.capture.discard(i)
                 controller.hold[i], controller.hold_effort[i] = float(state.position[i]), float(state.effort[i])

@@ -16,6 +16,8 @@ DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
 DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
 FAMILIES = ("erob", "sito")
 MAX_COLLISION_MARGIN_M = 0.2  # more keeps the hands from ever meeting in front of the torso
+MAX_STOPPING_TIME_S = 1.0  # an arm that needs longer to stop has no business near another
+SAFETY_KEYS = ("collision_margin", "stopping_time")
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,8 @@ class HardwareConfig:
     contact_effort_cap: dict[str, float]
     # ``safety.collision_margin`` (m): how close the command gate lets two bodies of the robot come.
     collision_margin: float
+    # ``safety.stopping_time`` (s): how far ahead along a moving joint's velocity the gate looks for where it stops.
+    stopping_time: float
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -128,22 +132,28 @@ def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLim
     return result
 
 
-def _collision_margin(data: dict[str, object], path: Path) -> float:
-    """``safety.collision_margin``; a file without it (written before the section existed) has the template's."""
+def _safety(data: dict[str, object], path: Path) -> tuple[float, float]:
+    """``safety.collision_margin`` and ``safety.stopping_time``; a value the file leaves out (a file written before
+    the section existed) is the template's."""
     safety = data.get("safety", {})
     if not isinstance(safety, dict):
-        raise ConfigError(path, "safety", "expected a mapping with collision_margin")
-    check_keys(path, "safety", safety, ("collision_margin",))
-    template = path == bundled(HARDWARE_FILE)
-    if "collision_margin" not in safety:
-        if template:
-            raise ConfigError(path, "safety.collision_margin", "missing", "the template must give it (m)")
-        return _collision_margin(load_yaml(bundled(HARDWARE_FILE)), bundled(HARDWARE_FILE))
-    margin = _positive_float(safety["collision_margin"], path, "safety.collision_margin")
-    if margin > MAX_COLLISION_MARGIN_M:
-        raise ConfigError(path, "safety.collision_margin", f"{margin:g} m is more than {MAX_COLLISION_MARGIN_M:g} m",
-                          "give the margin in metres, e.g. 0.03 for 3 cm")
-    return margin
+        raise ConfigError(path, "safety", "expected a mapping of collision_margin and stopping_time")
+    check_keys(path, "safety", safety, SAFETY_KEYS)
+    if path == bundled(HARDWARE_FILE):
+        missing = [key for key in SAFETY_KEYS if key not in safety]
+        if missing:
+            raise ConfigError(path, f"safety.{missing[0]}", "missing", "the template must give every safety value")
+    else:
+        safety = {**load_yaml(bundled(HARDWARE_FILE))["safety"], **safety}
+    values = []
+    for key, most, fix in (("collision_margin", MAX_COLLISION_MARGIN_M, "give it in metres, e.g. 0.03 for 3 cm"),
+                           ("stopping_time", MAX_STOPPING_TIME_S, "give it in seconds, e.g. 0.2")):
+        value = _positive_float(safety[key], path, f"safety.{key}")
+        unit = "m" if key == "collision_margin" else "s"
+        if value > most:
+            raise ConfigError(path, f"safety.{key}", f"{value:g} {unit} is more than {most:g} {unit}", fix)
+        values.append(value)
+    return values[0], values[1]
 
 
 def load_hardware(path: str | Path | None = None) -> HardwareConfig:
@@ -268,7 +278,7 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     contact_effort_cap = {j: _positive_float(v, path, f"joints.contact_effort_cap.{j}") for j, v in caps.items()}
 
     command_limits = _command_limits(data, path)
-    collision_margin = _collision_margin(data, path)
+    collision_margin, stopping_time = _safety(data, path)
 
     return HardwareConfig(
         path=path,
@@ -284,6 +294,7 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         erob_torque_efficiency=erob_efficiency,
         contact_effort_cap=contact_effort_cap,
         collision_margin=collision_margin,
+        stopping_time=stopping_time,
     )
 
 

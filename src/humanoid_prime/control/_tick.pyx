@@ -279,7 +279,8 @@ cdef class BodyKernel:
     joint has one (a finite position with stiffness above zero), else the measured position; moved into the
     model's frame by ``scale * q + shift`` per joint (the identity on a calibrated robot); a joint that is not
     ``known`` or has no finite value is unknown (its qpos is left at 0; the caller takes its bodies out of ``live``).
-    ``within`` leaves the pairs it found in ``found`` and their distances in ``found_distance`` (``count`` of them)."""
+    ``within`` leaves the pairs it found in ``found`` and their distances in ``found_distance`` (``count`` of them).
+    ``lower`` and ``upper``: the joints' stops in the model's frame, where a pose is clipped to."""
 
     cdef void* m
     cdef void* d
@@ -288,7 +289,7 @@ cdef class BodyKernel:
     cdef _distance_t distance
     cdef double[::1] qpos
     cdef const double[:, ::1] xpos
-    cdef const double[::1] rbound
+    cdef const double[::1] rbound, lower, upper
     cdef const Py_ssize_t[::1] qadr
     cdef const int[:, ::1] pairs
     cdef const unsigned char[::1] live
@@ -300,6 +301,7 @@ cdef class BodyKernel:
     cdef readonly Py_ssize_t count
 
     def __init__(self, bytes library not None, model, data, const Py_ssize_t[::1] qadr not None,
+                 const double[::1] lower not None, const double[::1] upper not None,
                  const int[:, ::1] pairs not None, const unsigned char[::1] live not None, double margin):
         cdef void* handle = dlopen(library, RTLD_NOW)
         if handle == NULL:
@@ -311,13 +313,15 @@ cdef class BodyKernel:
         if pairs.shape[1] != 2 or live.shape[0] != pairs.shape[0]:
             raise ValueError("pairs must be P x 2 geoms and live one flag per pair")
         n = qadr.shape[0]
+        if lower.shape[0] != n or upper.shape[0] != n:
+            raise ValueError(f"the limits must have {n} joints")
         if n > 64:
             raise ValueError("at most 64 joints (the unknown joints are one bit each)")
         self._model, self._data = model, data
         self.m = <void*><size_t>model._address
         self.d = <void*><size_t>data._address
         self.qpos, self.xpos, self.rbound = data.qpos, data.geom_xpos, model.geom_rbound
-        self.qadr, self.pairs, self.live, self.margin = qadr, pairs, live, margin
+        self.qadr, self.lower, self.upper, self.pairs, self.live, self.margin = qadr, lower, upper, pairs, live, margin
         self.found_ = np.zeros(pairs.shape[0], dtype=np.intc)
         self.found_distance_ = np.zeros(pairs.shape[0])
         self.count = 0
@@ -331,18 +335,26 @@ cdef class BodyKernel:
             raise ValueError(f"a frame has {n} joints")
         self.scale, self.shift, self.known = scale, shift, known
 
-    def pose(self, const double[:, ::1] command not None, const double[::1] measured not None, bint targets=True):
+    def pose(self, const double[:, ::1] command not None, const double[::1] measured not None,
+             const double[::1] velocity not None, double horizon, bint targets=True):
         """The pose of ``command`` (its targets where ``targets``, else the measured positions only) into the model,
-        and its kinematics; returns the unknown joints, bit j for joint j."""
+        and its kinematics; returns the unknown joints, bit j for joint j. A target is taken ``horizon`` seconds
+        further along the joint's measured ``velocity``: where the joint, moving, comes to rest on it."""
         cdef Py_ssize_t j, n = self.qadr.shape[0]
         cdef double q
         cdef unsigned long long unknown = 0
-        if command.shape[0] != 5 or command.shape[1] != n or measured.shape[0] != n:
-            raise ValueError(f"need a 5 x {n} command and {n} positions")
+        if command.shape[0] != 5 or command.shape[1] != n or measured.shape[0] != n or velocity.shape[0] != n:
+            raise ValueError(f"need a 5 x {n} command, {n} positions and {n} velocities")
         for j in range(n):
-            q = command[0, j] if targets and command[3, j] > 0.0 and isfinite(command[0, j]) else measured[j]
+            if targets and command[3, j] > 0.0 and isfinite(command[0, j]):
+                q = command[0, j] + (horizon * velocity[j] if isfinite(velocity[j]) else 0.0)
+            else:
+                q = measured[j]
             if isfinite(q) and self.known[j]:
-                self.qpos[self.qadr[j]] = self.scale[j] * q + self.shift[j]
+                q = self.scale[j] * q + self.shift[j]
+                # a joint goes no further than its stops, whatever it is asked (a calibration presses beyond them)
+                self.qpos[self.qadr[j]] = self.lower[j] if q < self.lower[j] else self.upper[j] if q > self.upper[j] \
+                    else q
             else:
                 self.qpos[self.qadr[j]] = 0.0
                 unknown |= (<unsigned long long>1) << j

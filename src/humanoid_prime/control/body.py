@@ -9,9 +9,11 @@ is MuJoCo's own (``mj_geomDistance``), on a private model and data, called from 
 (``_tick.BodyKernel``) with no Python between the kinematics and the distances.
 
 A pose is the commanded target where a joint has one (a finite position with stiffness above zero), and the
-measured position where it does not (no command, a limp or damped joint). A joint whose position is unknown (not
-measured and no target, or its frame unknown: a joint being calibrated) takes every body it carries out of the
-check: the check covers the bodies whose place it knows.
+measured position where it does not (no command, a limp or damped joint). A target is taken ``stopping_time``
+further along the joint's measured velocity: a moving arm does not stop on its target at once, and the gate refuses
+the pose where it comes to rest. No joint goes beyond its stops: a pose is clipped to them. A joint whose position
+is unknown (not measured and no target, or its frame unknown: a joint being calibrated) takes every body it
+carries out of the check: the check covers the bodies whose place it knows.
 """
 
 from __future__ import annotations
@@ -63,14 +65,18 @@ class BodyCheck:
     """The collision geometry of ``robot`` and its check at ``margin`` (m), on a model and data of its own (one
     thread uses one ``BodyCheck``).
 
-    ``check(command, measured)`` puts the pose and finds every checked pair closer than the margin (``contacts``);
-    ``closing(command, measured)`` keeps those the command brings nearer than the measured pose has them.
+    ``check(command, position, velocity)`` puts the pose (from the command and the measured positions and
+    velocities) and finds every checked pair closer than the margin (``contacts``); ``closing`` keeps those the
+    command brings nearer than the measured pose has them.
     ``arm_joints[group]`` are the joints that carry an arm's bodies: what the gate holds when an arm is refused.
     """
 
-    def __init__(self, robot: Robot, margin: float, model: mujoco.MjModel | None = None) -> None:
+    def __init__(self, robot: Robot, margin: float, stopping_time: float = 0.0,
+                 model: mujoco.MjModel | None = None) -> None:
         self.robot = robot
         self.margin = float(margin)
+        self.stopping_time = float(stopping_time)
+        self._still = np.zeros(robot.n)
         self.model = model if model is not None else load_model(robot)
         self.data = mujoco.MjData(self.model)
         m = self.model
@@ -107,7 +113,8 @@ class BodyCheck:
             np.zeros(0, dtype=np.uint64)
         self.live = np.ones(len(self.pairs), dtype=np.uint8)
         self.unknown = 0
-        self.kernel = BodyKernel(mujoco_library(), m, self.data, qadr, self.pairs, self.live, self.margin)
+        self.kernel = BodyKernel(mujoco_library(), m, self.data, qadr, np.ascontiguousarray(robot.lower),
+                                 np.ascontiguousarray(robot.upper), self.pairs, self.live, self.margin)
         self._identity = (np.ones(robot.n), np.zeros(robot.n), np.ones(robot.n, dtype=np.uint8))
         self.kernel.frame(*self._identity)
 
@@ -119,15 +126,18 @@ class BodyCheck:
         else:
             self.kernel.frame(frame.scale, frame.shift, frame.known)
 
-    def _pose(self, command: npt.NDArray[np.float64], measured: npt.NDArray[np.float64], targets: bool) -> None:
-        unknown = self.kernel.pose(command, measured, targets)
+    def _pose(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64],
+              velocity: npt.NDArray[np.float64] | None, targets: bool) -> None:
+        unknown = self.kernel.pose(command, position, self._still if velocity is None else velocity,
+                                   self.stopping_time, targets)
         if unknown != self.unknown:
             self.unknown = unknown
             self.live[:] = (self._chains & np.uint64(unknown)) == 0
 
-    def check(self, command: npt.NDArray[np.float64], measured: npt.NDArray[np.float64]) -> int:
+    def check(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64],
+              velocity: npt.NDArray[np.float64] | None = None) -> int:
         """How many checked pairs the pose of ``command`` brings closer than the margin (the hot path)."""
-        self._pose(command, measured, True)
+        self._pose(command, position, velocity, True)
         return int(self.kernel.within())
 
     def contacts(self) -> list[Contact]:
@@ -140,28 +150,28 @@ class BodyCheck:
         a, b = (int(g) for g in self.pairs[pair])
         return Contact(self.body_names[a], self.body_names[b], self.geom_group[a], self.geom_group[b], distance)
 
-    def closing(self, command: npt.NDArray[np.float64], measured: npt.NDArray[np.float64]) -> list[Contact]:
+    def closing(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64],
+                velocity: npt.NDArray[np.float64] | None = None) -> list[Contact]:
         """The pairs the pose of ``command`` brings closer than the margin and nearer than the measured pose has
         them, nearest first: what the command would drive into. A command that keeps or widens a distance already
         under the margin (an arm moving away from the torso it rests against) closes nothing."""
-        if not self.check(command, measured):
+        if not self.check(command, position, velocity):
             return []
         found = list(zip(self.kernel.found.tolist(), self.kernel.found_distance.tolist(), strict=True))
-        self._pose(command, measured, False)
+        self._pose(command, position, None, False)
         closing = [(pair, distance) for pair, distance in found
                    if distance < self.kernel.distance_of(pair, FAR_M) - CLOSING_TOLERANCE_M]
         return [self._contact(pair, distance) for pair, distance in sorted(closing, key=lambda item: item[1])]
 
-    def clearance(self, command: npt.NDArray[np.float64], measured: npt.NDArray[np.float64]) -> Contact | None:
+    def clearance(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64]) -> Contact | None:
         """The nearest checked pair at the pose of ``command``, whatever its distance (None: nothing is checked)."""
-        self._pose(command, measured, True)
+        self._pose(command, position, None, True)
         best: tuple[int, float] | None = None
         for pair in np.flatnonzero(self.live):
             distance = float(self.kernel.distance_of(int(pair), FAR_M))
             if best is None or distance < best[1]:
                 best = (int(pair), distance)
         return None if best is None else self._contact(*best)
-
 
     def sweep(self, measured: npt.NDArray[np.float64], joint: int, angles: npt.NDArray[np.float64],
               frame: Frame) -> tuple[Contact | None, float] | None:

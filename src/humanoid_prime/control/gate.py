@@ -14,7 +14,8 @@ read-only, and only the gate's compiled commit copies a checked proposal into th
    where it does not) against the robot's collision geometry. A command that brings two bodies of different
    classes (the left arm, the right arm, the body: torso, base and pedestal) closer than
    ``safety.collision_margin``, and nearer than they are now, does not reach the bus: every arm it drives into
-   the other or into the body holds its last command (all five interfaces of every joint that carries the arm),
+   the other or into the body holds its last command (every joint that carries the arm keeps its last target,
+   stiffness, damping and effort, and is asked no velocity),
    and the rest of the command goes through, checked again with the held arm in it (an arm that now closes on the
    held one holds too). The whole arm holds, not only the joints that close the distance: holding some joints of
    an arm while the others go on changes the arm's shape, which can close another distance, while its last
@@ -77,7 +78,8 @@ class CommandGate:
         self.bounds = CommandBounds(robot, release=True)
         self._output = OutputCheck(proposal.data, command.data, self.bounds.check)
         command.freeze()  # from here on only the compiled commit writes it
-        self.body = BodyCheck(robot, robot.hardware.collision_margin) if body else None
+        hardware = robot.hardware
+        self.body = BodyCheck(robot, hardware.collision_margin, hardware.stopping_time) if body else None
         self.margin = robot.hardware.collision_margin
         self.refused = Refusal()
         self._frame: Frame | None = None
@@ -127,10 +129,10 @@ class CommandGate:
         """The body's check of the proposal; a refused arm holds its last command in the proposal. Returns the
         nearest pair refused (None: the proposal passed as it was)."""
         body = self.body
-        if body is None or not body.check(self.proposal.data, state.position):
+        if body is None or not body.check(self.proposal.data, state.position, state.velocity):
             self._clear()
             return None
-        closing = body.closing(self.proposal.data, state.position)
+        closing = body.closing(self.proposal.data, state.position, state.velocity)
         if not closing:
             self._clear()
             return None
@@ -146,9 +148,10 @@ class CommandGate:
                         arms.append(group)
                         held |= body.arm_joints[group]
             np.copyto(self.proposal.data, self.command.data, where=held)
+            self.proposal.velocity[held] = 0.0  # held still: no speed asked of it
             if (held == before).all():
                 break  # every arm it closes is held: its last command was checked
-            closing = body.closing(self.proposal.data, state.position)
+            closing = body.closing(self.proposal.data, state.position, state.velocity)
         self._record(refused, tuple(arms), tick)
         return refused
 
@@ -162,8 +165,9 @@ class CommandGate:
         refused.last, refused.last_tick, refused.held = contact, tick, arms
         if fresh:  # one flag per episode: a stream pushing on is not a new flag every tick
             held = " and the ".join(arms) if arms else "nothing"
-            self.flags.set_flag("body", f"command refused: {contact.words(self.margin)}; the {held} "
-                                        f"{'hold' if len(arms) > 1 else 'holds'} its last command", Level.WARN)
+            verb = "hold their" if len(arms) > 1 else "holds its"
+            self.flags.set_flag("body", f"command refused: {contact.words(self.margin)}; the {held} {verb} last "
+                                        "command", Level.WARN)
 
     def _clear(self) -> None:
         if "body" in self.flags.flags:

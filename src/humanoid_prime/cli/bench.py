@@ -36,6 +36,8 @@ SUITES: dict[str, tuple[str, str, str]] = {
             "the simulated Prime at 50 Hz and 1 kHz with and without DDS, and a subscriber process"),
     "record": ("humanoid_prime.bench.dds", "bench_record",
                "the simulated Prime at 50 Hz and 1 kHz with and without --record"),
+    "gate": ("humanoid_prime.bench.gate", "bench_gate",
+             "the simulated Prime at 50 Hz in REMOTE, its gate with and without the body check, in turns"),
 }
 
 _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": operator.ge}
@@ -50,6 +52,8 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
     ("dds", "added_tick_us_median"): ("dds", "floors.tap_added_tick_us_median",
                                       "handing each tick to the publisher thread, nothing published"),
+    ("gate", "added_tick_us_median"): ("gate", "floors.tick_cpu_us_median",
+                                       "the same tick without the body check, in this run (us, median)"),
     ("khz", "overruns"): ("khz", "floors.machine_late_wakeups",
                           "the machine's own: real-time wake-ups a period or more late, all CPUs, "
                           "in as long again right after the run (cyclictest)"),
@@ -81,6 +85,10 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("dds", "overruns_with_dds", "<=", 0, "DDS: overruns at 50 Hz and 1 kHz"),
     ("record", "added_tick_us_median", "<=", b.TARGET_RECORD_ADDED_TICK_US,
      "recording: added tick cost (us, median, worst rate)"),
+    ("gate", "added_tick_us_median", "<=", b.TARGET_GATE_ADDED_TICK_US,
+     "command gate with collision: added tick at 50 Hz, 14 joints (us, median)"),
+    ("gate", "refusing.added_tick_us_median", "<=", math.inf,
+     "command gate: added tick while it refuses an arm every tick (us, median)"),
 )
 
 

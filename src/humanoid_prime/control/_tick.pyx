@@ -274,11 +274,12 @@ cdef class BodyKernel:
     of geoms closer than the margin, with MuJoCo's own distance (``mj_geomDistance``). MuJoCo's C functions are
     called through the library the ``mujoco`` package loaded (``library``), one call each, no Python between them.
 
-    ``qadr``: each joint's qpos address; ``pairs`` (P x 2): the geoms checked against each other; ``live`` (P): the
-    pairs checked now. A pose comes from a command (5 x n) and the measured positions (n): the target where the
+    ``qadr``: each joint's qpos address; ``pairs`` (P x 2): the geoms checked against each other; ``chains`` (P):
+    the joints that move each pair (bit j for joint j); ``live`` (P): the pairs checked now, those no unknown joint
+    moves. A pose comes from a command (5 x n) and the measured positions (n): the target where the
     joint has one (a finite position with stiffness above zero), else the measured position; moved into the
     model's frame by ``scale * q + shift`` per joint (the identity on a calibrated robot); a joint that is not
-    ``known`` or has no finite value is unknown (its qpos is left at 0; the caller takes its bodies out of ``live``).
+    ``known`` or has no finite value is unknown (``unknown``, bit j for joint j; its qpos is left at 0).
     ``within`` leaves the pairs it found in ``found`` and their distances in ``found_distance`` (``count`` of them).
     ``lower`` and ``upper``: the joints' stops in the model's frame, where a pose is clipped to."""
 
@@ -292,7 +293,9 @@ cdef class BodyKernel:
     cdef const double[::1] rbound, lower, upper
     cdef const Py_ssize_t[::1] qadr
     cdef const int[:, ::1] pairs
-    cdef const unsigned char[::1] live
+    cdef const unsigned long long[::1] chains
+    cdef unsigned char[::1] live
+    cdef readonly unsigned long long unknown
     cdef const double[::1] scale, shift
     cdef const unsigned char[::1] known
     cdef readonly double margin
@@ -302,7 +305,8 @@ cdef class BodyKernel:
 
     def __init__(self, bytes library not None, model, data, const Py_ssize_t[::1] qadr not None,
                  const double[::1] lower not None, const double[::1] upper not None,
-                 const int[:, ::1] pairs not None, const unsigned char[::1] live not None, double margin):
+                 const int[:, ::1] pairs not None, const unsigned long long[::1] chains not None,
+                 unsigned char[::1] live not None, double margin):
         cdef void* handle = dlopen(library, RTLD_NOW)
         if handle == NULL:
             raise OSError(f"cannot open MuJoCo's library {library.decode()}: {dlerror().decode()}")
@@ -310,8 +314,8 @@ cdef class BodyKernel:
         self.distance = <_distance_t>dlsym(handle, b"mj_geomDistance")
         if self.kinematics == NULL or self.distance == NULL:
             raise OSError(f"MuJoCo's library {library.decode()} has no mj_kinematics or mj_geomDistance")
-        if pairs.shape[1] != 2 or live.shape[0] != pairs.shape[0]:
-            raise ValueError("pairs must be P x 2 geoms and live one flag per pair")
+        if pairs.shape[1] != 2 or live.shape[0] != pairs.shape[0] or chains.shape[0] != pairs.shape[0]:
+            raise ValueError("pairs must be P x 2 geoms, with one chain and one live flag per pair")
         n = qadr.shape[0]
         if lower.shape[0] != n or upper.shape[0] != n:
             raise ValueError(f"the limits must have {n} joints")
@@ -322,6 +326,7 @@ cdef class BodyKernel:
         self.d = <void*><size_t>data._address
         self.qpos, self.xpos, self.rbound = data.qpos, data.geom_xpos, model.geom_rbound
         self.qadr, self.lower, self.upper, self.pairs, self.live, self.margin = qadr, lower, upper, pairs, live, margin
+        self.chains, self.unknown = chains, 0
         self.found_ = np.zeros(pairs.shape[0], dtype=np.intc)
         self.found_distance_ = np.zeros(pairs.shape[0])
         self.count = 0
@@ -335,12 +340,23 @@ cdef class BodyKernel:
             raise ValueError(f"a frame has {n} joints")
         self.scale, self.shift, self.known = scale, shift, known
 
+    def check(self, const double[:, ::1] command not None, const double[::1] measured not None,
+              const double[::1] velocity not None, double horizon):
+        """``pose`` and ``within`` in one call: how many live pairs the command's pose brings closer than the
+        margin (the gate's every tick)."""
+        self._pose(command, measured, velocity, horizon, True)
+        return self._within()
+
     def pose(self, const double[:, ::1] command not None, const double[::1] measured not None,
              const double[::1] velocity not None, double horizon, bint targets=True):
         """The pose of ``command`` (its targets where ``targets``, else the measured positions only) into the model,
-        and its kinematics; returns the unknown joints, bit j for joint j. A target is taken ``horizon`` seconds
-        further along the joint's measured ``velocity``: where the joint, moving, comes to rest on it."""
-        cdef Py_ssize_t j, n = self.qadr.shape[0]
+        and its kinematics. A target is taken ``horizon`` seconds further along the joint's measured ``velocity``:
+        where the joint, moving, comes to rest on it. The bodies an unknown joint carries leave ``live``."""
+        self._pose(command, measured, velocity, horizon, targets)
+
+    cdef _pose(self, const double[:, ::1] command, const double[::1] measured, const double[::1] velocity,
+               double horizon, bint targets):
+        cdef Py_ssize_t j, p, n = self.qadr.shape[0]
         cdef double q
         cdef unsigned long long unknown = 0
         if command.shape[0] != 5 or command.shape[1] != n or measured.shape[0] != n or velocity.shape[0] != n:
@@ -358,11 +374,17 @@ cdef class BodyKernel:
             else:
                 self.qpos[self.qadr[j]] = 0.0
                 unknown |= (<unsigned long long>1) << j
+        if unknown != self.unknown:
+            self.unknown = unknown
+            for p in range(self.pairs.shape[0]):
+                self.live[p] = (self.chains[p] & unknown) == 0
         self.kinematics(self.m, self.d)
-        return unknown
 
     def within(self):
         """Every live pair closer than the margin at the pose last put: how many (``found``, ``found_distance``)."""
+        return self._within()
+
+    cdef Py_ssize_t _within(self):
         cdef Py_ssize_t p, count = 0
         cdef int a, b
         cdef double dx, dy, dz, reach, exact

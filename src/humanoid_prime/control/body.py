@@ -109,12 +109,12 @@ class BodyCheck:
                 if self.geom_group[g] == group:
                     carried |= [(int(self.chain[g]) >> j) & 1 == 1 for j in range(robot.n)]
             self.arm_joints[group] = carried
-        self._chains = self.chain[self.pairs[:, 0]] | self.chain[self.pairs[:, 1]] if len(self.pairs) else \
-            np.zeros(0, dtype=np.uint64)
-        self.live = np.ones(len(self.pairs), dtype=np.uint8)
-        self.unknown = 0
+        self._chains = np.ascontiguousarray(self.chain[self.pairs[:, 0]] | self.chain[self.pairs[:, 1]])
+        self.live = np.ones(len(self.pairs), dtype=np.uint8)  # the pairs no unknown joint moves (the kernel's)
+        self._pair_arms = [tuple(self.geom_group[int(g)] for g in pair if self.geom_group[int(g)] in self.arm_joints)
+                           for pair in self.pairs]
         self.kernel = BodyKernel(mujoco_library(), m, self.data, qadr, np.ascontiguousarray(robot.lower),
-                                 np.ascontiguousarray(robot.upper), self.pairs, self.live, self.margin)
+                                 np.ascontiguousarray(robot.upper), self.pairs, self._chains, self.live, self.margin)
         self._identity = (np.ones(robot.n), np.zeros(robot.n), np.ones(robot.n, dtype=np.uint8))
         self.kernel.frame(*self._identity)
 
@@ -128,25 +128,26 @@ class BodyCheck:
 
     def _pose(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64],
               velocity: npt.NDArray[np.float64] | None, targets: bool) -> None:
-        unknown = self.kernel.pose(command, position, self._still if velocity is None else velocity,
-                                   self.stopping_time, targets)
-        if unknown != self.unknown:
-            self.unknown = unknown
-            self.live[:] = (self._chains & np.uint64(unknown)) == 0
+        self.kernel.pose(command, position, self._still if velocity is None else velocity, self.stopping_time, targets)
 
     def check(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64],
               velocity: npt.NDArray[np.float64] | None = None) -> int:
-        """How many checked pairs the pose of ``command`` brings closer than the margin (the hot path)."""
-        self._pose(command, position, velocity, True)
-        return int(self.kernel.within())
+        """How many checked pairs the pose of ``command`` brings closer than the margin (the hot path: one call)."""
+        return int(self.kernel.check(command, position, self._still if velocity is None else velocity,
+                                     self.stopping_time))
 
     def contacts(self) -> list[Contact]:
         """The pairs the last ``check`` found, nearest first."""
         found = sorted(zip(self.kernel.found.tolist(), self.kernel.found_distance.tolist(), strict=True),
                        key=lambda item: item[1])
-        return [self._contact(pair, distance) for pair, distance in found]
+        return [self.contact(pair, distance) for pair, distance in found]
 
-    def _contact(self, pair: int, distance: float) -> Contact:
+    def arms_of(self, pair: int) -> tuple[str, ...]:
+        """The arms (``arm_joints`` keys) the pair's bodies belong to."""
+        return self._pair_arms[pair]
+
+    def contact(self, pair: int, distance: float) -> Contact:
+        """Pair ``pair`` at ``distance``, named."""
         a, b = (int(g) for g in self.pairs[pair])
         return Contact(self.body_names[a], self.body_names[b], self.geom_group[a], self.geom_group[b], distance)
 
@@ -157,11 +158,17 @@ class BodyCheck:
         under the margin (an arm moving away from the torso it rests against) closes nothing."""
         if not self.check(command, position, velocity):
             return []
+        return [self.contact(pair, distance) for pair, distance in self.closing_found(command, position)]
+
+    def closing_found(self, command: npt.NDArray[np.float64],
+                      position: npt.NDArray[np.float64]) -> list[tuple[int, float]]:
+        """Of the pairs the last ``check`` of ``command`` found, those nearer than the measured pose has them:
+        (pair, distance), nearest first."""
         found = list(zip(self.kernel.found.tolist(), self.kernel.found_distance.tolist(), strict=True))
         self._pose(command, position, None, False)
         closing = [(pair, distance) for pair, distance in found
                    if distance < self.kernel.distance_of(pair, FAR_M) - CLOSING_TOLERANCE_M]
-        return [self._contact(pair, distance) for pair, distance in sorted(closing, key=lambda item: item[1])]
+        return sorted(closing, key=lambda item: item[1])
 
     def clearance(self, command: npt.NDArray[np.float64], position: npt.NDArray[np.float64]) -> Contact | None:
         """The nearest checked pair at the pose of ``command``, whatever its distance (None: nothing is checked)."""
@@ -171,7 +178,7 @@ class BodyCheck:
             distance = float(self.kernel.distance_of(int(pair), FAR_M))
             if best is None or distance < best[1]:
                 best = (int(pair), distance)
-        return None if best is None else self._contact(*best)
+        return None if best is None else self.contact(*best)
 
     def sweep(self, measured: npt.NDArray[np.float64], joint: int, angles: npt.NDArray[np.float64],
               frame: Frame) -> tuple[Contact | None, float] | None:
@@ -194,7 +201,7 @@ class BodyCheck:
                     continue
                 for pair, distance in zip(self.kernel.found.tolist(), self.kernel.found_distance.tolist(), strict=True):
                     if self._chains[pair] & moved:
-                        return self._contact(pair, distance), float(angle)
+                        return self.contact(pair, distance), float(angle)
             return None, math.nan
         finally:
             self.kernel.frame(*self._identity)

@@ -86,6 +86,7 @@ class CommandGate:
         self._model_lower, self._model_upper = self.bounds.lower.copy(), self.bounds.upper.copy()
         self._a, self._b = np.zeros(robot.n), np.zeros(robot.n)
         self.held = np.zeros(robot.n, dtype=bool)  # the joints the last refusal held
+        self._flagged = False  # a refusal stands on /safety_status
 
     def bind(self, controller: Controller) -> None:
         """Check ``controller``'s commands from now on: whether it may leave a joint with no command, and in which
@@ -128,30 +129,31 @@ class CommandGate:
     def check_body(self, state: StateArrays, tick: int) -> Contact | None:
         """The body's check of the proposal; a refused arm holds its last command in the proposal. Returns the
         nearest pair refused (None: the proposal passed as it was)."""
-        body = self.body
-        if body is None or not body.check(self.proposal.data, state.position, state.velocity):
-            self._clear()
+        body, proposal = self.body, self.proposal.data
+        if body is None or not body.check(proposal, state.position, state.velocity):
+            if self._flagged:
+                self._clear()
             return None
-        closing = body.closing(self.proposal.data, state.position, state.velocity)
+        closing = body.closing_found(proposal, state.position)
         if not closing:
-            self._clear()
+            if self._flagged:
+                self._clear()
             return None
-        refused = closing[0]
+        refused = body.contact(*closing[0])
         held = self.held
         held[:] = False
         arms: list[str] = []
         while closing:
-            before = held.copy()
-            for contact in closing:
-                for group in (contact.group1, contact.group2):
-                    if group in body.arm_joints and group not in arms:
-                        arms.append(group)
-                        held |= body.arm_joints[group]
-            np.copyto(self.proposal.data, self.command.data, where=held)
-            self.proposal.velocity[held] = 0.0  # held still: no speed asked of it
-            if (held == before).all():
+            added = [arm for pair, _ in closing for arm in body.arms_of(pair) if arm not in arms]
+            if not added:
                 break  # every arm it closes is held: its last command was checked
-            closing = body.closing(self.proposal.data, state.position, state.velocity)
+            for arm in dict.fromkeys(added):
+                arms.append(arm)
+                held |= body.arm_joints[arm]
+            np.copyto(proposal, self.command.data, where=held)
+            self.proposal.velocity[held] = 0.0  # held still: no speed asked of it
+            closing = body.closing_found(proposal, state.position) if body.check(proposal, state.position,
+                                                                                   state.velocity) else []
         self._record(refused, tuple(arms), tick)
         return refused
 
@@ -163,6 +165,7 @@ class CommandGate:
         fresh = refused.last_tick != tick - 1 or refused.held != arms or refused.last is None or \
             (refused.last.body1, refused.last.body2) != (contact.body1, contact.body2)
         refused.last, refused.last_tick, refused.held = contact, tick, arms
+        self._flagged = True
         if fresh:  # one flag per episode: a stream pushing on is not a new flag every tick
             held = " and the ".join(arms) if arms else "nothing"
             verb = "hold their" if len(arms) > 1 else "holds its"
@@ -170,8 +173,8 @@ class CommandGate:
                                         "command", Level.WARN)
 
     def _clear(self) -> None:
-        if "body" in self.flags.flags:
-            self.flags.clear_flag("body")
+        self._flagged = False
+        self.flags.clear_flag("body")
 
     def check_plan(self, positions: npt.NDArray[np.float64], stiffness: float,
                    state: StateArrays) -> tuple[Contact, float] | None:

@@ -109,7 +109,8 @@ class BodyCheck:
                 if self.geom_group[g] == group:
                     carried |= [(int(self.chain[g]) >> j) & 1 == 1 for j in range(robot.n)]
             self.arm_joints[group] = carried
-        self._chains = np.ascontiguousarray(self.chain[self.pairs[:, 0]] | self.chain[self.pairs[:, 1]])
+        self._chains = np.ascontiguousarray(np.bitwise_or(self.chain[self.pairs[:, 0]], self.chain[self.pairs[:, 1]]),
+                                            dtype=np.uint64)
         self.live = np.ones(len(self.pairs), dtype=np.uint8)  # the pairs no unknown joint moves (the kernel's)
         self._pair_arms = [tuple(self.geom_group[int(g)] for g in pair if self.geom_group[int(g)] in self.arm_joints)
                            for pair in self.pairs]

@@ -1,3 +1,5 @@
+# Over 450 lines: one procedure (each joint to its stops, then the directions settled at the end) over one run's
+# state; the parts that stand alone are beside it (hold, approach, drive, report, operator).
 """Hands-free calibration (DESIGN §5): Prime drives each joint into its mechanical stops itself, gently, finds its
 offset from both stops and measures what its impedance really is. This module is the procedure; the per-tick law
 is a controller of the manager (``calibration.hold``), so every command it makes passes the manager's gate; what

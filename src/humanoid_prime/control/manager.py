@@ -1,3 +1,5 @@
+# Over 450 lines: the loop, the staged lifecycle and the switching share one lock and one state; what stands alone
+# is beside it (stats, gate, rate, resources).
 """The controller manager: one fixed-rate loop, read -> update -> write, and everything around it.
 
 - Staged start: hardware configure and activate, then the joint-state broadcaster, then ZERO_TORQUE

@@ -89,7 +89,11 @@ def test_in_a_calibration_session_the_socket_marks_a_joint_limp_and_resets_its_g
     path = tmp_path / "control.sock"
     session = doubled.open(backends="ec", control_socket=path)
     assert request(path, {"op": "limp", "position": 4, "limp": True})["joint"] == "left_wrist_yaw"
-    assert session.manager.resources.command.position[6] == 0.0  # a finite target: it follows the joint
+    command = session.manager.resources.command
+    assert np.isnan(command.position[6])  # nothing writes the command between ticks
+    session.manager.tick()  # the passive controller writes it, through the gate
+    assert np.isfinite(command.position[6]) and command.stiffness[6] == 0.0  # a finite target: it follows the joint
+    assert np.isnan(command.position[0])  # the others: no command
     session.plan.control.detach()  # the run ends
     assert gate(doubled.master, 4) == 0
     assert any(f.key == "limp/ring4" and "still limp when the run ended" in f.text for f in session.faults)

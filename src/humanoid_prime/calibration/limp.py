@@ -72,8 +72,9 @@ def write_back(objects: SizedSdo, position: int, snapshot: GainSnapshot, extra: 
 
 
 class GainOverride:
-    """Context manager: inside the ``with`` block the eRob at ``position`` runs on the registers ``wanted``
-    returns for its snapshot, with the gate armed and each of ``objects`` ((index, sub) -> value) set.
+    """Context manager: inside the ``with`` block the eRob at ``position`` runs on the registers ``wanted`` (or
+    those it returns for the drive's snapshot), with the gate armed and each of ``objects`` ((index, sub) -> value)
+    set.
 
     ``optional`` objects are set only where the drive has them: one that cannot be read is left out and named
     in ``missing`` (object -> why), so the caller can say so. Each of ``objects`` is written before the gate
@@ -81,7 +82,8 @@ class GainOverride:
 
     left_as = "with overridden gains"  # how the drive is while overridden, for a record left behind
 
-    def __init__(self, sdo: SdoClient, position: int, wanted: Callable[[GainSnapshot], ErobRegisters], *,
+    def __init__(self, sdo: SdoClient, position: int,
+                 wanted: ErobRegisters | Callable[[GainSnapshot], ErobRegisters], *,
                  objects: Mapping[tuple[int, int], int] | None = None,
                  optional: Mapping[tuple[int, int], int] | None = None,
                  journal: tuple[OverrideJournal, str] | None = None) -> None:
@@ -122,7 +124,7 @@ class GainOverride:
                 if address in self.extra_snapshot:
                     self._write(address, value)
             self._write(BUS_GAIN_GATE, 1)
-            self.applied = self.wanted(self.snapshot)
+            self.applied = self.wanted if isinstance(self.wanted, ErobRegisters) else self.wanted(self.snapshot)
             for address, value in write_order(self.snapshot.registers, self.applied):
                 self._write(address, value)
             self.check()

@@ -38,6 +38,8 @@ SUITES: dict[str, tuple[str, str, str]] = {
                "the simulated Prime at 50 Hz and 1 kHz with and without --record"),
     "doctor": ("humanoid_prime.bench.doctor", "bench_doctor",
                "prime doctor --emulate --backends ec,can, twice: start-up plus checks, beside the emulator's start"),
+    "gate": ("humanoid_prime.bench.gate", "bench_gate",
+             "the simulated Prime at 50 Hz in REMOTE, its gate with and without the body check, in turns"),
 }
 
 _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": operator.ge}
@@ -55,6 +57,8 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
        for rate in (50, 1000) for backend in ("", "rclpy_")},
     ("doctor", "seconds.median"): ("doctor", "floors.seconds",
                                    "python -c pass twice (it re-executes in its namespace) + its fixed waits (s)"),
+    ("gate", "added_tick_us_median"): ("gate", "floors.tick_cpu_us_median",
+                                       "the same tick without the body check, in this run (us, median)"),
     ("khz", "overruns"): ("khz", "floors.machine_late_wakeups",
                           "the machine's own: real-time wake-ups a period or more late, all CPUs, "
                           "in as long again right after the run (cyclictest)"),
@@ -92,6 +96,10 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("doctor", "seconds.median", "<=", b.TARGET_DOCTOR_S,
      "prime doctor on the healthy virtual Prime: start-up plus checks (s, median)"),
     ("doctor", "seconds.max", "<=", b.TARGET_DOCTOR_S, "prime doctor: start-up plus checks (s, worst run)"),
+    ("gate", "added_tick_us_median", "<=", b.TARGET_GATE_ADDED_TICK_US,
+     "command gate with collision: added tick at 50 Hz, 14 joints (us, median)"),
+    ("gate", "refusing.added_tick_us_median", "<=", math.inf,
+     "command gate: added tick while it refuses an arm every tick (us, median)"),
 )
 
 

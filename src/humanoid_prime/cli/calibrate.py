@@ -518,10 +518,9 @@ def _verify_joints(session: Session, virtual: Any, joints: tuple[str, ...], rows
 
             def check(joint: str) -> None:
                 spec = robot.joints[robot.index(joint)]
-                with operator.limp(joint):
-                    for side, name, limit in ((-1, "lower", spec.lower), (+1, "upper", spec.upper)):
-                        rows.append(VerifyRow(joint, name, limit, operator.push_to(joint, side)))
-                    operator.let_go(joint)
+                lower, upper = operator.stops(joint)
+                rows.extend((VerifyRow(joint, "lower", spec.lower, lower),
+                             VerifyRow(joint, "upper", spec.upper, upper)))
 
             try:
                 operator.by_hand(joints, check)

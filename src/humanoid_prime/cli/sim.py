@@ -135,6 +135,7 @@ def _format_line(summary: dict[str, Any]) -> str:
     return (f"visited {_visits(summary['modes_visited'])} | {summary['ticks']} ticks, "
             f"{summary['sim_seconds']:.2f} s simulated in {summary['wall_seconds']:.2f} s"
             f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks"
+            f" | {summary['refused']['count']} commands refused by the body check"
             + (f" | recorded {summary['record']['messages'].get('/prime/joint_states', 0)} ticks, "
                f"{summary['record']['dropped_ticks']} DROPPED" if summary.get("record", {}).get("dropped_ticks")
                else "")

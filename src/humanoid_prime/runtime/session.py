@@ -248,10 +248,14 @@ class Session:
         return self.plan.stages
 
     def mark_limp(self, joint: str, limp: bool) -> None:
-        """In a broadcaster-only run: while ``limp``, give ``joint`` a finite target with zero stiffness, so its
-        CSP target follows the actual position (no following error while it is swept); otherwise NaN again,
-        no command, and the drive holds where it is."""
-        self.manager.resources.command.position[self.robot.index(joint)] = 0.0 if limp else np.nan
+        """In a broadcaster-only run, from the next tick: while ``limp``, ``joint``'s target follows where it is at
+        zero stiffness, so its CSP target follows the actual position (no following error while it is swept);
+        otherwise no command again, and the drive holds where it is. The passive controller writes it, through
+        the gate, as every command."""
+        passive = self.manager.passive
+        if passive is None:
+            raise PrimeError("a joint is marked limp only in a broadcaster-only run (a calibration or single-bus run)")
+        passive.mark_limp(self.robot.index(joint), limp)
 
     def note(self, status: SafetyStatus) -> None:
         """Keep the history of every flag: opened when it appears, closed when it clears."""
@@ -349,6 +353,7 @@ class Session:
             "jitter_us": stats["jitter_us"],
             "overruns": stats["overruns"],
             "fallbacks": list(self.manager.fallbacks),
+            "refused": self.manager.gate.refused.as_dict(),
             "faults": [r.as_dict() for r in self.faults],
             "gate_reset_failures": list(self.gate_reset_failures),
             **{key: value for key, value in self.reports.items()},

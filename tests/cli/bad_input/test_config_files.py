@@ -55,6 +55,8 @@ OPTIONAL = {
     ("hardware", "torque_efficiency"): "1.0",
     **{("hardware", f"command_limits.{family}.{name}"): "the bundled template's limit"
        for family in ("sito", "erob") for name in ("stiffness", "damping", "velocity")},
+    **{("hardware", f"safety.{name}"): "the bundled template's value"
+       for name in ("collision_margin", "stopping_time")},
     ("calibration", "joints.left_elbow_pitch.bus"): "a note for people, checked when given",
     ("calibration", "joints.left_elbow_pitch.address"): "a note for people, checked when given",
     ("calibration", "joints.left_wrist_roll.bus"): "a note for people, checked when given",

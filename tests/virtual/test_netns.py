@@ -40,8 +40,11 @@ def master(ring):
 
 
 def exchange(master) -> int:
+    """One process-data exchange. The wait (40 ms) is twenty times SOEM's default so that an emulator on a loaded
+    machine still answers in it (these tests judge what comes back, not how fast), and well inside the drives' 100 ms
+    output watchdog, so that a frame lost on purpose costs one exchange and not the slaves' OP."""
     master.send_processdata()
-    return master.receive_processdata(2000)
+    return master.receive_processdata(40_000)
 
 
 def map_prime_pdos(master) -> None:

@@ -228,6 +228,7 @@ class EmulatorRecord(TypedDict, total=False):
     process: Scheduling
     slaves: list[SlaveRecord]
     sdo_log: list[SdoLogEntry]
+    joints: dict[str, float]  # the true joint angles when the loop ended (``prime bringup --emulate``)
 
 
 def scheduling(pid: int) -> Scheduling:

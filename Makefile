@@ -35,8 +35,9 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests
 
-# mypy, strict on the packages listed in pyproject.toml's [tool.mypy]; stubtest holds the compiled kernels' stubs
-# (_tick.pyi) to the built modules, so a changed kernel signature fails here rather than at a caller.
+# mypy, strict over the package (pyproject.toml's [tool.mypy] names the modules that wait); stubtest holds the
+# compiled kernels' stubs (_tick.pyi) to the built modules, so a changed kernel signature fails here rather than at a
+# caller.
 TICK_MODULES := humanoid_prime.control._tick humanoid_prime.drivers.ethercat._tick humanoid_prime.drivers.sito._tick
 typecheck: $(STAMP)
 	$(PY) -m mypy

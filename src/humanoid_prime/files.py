@@ -7,9 +7,9 @@ import difflib
 import os
 import stat
 import tempfile
+from collections.abc import Hashable, Iterable
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
 import yaml
 
@@ -43,8 +43,8 @@ class _UniqueKeys(yaml.constructor.SafeConstructor):
     """YAML's safe constructor, except that a key given twice in one mapping is an error (YAML says so; PyYAML
     would silently keep the last one)."""
 
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
-        seen: dict[Any, yaml.Node] = {}
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Hashable, object]:
+        seen: dict[Hashable, yaml.Node] = {}
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)
             if key in seen:
@@ -71,7 +71,7 @@ def config_path(path: str | Path) -> Path:
     return Path(path).expanduser().absolute()
 
 
-def load_yaml(path: str | Path) -> dict[str, Any]:
+def load_yaml(path: str | Path) -> dict[object, object]:
     """Parse a YAML configuration file whose top level is a mapping; a missing, unreadable, binary, empty or
     malformed file, a duplicate key or another top level raises ConfigError naming the file."""
     path = config_path(path)
@@ -111,7 +111,7 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def check_keys(path: str | Path, where: str, mapping: dict[str, Any], known: tuple[str, ...]) -> None:
+def check_keys(path: str | Path, where: str, mapping: Iterable[object], known: tuple[str, ...]) -> None:
     """Refuse a key of ``mapping`` (at ``where`` in the file) that is not one of ``known``, naming the closest
     known key: a misspelt key would otherwise leave its default silently in force."""
     for key in mapping:
@@ -216,7 +216,7 @@ def _umask() -> int:
     return current
 
 
-def atomic_write_yaml(path: str | Path, data: Any, header: str = "") -> None:
+def atomic_write_yaml(path: str | Path, data: object, header: str = "") -> None:
     """Dump ``data`` as block-style YAML (keys in insertion order) and write it atomically."""
     body = yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
     atomic_write_text(path, header + body)

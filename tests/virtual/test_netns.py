@@ -4,7 +4,9 @@ Needs a private network namespace (root, or the test run under ``unshare -rn``);
 
 from __future__ import annotations
 
+import json
 import os
+import socket
 import struct
 
 import pytest
@@ -254,6 +256,16 @@ def test_harness_removes_the_veth_pair_when_the_body_raises():
 def test_control_refuses_an_unknown_slave(ring):
     with pytest.raises(ControlError, match="no slave at ring position 99"):
         ring.control.slave(99)
+
+
+def test_control_refuses_a_request_that_is_no_json_object_and_serves_on(ring):
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+        client.settimeout(5.0)
+        client.connect(ring.control.path)
+        client.sendall(b'"status"\n')
+        reply = client.makefile("rb").readline()
+    assert json.loads(reply) == {"ok": False, "error": "a request is a JSON object, got '\"status\"'"}
+    ring.control.ping()
 
 
 def in_op(master) -> None:

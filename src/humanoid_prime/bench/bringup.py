@@ -16,8 +16,8 @@ import json
 import subprocess
 import sys
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -30,12 +30,12 @@ from humanoid_prime.virtual.harness import EMULATOR_STAGE
 SEQUENCE = "DAMPING,STANDBY,DAMPING,STANDBY,DAMPING,STANDBY,DAMPING"
 
 
-def bench_bringup(dwell: float = 2.0, *, sequential: bool = False, timeout: float = 180.0) -> dict[str, Any]:
+def bench_bringup(dwell: float = 2.0, *, sequential: bool = False, timeout: float = 180.0) -> dict[str, object]:
     options = ["--sequence", SEQUENCE, "--dwell", str(dwell), *(["--sequential-sdo"] if sequential else [])]
     return bringup_figures(emulated_bringup(options, timeout=timeout), sequential=sequential)
 
 
-def emulated_bringup(options: list[str], *, timeout: float) -> dict[str, Any]:
+def emulated_bringup(options: list[str], *, timeout: float) -> dict[str, object]:
     """Run ``prime bringup --emulate`` with ``options`` in a process of its own and return its summary."""
     with tempfile.TemporaryDirectory(prefix="prime-bench-") as tmp:
         summary_path = Path(tmp) / "summary.json"
@@ -46,20 +46,44 @@ def emulated_bringup(options: list[str], *, timeout: float) -> dict[str, Any]:
             last = (proc.stderr.strip() or proc.stdout.strip()).splitlines()
             raise PrimeError(f"emulated bringup {' '.join(options)} failed (exit {proc.returncode}): "
                              f"{last[-1] if last else 'no output'}")
-        return json.loads(summary_path.read_text())
+        summary = json.loads(summary_path.read_text())
+        if not isinstance(summary, dict):
+            raise PrimeError(f"emulated bringup {' '.join(options)} wrote a summary that is no JSON object")
+        return summary
 
 
-def bringup_figures(summary: dict[str, Any], *, sequential: bool = False) -> dict[str, Any]:
+def json_object(value: object) -> Mapping[str, object]:
+    """``value`` where it is a JSON object (a part of a run's summary); an empty one where it is not."""
+    return value if isinstance(value, dict) else {}
+
+
+def json_number(value: object, what: str) -> float:
+    """``value`` where it is a JSON number; else the summary is not one of ours, said in one line."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return value
+    raise PrimeError(f"the run's summary gives {what} as {value!r}, not a number")
+
+
+def bringup_figures(summary: Mapping[str, object], *, sequential: bool = False) -> dict[str, object]:
     """The benchmark's figures from the summary of an emulated ``prime bringup`` run."""
-    switches = [s for s in summary["mode_switches"] if s["mode"] in ("DAMPING", "STANDBY")]
-    walls = np.array([s["wall_seconds"] for s in switches]) if switches else np.array([np.nan])
-    skews = np.array([s["skew_seconds"] for s in switches]) if switches else np.array([np.nan])
-    slaves, wrists = summary["end"]["slaves"], summary["end"]["sito"]  # as the hardware file has them
-    period_s = 1.0 / summary["update_rate"]
+    every = summary["mode_switches"]
+    switches = [json_object(s) for s in every if json_object(s).get("mode") in ("DAMPING", "STANDBY")] \
+        if isinstance(every, list) else []
+    walls = np.array([json_number(s["wall_seconds"], "a switch's wall_seconds") for s in switches]) if switches \
+        else np.array([np.nan])
+    skews = np.array([json_number(s["skew_seconds"], "a switch's skew_seconds") for s in switches]) if switches \
+        else np.array([np.nan])
+    end = json_object(summary["end"])
+    slaves, wrists = (int(json_number(end[key], f"end.{key}")) for key in ("slaves", "sito"))  # as the hardware
+    # file has them
+    period_s = 1.0 / json_number(summary["update_rate"], "update_rate")
     can_frames = FRAMES_PER_WRIST * wrists  # per bus cycle: a command to each wrist, its 0xB1 and 0xB2 feedback
-    emulator_start = sum(stage["seconds"] for stage in summary["stages"] if stage["name"] == EMULATOR_STAGE)
+    stages = summary["stages"]
+    emulator_start = sum(json_number(json_object(stage).get("seconds"), "a stage's seconds")
+                         for stage in (stages if isinstance(stages, list) else [])
+                         if json_object(stage).get("name") == EMULATOR_STAGE)
     return {
-        "bringup_seconds": summary["bringup_seconds"] - emulator_start,
+        "bringup_seconds": json_number(summary["bringup_seconds"], "bringup_seconds") - emulator_start,
         "emulator_start_seconds": emulator_start,
         "ethercat_bringup": summary["ethercat_bringup"],
         "ok": summary["ok"],

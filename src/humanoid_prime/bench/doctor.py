@@ -16,7 +16,6 @@ import statistics
 import subprocess
 import sys
 import time
-from typing import Any
 
 from humanoid_prime.bench.startup import prime_command
 from humanoid_prime.doctor.can import LISTEN_S
@@ -32,7 +31,7 @@ def _timed(argv: list[str]) -> tuple[float, subprocess.CompletedProcess[str]]:
     return time.perf_counter() - began, proc
 
 
-def bench_doctor(runs: int = 2) -> dict[str, Any]:
+def bench_doctor(runs: int = 2) -> dict[str, object]:
     prime = prime_command()
     walls, emulator, checks, floors = [], [], [], []
     verdicts: dict[str, int] = {}

@@ -17,10 +17,11 @@ import json
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
-from humanoid_prime.bench.bringup import emulated_bringup
+from humanoid_prime.bench.bringup import emulated_bringup, json_object
+from humanoid_prime.errors import PrimeError
 
 RATE_HZ = 1000.0
 DURATION_S = 60.0
@@ -54,24 +55,36 @@ def machine_latency(seconds: float, *, interval_us: int = 1000, late_us: int = 1
                      f"run, waking every {interval_us} us; late: >= {late_us} us")
 
 
-def per_cpu_latency(report: dict[str, Any]) -> dict[int, dict[str, int]]:
+def per_cpu_latency(report: object) -> dict[int, dict[str, int]]:
     """Per CPU from cyclictest's JSON, whose histogram holds the wake-ups under its bound, a bucket a us."""
+    threads = json_object(report).get("thread")
+    if not isinstance(threads, dict):
+        raise PrimeError(f"{PROBE}'s JSON has no per-thread figures")
     per_cpu = {}
-    for thread in report["thread"].values():
-        on_time = sum(int(count) for count in thread["histogram"].values())
-        per_cpu[int(thread["cpu"])] = {"wakeups": int(thread["cycles"]), "max_us": int(thread["max"]),
-                                       "late": int(thread["cycles"]) - on_time}
+    for value in threads.values():
+        thread = json_object(value)
+        on_time = sum(_whole(count) for count in json_object(thread.get("histogram")).values())
+        cycles = _whole(thread.get("cycles"))
+        per_cpu[_whole(thread.get("cpu"))] = {"wakeups": cycles, "max_us": _whole(thread.get("max")),
+                                              "late": cycles - on_time}
     return dict(sorted(per_cpu.items()))
 
 
-def bench_khz(duration: float = DURATION_S, *, cpu: int = 0, timeout: float | None = None) -> dict[str, Any]:
+def _whole(value: object) -> int:
+    """A count in cyclictest's JSON (a number, or a string of one)."""
+    if isinstance(value, (int, float, str)):
+        return int(value)
+    raise PrimeError(f"{PROBE}'s JSON holds {value!r} where it holds a count")
+
+
+def bench_khz(duration: float = DURATION_S, *, cpu: int = 0, timeout: float | None = None) -> dict[str, object]:
     summary = emulated_bringup(["--rate", f"{RATE_HZ:g}", "--cpu", str(cpu), "--duration", f"{duration:g}"],
                                timeout=timeout if timeout is not None else duration + 120.0)
     return khz_figures(summary, *machine_latency(duration), cpu=cpu, duration=duration)
 
 
-def khz_figures(summary: dict[str, Any], machine: dict[int, dict[str, int]] | None, probe: str, *, cpu: int,
-                duration: float) -> dict[str, Any]:
+def khz_figures(summary: Mapping[str, object], machine: dict[int, dict[str, int]] | None, probe: str, *, cpu: int,
+                duration: float) -> dict[str, object]:
     return {
         "rate_hz": summary["update_rate"],
         "duration_s": duration,
@@ -92,5 +105,5 @@ def khz_figures(summary: dict[str, Any], machine: dict[int, dict[str, int]] | No
             "machine_probe": probe,
             "loop_cpu_late_wakeups": machine.get(cpu, {}).get("late") if machine is not None else None,
         },
-        "emulator": summary["emulator"].get("process"),  # where the emulated robot ran, from the kernel
+        "emulator": json_object(summary["emulator"]).get("process"),  # where the emulated robot ran, from the kernel
     }

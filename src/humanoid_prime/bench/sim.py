@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
 
 from humanoid_prime.bench import TARGET_REALTIME_FACTOR
 from humanoid_prime.config.controllers import load_controllers
@@ -27,7 +26,7 @@ ROBOT_UPDATE_RATE = 50.0  # Hz, the control rate of the robot (the physics stays
 
 
 def bench_sim(seconds: float = 60.0, *, hardware_file: str | Path | None = None,
-              controllers_file: str | Path | None = None) -> dict[str, Any]:
+              controllers_file: str | Path | None = None) -> dict[str, object]:
     """Run ``seconds`` of simulated time headless and report the real-time factor and the tick cost."""
     robot = load_robot(hardware_file, use_sim=True)
     config = load_controllers(robot.names, controllers_file)

@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 import time
 import uuid
-from typing import Any
 
 import can
 import numpy as np
@@ -39,7 +38,7 @@ def _percentiles(samples_ns: list[int]) -> dict[str, float]:
     return {"median": float(np.median(values)), "p99": float(np.percentile(values, 99))}
 
 
-def bench_sito(seconds: float = 2.0) -> dict[str, Any]:
+def bench_sito(seconds: float = 2.0) -> dict[str, object]:
     """Run the four emulated wrists for ``seconds`` at 50 Hz and report tick cost and bus load."""
     robot = load_robot()
     bitrate = robot.hardware.can.bitrate

@@ -22,51 +22,95 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
+if TYPE_CHECKING:  # the virtual Prime is imported when a run starts it
+    from humanoid_prime.virtual.ring.options import RingSettings
+
 SEQUENCE = (Mode.STANDBY, Mode.DAMPING, Mode.STANDBY)
 # How slow: a reply takes 0.5 ms plus up to 4 ms at random, 1 in 50 starts a burst of 5 replies each 30 ms late,
 # and about every 2 s the emulator stalls for 25 ms (every frame, the cycle's too, waits that long).
-SLOW = {"mailbox_latency_s": 0.0005, "mailbox_jitter_s": 0.004, "mailbox_burst_s": 0.030,
+SLOW: RingSettings = {"mailbox_latency_s": 0.0005, "mailbox_jitter_s": 0.004, "mailbox_burst_s": 0.030,
         "mailbox_burst_chance": 0.02, "mailbox_burst_replies": 5, "stall_interval_s": 2.0, "stall_s": 0.025}
 HELD_REPLY_FRAMES = 2  # reply frames held back 8 ms during each bring-up's mapping
 HELD_S = 0.008
 
 
-def one_run(seed: int, *, dwell_s: float = 2.0, quirks: str = "") -> dict[str, Any]:
+class Switch(TypedDict):
+    """A mode switch of a run, as the impedance manager reported it."""
+
+    mode: str
+    ok: bool
+    wall_ms: float
+    retries: int
+    failed: dict[str, str]  # joint -> its problem
+
+
+class LateReply(TypedDict):
+    ring: int
+    what: str
+    late_ms: float
+
+
+class SlowRun(TypedDict, total=False):
+    """One bring-up's verdict ("up" or "failed", with the stage and message) and what it saw."""
+
+    seed: int
+    verdict: str
+    stage: str  # where it failed: "bring-up" or "run"
+    message: str
+    seconds: float
+    configured_again: list[str]  # why the ring was scanned or configured again
+    left_op: list[int]  # per slave, how often it left OP
+    al_status_codes: list[str]
+    flags: list[tuple[float, str, str]]  # (since s, key, text)
+    loop_ended_s: float
+    switches: list[Switch]
+    late_replies: int
+    mailbox_drops: dict[str, int]  # by why
+    late_mailbox_replies: list[LateReply]
+    emulator: dict[str, int]  # its stalls, held reply frames and slow replies
+
+
+def one_run(seed: int, *, dwell_s: float = 2.0, quirks: str = "") -> SlowRun:
     """One bring-up with the sequence against a slow virtual Prime (its slaves with ``quirks``, as
     virtual/ring/quirks.py names them); its verdict and what it saw."""
+    from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
     from humanoid_prime.runtime.run import run_loop
     from humanoid_prime.runtime.session import BringupOptions, open_session, plan_session
     from humanoid_prime.virtual.harness import attach_virtual_prime
 
     options = BringupOptions(emulated=True, sequence=SEQUENCE, dwell=dwell_s, realtime=True, control_socket=None)
     began = time.monotonic()
-    result: dict[str, Any] = {"seed": seed}
+    result: SlowRun = {"seed": seed}
     with contextlib.ExitStack() as stack:
         plan = plan_session(options)
         virtual = attach_virtual_prime(stack, ring_options={**SLOW, "seed": seed, "quirks": quirks})
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
-        virtual.control.call("hold_reply_frames", count=HELD_REPLY_FRAMES, seconds=HELD_S)
+        virtual.control.hold_reply_frames(HELD_REPLY_FRAMES, HELD_S)
         try:
             session = open_session(plan, stack)
         except PrimeError as exc:
-            return {**result, "verdict": "failed", "stage": "bring-up", "message": str(exc),
-                    "seconds": time.monotonic() - began}
-        master = session.ethercat.master
+            result.update({"verdict": "failed", "stage": "bring-up", "message": str(exc),
+                           "seconds": time.monotonic() - began})
+            return result
+        master = session.ethercat.master if session.ethercat is not None else None
+        impedance = session.impedance
+        if not isinstance(master, SoemMaster) or impedance is None:
+            raise PrimeError("the emulated bring-up has no SOEM master or no impedance manager on its ring")
         result["configured_again"] = [*master.scan_reasons, *master.configure_reasons]
         run_loop(session, threading.Event())
-        result["left_op"] = [int(n) for n in master.left_op]  # the run's own, before anything winds down
+        left_op = result["left_op"] = [int(n) for n in master.left_op]  # the run's own, before anything winds
+        # down
         result["al_status_codes"] = [f"0x{int(c):04X}" for c in master.al_status_code]
         result["flags"] = [(round(r.since_s, 2), r.key.split("/", 1)[-1], r.text[:160]) for r in session.faults
                            if r.key.endswith("/lost") or "ring" not in r.key][:12]
         result["loop_ended_s"] = round(time.monotonic() - plan.began, 2)
         problems = list(session.problems)
-        impedance = session.impedance
         impedance.wait_checked(10.0)
         switches = [r.as_dict() for r in impedance.reports]
         result["switches"] = [{"mode": s["mode"], "ok": s["ok"], "wall_ms": round(s["wall_seconds"] * 1e3, 1),
@@ -75,28 +119,27 @@ def one_run(seed: int, *, dwell_s: float = 2.0, quirks: str = "") -> dict[str, A
         result["mailbox_drops"] = master.mailbox_drops()
         # each reply counted late with the request it answered and how long after it was sent: never one that
         # answered no earlier request (those are counted as for another object, unrecognised or malformed)
-        drops = getattr(master, "drops", None)
-        records = list(drops.records) if drops is not None else []
         result["late_mailbox_replies"] = [
             {"ring": r.position, "what": r.what, "late_ms": round((r.late_s or 0.0) * 1e3, 1)}
-            for r in records if r.reason == "late"]
-        stats = virtual.control.call("stats")
-        result["emulator"] = {k: stats[k] for k in ("stalls", "held_reply_frames", "slow_replies")}
+            for r in list(master.drops.records) if r.reason == "late"]
+        stats = virtual.control.stats()
+        result["emulator"] = {"stalls": stats["stalls"], "held_reply_frames": stats["held_reply_frames"],
+                              "slow_replies": stats["slow_replies"]}
         modes = [s["mode"] for s in switches]
         problems += [f"{s['mode']}: {s['failed']}" for s in switches if not s["ok"]]
         if modes[-len(SEQUENCE):] != [m.value for m in SEQUENCE]:
             problems.append(f"switches {modes}, expected {[m.value for m in SEQUENCE]}")
-        if any(result["left_op"]):
-            problems.append(f"slaves left OP: {result['left_op']}")
+        if any(left_op):
+            problems.append(f"slaves left OP: {left_op}")
     result["seconds"] = time.monotonic() - began
     result["verdict"] = "up" if not problems else "failed"
     if problems:
-        result.update(stage="run", message="; ".join(problems))
+        result.update({"stage": "run", "message": "; ".join(problems)})
     return result
 
 
-def bench_slow_ring(runs: int = 50, *, quirks: str = "", report: Callable[[str], None] = print) -> dict[str, Any]:
-    results = []
+def bench_slow_ring(runs: int = 50, *, quirks: str = "", report: Callable[[str], None] = print) -> dict[str, object]:
+    results: list[SlowRun] = []
     for k in range(runs):
         result = one_run(seed=k, quirks=quirks)
         results.append(result)

@@ -19,7 +19,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
 
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SOCKET_ENV, ControlServer
@@ -38,7 +37,7 @@ def prime_command() -> list[str]:
     return [str(script)] if script.is_file() else [sys.executable, "-m", "humanoid_prime"]
 
 
-def bench_startup(runs: int = 9) -> dict[str, Any]:
+def bench_startup(runs: int = 9) -> dict[str, object]:
     """Each command's wall time over ``runs`` runs, and the floor's, measured round-robin."""
     prime = prime_command()
     with tempfile.TemporaryDirectory(prefix="prime-bench-") as tmp, \

@@ -11,7 +11,9 @@ import os
 import signal
 import sys
 import threading
-from typing import Any, NoReturn
+from collections.abc import Callable
+from types import FrameType
+from typing import NoReturn
 
 from humanoid_prime import __version__
 from humanoid_prime.cli._commands import COMMANDS
@@ -108,14 +110,17 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
 
 
-def _watch_interrupts(interrupted: threading.Event) -> Any:
+Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None  # as signal.signal takes it
+
+
+def _watch_interrupts(interrupted: threading.Event) -> Handler:
     """Ctrl-C raises KeyboardInterrupt as usual, and is remembered; returns the handler it replaced (None off the
     main thread, where signals cannot be handled, and where SIGINT is not Python's default, e.g. ignored)."""
     if threading.current_thread() is not threading.main_thread() \
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         return None
 
-    def handler(signum: int, frame: Any) -> None:
+    def handler(signum: int, frame: FrameType | None) -> None:
         interrupted.set()
         raise KeyboardInterrupt
 

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from humanoid_prime.dds.domain import MAX_DOMAIN_ID, Discovery
 from humanoid_prime.errors import PrimeError
@@ -19,6 +19,8 @@ from humanoid_prime.runtime.socket import default_socket_path
 
 if TYPE_CHECKING:
     from rich.console import Console
+
+    from humanoid_prime.virtual.ring.options import RingSettings
 
 CONFIG_RULE = ("default: the robot's config folder ($PRIME_CONFIG_DIR, else ~/.config/prime, with a --robot "
                "subfolder), else the bundled template; `prime config show` tells which")
@@ -221,7 +223,7 @@ def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) ->
                              "abort-service, or all (docs/hardware.md)")
 
 
-def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
+def ring_options(args: argparse.Namespace, **more: object) -> RingSettings:
     """The emulator tunables given on the command line; any of them, or a truthy ``more`` option (named as on
     the command line), without --emulate is an error."""
     given = {"--truth": args.truth, "--dc-lock-cycles": args.dc_lock_cycles,
@@ -235,7 +237,7 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
         from humanoid_prime.config.hardware import load_hardware
 
         load_calibration(load_hardware(args.hardware), args.truth)
-    options: dict[str, Any] = {}
+    options: RingSettings = {}
     if args.dc_lock_cycles is not None:
         options["dc_lock_cycles"] = args.dc_lock_cycles
     if args.mailbox_latency is not None:
@@ -301,8 +303,10 @@ def real(*, above: float | None = None, at_least: float | None = None, at_most: 
             raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
         if not math.isfinite(value):
             raise argparse.ArgumentTypeError(f"{text} is not a finite number")
-        for bound, holds, words in ((above, lambda b: value > b, "above"), (at_least, lambda b: value >= b, "at least"),
-                                    (at_most, lambda b: value <= b, "at most"), (below, lambda b: value < b, "below")):
+        checks: tuple[tuple[float | None, Callable[[float], bool], str], ...] = (
+            (above, lambda b: value > b, "above"), (at_least, lambda b: value >= b, "at least"),
+            (at_most, lambda b: value <= b, "at most"), (below, lambda b: value < b, "below"))
+        for bound, holds, words in checks:
             if bound is not None and not holds(bound):
                 raise argparse.ArgumentTypeError(f"must be {words} {bound:g}, got {text}")
         return value
@@ -335,12 +339,14 @@ def add_duration_option(parser: argparse.ArgumentParser, help_text: str, *, defa
     """``--duration S`` (``--seconds``, its old spelling, still works for one release)."""
     kind = SECONDS_OR_ZERO if zero else SECONDS
     parser.add_argument("--duration", type=kind, default=default, metavar="S", help=help_text)
-    add_hidden_alias(parser, "--seconds", "duration", type=kind)
+    add_hidden_alias(parser, "--seconds", "duration", kind=kind)
 
 
-def add_hidden_alias(parser: argparse.ArgumentParser, option: str, dest: str, **kwargs: Any) -> None:
-    """An old spelling of an option, kept working for one release and left out of --help."""
-    parser.add_argument(option, dest=dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **kwargs)
+def add_hidden_alias(parser: argparse.ArgumentParser, option: str, dest: str, *,
+                     kind: Callable[[str], object]) -> None:
+    """An old spelling of an option (its values parsed by ``kind``), kept working for one release and left out
+    of --help."""
+    parser.add_argument(option, dest=dest, type=kind, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
 def output_file(text: str) -> Path:
@@ -373,10 +379,12 @@ INPUT_OPTIONS = {"hardware": "--hardware", "calibration": "--calibration", "cont
 def chosen_actions(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[argparse.Action]:
     """The arguments of the (sub)command ``args`` was parsed for, the parsers on its way included."""
     actions: list[argparse.Action] = []
-    while parser is not None:
-        actions += parser._actions
-        subparsers = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
-        parser = subparsers.choices.get(getattr(args, subparsers.dest, None)) if subparsers is not None else None
+    current: argparse.ArgumentParser | None = parser
+    while current is not None:
+        actions += current._actions
+        subparsers = next((a for a in current._actions if isinstance(a, argparse._SubParsersAction)), None)
+        chosen = getattr(args, subparsers.dest, None) if subparsers is not None else None
+        current = subparsers.choices.get(chosen) if subparsers is not None and isinstance(chosen, str) else None
     return actions
 
 
@@ -385,7 +393,7 @@ def check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
     outputs: writing it would destroy what the run reads, or what it wrote a moment before. A command may allow
     a pair (``args.may_overwrite``: (output dest, input dest)), e.g. calibrate writing the calibration it refines."""
     allowed = getattr(args, "may_overwrite", ())
-    outputs = {action.dest: "/".join(action.option_strings) or action.metavar for action in
+    outputs = {action.dest: "/".join(action.option_strings) or str(action.metavar) for action in
                chosen_actions(parser, args) if action.type in OUTPUT_TYPES
                and action.help != argparse.SUPPRESS and getattr(args, action.dest, None)}  # an old spelling: once
     seen: dict[Path, str] = {}
@@ -411,7 +419,7 @@ def console(*, stderr: bool = False) -> Console:
     return out if out.is_terminal else Console(stderr=stderr, width=200)
 
 
-def write_summary(args: argparse.Namespace, summary: Any) -> None:
+def write_summary(args: argparse.Namespace, summary: object) -> None:
     """``--summary FILE``: the run's figures as JSON, written atomically (nothing without the option)."""
     if getattr(args, "summary", None):
         from humanoid_prime.files import atomic_write_text
@@ -419,10 +427,22 @@ def write_summary(args: argparse.Namespace, summary: Any) -> None:
         atomic_write_text(args.summary, json.dumps(summary, indent=2) + "\n")
 
 
+def member(value: object, key: str) -> dict[str, object]:
+    """``value[key]`` where ``value`` is a JSON object that holds an object there (a part of a run's summary);
+    an empty one where it does not."""
+    inner = value.get(key) if isinstance(value, dict) else None
+    return inner if isinstance(inner, dict) else {}
+
+
+def members(value: object) -> list[dict[str, object]]:
+    """The objects in ``value`` where it is a JSON list (none where it is not)."""
+    return [item for item in value if isinstance(item, dict)] if isinstance(value, list) else []
+
+
 def add_json_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
 
 
-def print_json(data: Any) -> None:
+def print_json(data: object) -> None:
     json.dump(data, sys.stdout, indent=2)
     sys.stdout.write("\n")

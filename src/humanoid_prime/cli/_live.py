@@ -13,16 +13,16 @@ import select
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any, TextIO
+from typing import TextIO
 
-from rich.console import Console, Group
+from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
-from humanoid_prime.control.topics import SAFETY_STATUS
+from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.readout import LoopReadout
@@ -48,7 +48,7 @@ def _micros(value: float | None) -> str:
 def flag_lines(manager: ControllerManager) -> list[Text]:
     """The safety flags standing now, errors in red and warnings in yellow, one line each."""
     status = manager.topics.latest(SAFETY_STATUS)
-    if status is None or not status.flags:
+    if not isinstance(status, SafetyStatus) or not status.flags:
         return []
     return [Text(f"{status.levels.get(key, Level.ERROR).name:<5} {key}: {text}",
                  style="bold red" if status.levels.get(key, Level.ERROR) is Level.ERROR else "yellow")
@@ -113,8 +113,8 @@ class LiveTable:
         header = Text.assemble(("mode ", "bold"), (mode, "bold cyan"))
         if self.status is not None:
             header.append(f"   {self.status()}")
-        parts: list[Any] = [header, Text(readout.loop_words()), *config_lines(manager), Text(loop_line(manager)),
-                            *flag_lines(manager), table]
+        parts: list[RenderableType] = [header, Text(readout.loop_words()), *config_lines(manager),
+                                       Text(loop_line(manager)), *flag_lines(manager), table]
         if self.keys or self.reset_key:
             note = f"   [{self.note}]" if self.note else ""
             parts.append(Text(f"keys: {key_help(self.keys, self.reset_key)}{note}", style="dim"))
@@ -156,7 +156,7 @@ class ModeKeys:
     exits, whatever the reason.
     """
 
-    def __init__(self, on_mode: Callable[[Mode], None], on_quit: Callable[[], None], *,
+    def __init__(self, on_mode: Callable[[Mode], object], on_quit: Callable[[], None], *,
                  on_reset: Callable[[], object] | None = None, stream: TextIO | None = None,
                  extra: dict[str, Callable[[], None]] | None = None) -> None:
         self.on_mode = on_mode
@@ -165,7 +165,7 @@ class ModeKeys:
         self.extra = dict(extra or {})  # further keys of the command (e.g. n: next phase)
         self.stream = stream if stream is not None else sys.stdin
         self.active = False
-        self._saved: list[Any] | None = None
+        self._saved: list[int | list[bytes | int]] | None = None  # the terminal's settings (termios)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -202,9 +202,10 @@ class ModeKeys:
     def _restore(self, fd: int) -> None:
         import termios
 
-        with contextlib.suppress(termios.error, OSError):
-            termios.tcsetattr(fd, termios.TCSADRAIN, self._saved)
-        self._saved = None
+        saved, self._saved = self._saved, None
+        if saved is not None:
+            with contextlib.suppress(termios.error, OSError):
+                termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
     def _read(self, fd: int) -> None:
         while not self._stop.is_set():
@@ -239,9 +240,17 @@ class Working:
     when the console is not a terminal; the line goes away when the work ends."""
 
     def __init__(self, console: Console, description: str, total: float | None = None) -> None:
-        from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
+        from rich.progress import (
+            BarColumn,
+            Progress,
+            ProgressColumn,
+            SpinnerColumn,
+            TaskProgressColumn,
+            TextColumn,
+            TimeElapsedColumn,
+        )
 
-        columns: list[Any] = [SpinnerColumn(), TextColumn("{task.description}")]
+        columns: list[ProgressColumn] = [SpinnerColumn(), TextColumn("{task.description}")]
         if total is not None:
             columns += [BarColumn(), TaskProgressColumn()]
         columns.append(TimeElapsedColumn())

@@ -8,14 +8,14 @@ import json
 import math
 import operator
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Mapping
 
+from rich.console import Console
 from rich.table import Table
 
 from humanoid_prime import bench as b
 from humanoid_prime.cli._commands import summary
-from humanoid_prime.cli._common import LONGEST_S, cpu_number, output_file, real
+from humanoid_prime.cli._common import LONGEST_S, cpu_number, member, members, output_file, real
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import Working
 from humanoid_prime.errors import PrimeError
@@ -103,7 +103,7 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
 )
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("bench", help=summary("bench"),
                               description="Run the benchmarks and print each figure against its target. "
                                           "Suites: " + "; ".join(f"{k}: {v[2]}" for k, v in SUITES.items()))
@@ -159,29 +159,37 @@ def run_soak(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def soak_failures(result: dict[str, Any]) -> list[str]:
+def soak_failures(result: Mapping[str, object]) -> list[str]:
     """What the soak must not show (DESIGN §6), one line each."""
     failures = []
     if result["overruns"]:
         failures.append(f"{result['overruns']} ticks overran (longer than twice the period)")
     failures += [f"{i['fault']} at {i['at_s']:.1f} s: expected {i['expected']}, got {i['outcome']}"
-                 for i in result["injections"] if not i["as_designed"]]
+                 for i in members(result["injections"]) if not i["as_designed"]]
     failures += [f"{f['key']} at {f['since_s']:.1f} s, injected by nobody: {f['text']}"
-                 for f in result["unexpected_faults"]]
+                 for f in members(result["unexpected_faults"])]
     if result["not_injected"]:
-        failures.append(f"the pass ended before these faults were injected: {', '.join(result['not_injected'])}")
+        failures.append(f"the pass ended before these faults were injected: {_words(result['not_injected'])}")
     if result["injector_error"]:
         failures.append(f"fault injection stopped: {result['injector_error']}")
     if result["gate_reset_failures"] or result["gates_left_set"]:
         failures.append(f"gates not reset: {result['gate_reset_failures'] or result['gates_left_set']}")
     if result["drives_left_enabled"]:
         failures.append(f"drives left enabled at ring positions {result['drives_left_enabled']}")
-    failures += [f"at the end: {p}" for p in result["problems_at_end"]]
+    failures += [f"at the end: {p}" for p in _strings(result["problems_at_end"])]
     return failures
 
 
-def _print_soak(console: Any, result: dict[str, Any]) -> None:
-    tick, cpu, jitter = result["tick_us"], result["tick_cpu_us"], result["jitter_us"]
+def _strings(value: object) -> list[str]:
+    return [str(item) for item in value] if isinstance(value, list) else []
+
+
+def _words(value: object) -> str:
+    return ", ".join(_strings(value))
+
+
+def _print_soak(console: Console, result: Mapping[str, object]) -> None:
+    tick, cpu, jitter = member(result, "tick_us"), member(result, "tick_cpu_us"), member(result, "jitter_us")
     console.print(f"{result['ticks']} ticks at {result['update_rate']:g} Hz over {result['minutes']:g} min, load: "
                   f"{result['load'] or 'none'}; overruns (> 2x period): {result['overruns']}; worst tick "
                   f"{result['worst_tick_us']:.0f} us", markup=False)
@@ -191,18 +199,18 @@ def _print_soak(console: Any, result: dict[str, Any]) -> None:
     table = Table(title="faults injected", title_justify="left", header_style="bold")
     for column in ("at (s)", "bus", "fault", "expected", "outcome", "flags"):
         table.add_column(column)
-    for i in result["injections"]:
+    for i in members(result["injections"]):
         outcome = f"[green]{i['outcome']}[/green]" if i["as_designed"] else f"[red]{i['outcome']}[/red]"
-        flags = ", ".join(sorted(set(i["flags"])))
-        table.add_row(f"{i['at_s']:.1f}", i["bus"], i["fault"], i["expected"], outcome, flags)
+        flags = ", ".join(sorted(set(_strings(i["flags"]))))
+        table.add_row(f"{i['at_s']:.1f}", str(i["bus"]), str(i["fault"]), str(i["expected"]), outcome, flags)
     console.print(table)
-    console.print(f"faults nobody injected: {len(result['unexpected_faults'])}; gates left set: "
+    console.print(f"faults nobody injected: {len(members(result['unexpected_faults']))}; gates left set: "
                   f"{result['gates_left_set'] or 'none'}; drives left enabled: "
                   f"{result['drives_left_enabled'] or 'none'}", markup=False)
 
 
-def figure(results: dict[str, Any], suite: str, path: str) -> float | None:
-    value: Any = results.get(suite)
+def figure(results: Mapping[str, object], suite: str, path: str) -> float | None:
+    value = results.get(suite)
     for key in path.split("."):
         if not isinstance(value, dict) or key not in value:
             return None
@@ -216,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise PrimeError(f"unknown suite {unknown[0]!r}; suites: {', '.join(SUITES)}")
     console = make_console(stderr=args.json)
-    results: dict[str, Any] = {}
+    results: dict[str, dict[str, object]] = {}
     for suite in chosen:
         module, function, what = SUITES[suite]
         console.print(f"[bold]{suite}[/bold]: {what} ...")
@@ -241,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
         value = figure(results, suite, path)
         note = results[suite].get("skipped") or results[suite].get("error")
         if value is None or not math.isfinite(value):
-            table.add_row(what, note or "-", f"{op} {goal:g}", "[yellow]n/a[/yellow]")
+            table.add_row(what, str(note or "-"), f"{op} {goal:g}", "[yellow]n/a[/yellow]")
             continue
         met = _OPS[op](value, goal)
         floor = ""

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
+import math
 import sys
 import threading
 import time
+from collections.abc import Iterator, Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
@@ -20,6 +24,8 @@ from humanoid_prime.cli._common import (
     add_realtime_options,
     add_socket_option,
     dds_options,
+    member,
+    members,
     output_dir,
     output_file,
     real,
@@ -36,6 +42,7 @@ from humanoid_prime.runtime.run import run_loop
 from humanoid_prime.runtime.session import (
     BACKENDS,
     BringupOptions,
+    Plan,
     Session,
     claim_control_socket,
     open_session,
@@ -44,8 +51,12 @@ from humanoid_prime.runtime.session import (
 from humanoid_prime.runtime.signals import stop_on_signals
 from humanoid_prime.runtime.switching import mode_switcher
 
+if TYPE_CHECKING:  # the virtual Prime is imported when a run emulates the robot
+    from humanoid_prime.virtual.harness import EmulatorRecord, VirtualPrime
+    from humanoid_prime.virtual.load_test import Stiffness
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "bringup", help=summary("bringup"),
         description="Bring Prime up: fold the calibration into the eRob configs, take the EtherCAT ring to OP "
@@ -155,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
         enter_private_netns()  # re-executes this command in a private network namespace (returns inside)
     stop = threading.Event()
     report = print if not args.json else (lambda *a, **k: None)
-    emulator: dict = {}
+    emulator: EmulatorRecord = {}
+    stiffness: list[Stiffness] = []
     addons = Addons()
     with stop_on_signals(stop), contextlib.ExitStack() as stack:
         plan = plan_session(options)
@@ -172,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
             plan.stage(EMULATOR_STAGE, t)
         with _bringing_up(plan, args):
             session = open_session(plan, stack)
-        session.reports.update(load_test=[], emulator=emulator)
+        session.reports.update(load_test=stiffness, emulator=emulator)
         host_graph = None
         if options.emulated:  # the node on the host's graph (as root), the robot in its private namespace
             from humanoid_prime.virtual.harness import host_network
@@ -186,7 +198,8 @@ def run(args: argparse.Namespace) -> int:
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
             report(f"  {name:<28} {seconds * 1e3:9.1f} ms")
-        load_test = _start_load_test(session, virtual, load_test_joints, stop) if load_test_joints else None
+        load_test = _start_load_test(session, virtual, load_test_joints, stiffness, stop) \
+            if virtual is not None and load_test_joints else None
         if sys.stdout.isatty() and not args.no_live and not args.json:
             from humanoid_prime.cli._live import LiveTable, ModeKeys
 
@@ -197,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
             graph = (lambda: "DDS control ON") if dds is not None and dds.control else None
             stack.enter_context(LiveTable(session.manager, keys=full, reset_key=sys.stdin.isatty(), status=graph))
         # With --emulate, the plant's true joint angles (rad, joint frame) when the loop ends, beside the measured
-        at_end = (lambda: emulator.__setitem__("joints", virtual.control.call("joints"))) if virtual else None
+        at_end = functools.partial(_record_joints, emulator, virtual) if virtual is not None else None
         run_loop(session, stop, report=lambda line: print(line, file=sys.stderr if args.json else sys.stdout),
                  at_end=at_end)
         if load_test is not None:
@@ -210,8 +223,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         _print_report(summary)
-    problems = summary["problems"]
-    if problems:
+    problems = summary["problems"]  # the run's own lines, as the summary gives them
+    if isinstance(problems, list) and problems:
         more = f" (and {len(problems) - 1} more, listed above)" if len(problems) > 1 else ""
         print(f"prime bringup: FAULTED: {problems[0]}{more}", file=sys.stderr)
         return 1
@@ -219,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 @contextlib.contextmanager
-def _bringing_up(plan, args: argparse.Namespace):
+def _bringing_up(plan: Plan, args: argparse.Namespace) -> Iterator[None]:
     """A live status on a terminal while the buses come up (the slow part on the real robot)."""
     if args.json or not sys.stdout.isatty():
         yield
@@ -239,14 +252,19 @@ def _refuse(mode: Mode) -> None:
     """Mode keys in a broadcaster-only run: nothing to switch."""
 
 
-def _start_load_test(session: Session, virtual, joints: list[str], stop: threading.Event) -> threading.Thread:
+def _record_joints(record: EmulatorRecord, virtual: VirtualPrime) -> None:
+    record["joints"] = virtual.control.joints()
+
+
+def _start_load_test(session: Session, virtual: VirtualPrime, joints: list[str], results: list[Stiffness],
+                     stop: threading.Event) -> threading.Thread:
     from humanoid_prime.virtual.load_test import measure_stiffness
 
     def work() -> None:
         try:
             session.manager.request_mode(Mode.STANDBY)
             time.sleep(session.config.standby.duration + 1.0)
-            session.reports["load_test"].extend(measure_stiffness(session, virtual.control, joints, stop=stop))
+            results.extend(measure_stiffness(session, virtual.control, joints, stop=stop))
         except PrimeError as exc:
             session.record_fault("load_test", str(exc))
         finally:
@@ -257,35 +275,44 @@ def _start_load_test(session: Session, virtual, joints: list[str], stop: threadi
     return thread
 
 
-def _print_report(summary: dict) -> None:
-    ethercat = summary.get("ethercat_bringup") or {}
+def _print_report(summary: Mapping[str, object]) -> None:
+    """The run's summary (``Session.summary``, as JSON has it) for a person."""
+    ethercat = member(summary, "ethercat_bringup")
     if "mailbox" in ethercat:
-        drops = ethercat["mailbox_drops"]
+        drops = member(ethercat, "mailbox_drops")
         print(f"EtherCAT mailboxes: {ethercat['mailbox']}" + (
             f"; messages dropped: {drops['late']} late, {drops['other object']} for another object, "
             f"{drops['unrecognised']} unrecognised, {drops['malformed']} malformed" if drops else ""))
-    for switch in summary["mode_switches"]:
+    for switch in members(summary["mode_switches"]):
         state = "ok" if switch["ok"] else f"FAILED {switch['failed']}"
         if not switch["together"]:
             state += f" (a slave came late; the others made their last write after {RENDEZVOUS_S * 1e3:.0f} ms)"
-        print(f"mode {switch['mode']:<12} gains on all slaves in {switch['wall_seconds'] * 1e3:6.1f} ms, "
-              f"skew {switch['skew_seconds'] * 1e3:5.1f} ms, retries {switch['retries']}: {state}")
-    tick, jitter = summary["tick_us"], summary["jitter_us"]
-    cpu, io = summary["tick_cpu_us"], summary["tick_io_us"]
+        print(f"mode {switch['mode']:<12} gains on all slaves in {_ms(switch['wall_seconds']):6.1f} ms, "
+              f"skew {_ms(switch['skew_seconds']):5.1f} ms, retries {switch['retries']}: {state}")
+    tick, jitter = member(summary, "tick_us"), member(summary, "jitter_us")
+    cpu, io = member(summary, "tick_cpu_us"), member(summary, "tick_io_us")
     if summary["ticks"]:
         print(f"loop: {summary['ticks']} ticks at {summary['update_rate']:g} Hz, "
               f"tick median {tick['median']:.0f} us p99 {tick['p99']:.0f} us (our CPU {cpu['median']:.0f} / "
               f"{cpu['p99']:.0f} us, bus I/O {io['median']:.0f} / {io['p99']:.0f} us), "
               f"period jitter p99 {jitter['p99']:.0f} us, overruns {summary['overruns']}")
-    for row in summary["load_test"]:
+    for row in members(summary["load_test"]):
         print(f"load test {row['joint']:<22} kp nominal {row['kp_nominal']:5.1f}  realised {row['kp_realised']:5.1f} "
               f"Nm/rad  ({row['ratio']:.2f}x, torque_efficiency {row['torque_efficiency']:g})")
-    for fault in summary["faults"]:
+    for fault in members(summary["faults"]):
         until = "held to the end" if fault["until_s"] is None else f"until {fault['until_s']:.2f} s"
         print(f"{fault['level']:<5} {fault['key']} at {fault['since_s']:.2f} s ({until}): {fault['text']}")
-    end = summary["end"]
+    end = member(summary, "end")
     if "slaves" in end:
         print(f"at the end: {end['slaves_op']} of {end['slaves']} EtherCAT slaves in OP, "
-              f"{end['drives_enabled']} drives enabled, in fault: {', '.join(end['drives_faulted']) or 'none'}")
+              f"{end['drives_enabled']} drives enabled, in fault: {_names(end['drives_faulted']) or 'none'}")
     if "sito" in end:
         print(f"at the end: {end['sito_online']} of {end['sito']} Sito wrists answering")
+
+
+def _ms(seconds: object) -> float:
+    return float(seconds) * 1e3 if isinstance(seconds, (int, float)) else math.nan
+
+
+def _names(value: object) -> str:
+    return ", ".join(str(name) for name in value) if isinstance(value, list) else ""

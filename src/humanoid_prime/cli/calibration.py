@@ -16,7 +16,7 @@ from humanoid_prime.drivers.ethercat.fold import write_folded_configs
 from humanoid_prime.errors import PrimeError
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("calibration", help=summary("calibration"),
                               description="Work with a calibration file (direction and homing_offset per joint).")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "standby stiffness. Drive faults latch (auto_fault_reset: false).")
     add_config_options(fold, calibration=True, controllers=True)
     fold.add_argument("--output", metavar="DIR", type=output_dir, help="folder for the per-slave configs")
-    add_hidden_alias(fold, "--out", "output", type=output_dir)
+    add_hidden_alias(fold, "--out", "output", kind=output_dir)
     add_json_option(fold)
     fold.set_defaults(func=_fold)
 

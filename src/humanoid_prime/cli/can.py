@@ -120,7 +120,7 @@ def _ids(text: str) -> list[int]:
     return sorted(set(ids))
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("can", help=summary("can"),
                               description="Look at the Sito wrists' CAN traffic, or emulate the wrists.")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -263,14 +263,15 @@ def _discover(args: argparse.Namespace) -> int:
     if args.json:
         print_json(result)
     else:
-        for entry in result["heard"]:
-            frames = ", ".join(f"{k} x{v}" for k, v in sorted(entry["frames"].items()))
-            joint = entry["joint"] or f"not in {hardware.path.name}"
-            print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  {frames}")
-        for entry in result["invalid"]:
-            joint = entry["joint"] or f"not in {hardware.path.name}"
-            print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  INVALID x{entry['frames']} "
-                  f"({entry['problem']}): not counted as feedback")
+        for can_id in sorted(heard):
+            frames = ", ".join(f"{k} x{v}" for k, v in sorted(heard[can_id].items()))
+            joint = joints.get(can_id) or f"not in {hardware.path.name}"
+            print(f"CAN id {can_id:3d} (0x{can_id:02X})  {joint:<18s}  {frames}")
+        for can_id in sorted(invalid):
+            joint = joints.get(can_id) or f"not in {hardware.path.name}"
+            count, problem = invalid[can_id]
+            print(f"CAN id {can_id:3d} (0x{can_id:02X})  {joint:<18s}  INVALID x{count} "
+                  f"({problem}): not counted as feedback")
         if missing:
             names = ", ".join(f"{i} ({joints.get(i, 'unconfigured')})" for i in missing)
             print(f"not heard: {names}")

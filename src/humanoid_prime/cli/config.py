@@ -12,7 +12,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_bytes
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("config", help=summary("config"),
                               description="Every command reads the robot's hardware, calibration and controllers "
                                           "files by one rule: the file given with --hardware, --calibration or "

@@ -21,7 +21,7 @@ def _word(text: str) -> int:
     return value
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("decode", help=summary("decode"),
                               description="Decode values read off a drive. Numbers in decimal or 0x hex.")
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         k.set_defaults(func=func)
 
 
-def _show(args: argparse.Namespace, result: dict, text: str) -> int:
+def _show(args: argparse.Namespace, result: dict[str, object], text: str) -> int:
     if args.json:
         print_json(result)
     else:

@@ -49,7 +49,7 @@ def input_file(text: str) -> Path:
     return Path(text).expanduser()
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "doctor", help=summary("doctor"),
         description="Check the host (the ring's NIC, rights, real-time kernel, wake-up latency), the EtherCAT ring "

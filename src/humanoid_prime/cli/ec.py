@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from typing import Any
+from contextlib import AbstractContextManager
+from typing import NotRequired, TypedDict
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, add_mailbox_option, print_json, whole
@@ -19,17 +20,17 @@ from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.drivers.erob.cia402 import describe_error, drive_state
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, RATED_TORQUE, STATUSWORD
 from humanoid_prime.drivers.ethercat.errors import RingError, SdoError
-from humanoid_prime.drivers.ethercat.igh import IGH_TYPES, SHORT_TYPES
+from humanoid_prime.drivers.ethercat.igh import IGH_TYPES, SHORT_TYPES, IghSdo
 from humanoid_prime.drivers.ethercat.ring import SlaveInfo, check_ring, expected_ring
 from humanoid_prime.drivers.ethercat.sdo import SDO_BACKENDS, open_sdo
-from humanoid_prime.drivers.ethercat.sdo_client import read_error_history, write_fitting
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, read_error_history, write_fitting
 from humanoid_prime.drivers.ethercat.wire import AL_ERROR, describe_al_status_code
 from humanoid_prime.errors import PrimeError
 
 _SCAN_CYCLES = 5  # exchanges after OP before statusword and error code are read from the process data
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ec = subparsers.add_parser(
         "ec", help=summary("ec"),
         description="--backend soem opens the NIC in this process (nothing else may own it) and brings the ring "
@@ -91,7 +92,41 @@ def _rates(args: argparse.Namespace, robot: Robot) -> tuple[float, float]:
 
 
 # ------------------------------------------------------------------------------------- scan
-def _row(slave: SlaveInfo, joints: dict[int, str]) -> dict[str, Any]:
+class SlaveRow(TypedDict):
+    """One slave of ``prime ec scan``; the drive's words where it was asked (None: not asked)."""
+
+    ring: int
+    joint: str | None  # None: no joint of the hardware file sits there
+    name: str
+    vendor_id: str
+    product_code: str
+    revision: str
+    is_erob: bool
+    al_state: str
+    al_error: bool
+    al_status_code: str
+    al_status: str
+    statusword: int | None
+    drive_state: str | None
+    error_code: str | None
+    error: str | None
+    rated_torque_nm: float | None
+    error_history: NotRequired[list[str]]  # with --history
+
+
+class ScanReport(TypedDict):
+    backend: str
+    interface: str | None
+    slaves: list[SlaveRow]
+    ring_matches: bool
+    bringup_seconds: float | None
+    retried: list[str]  # why the ring was scanned or configured again
+    mailbox: str | None
+    mailbox_drops: dict[str, int]  # by why
+    problem: str | None
+
+
+def _row(slave: SlaveInfo, joints: dict[int, str]) -> SlaveRow:
     return {
         "ring": slave.position, "joint": joints.get(slave.position), "name": slave.name,
         "vendor_id": f"0x{slave.vendor_id:08X}", "product_code": f"0x{slave.product_code:08X}",
@@ -102,12 +137,14 @@ def _row(slave: SlaveInfo, joints: dict[int, str]) -> dict[str, Any]:
     }
 
 
-def _drive(row: dict[str, Any], statusword: int, error_code: int) -> None:
-    row.update(statusword=statusword, drive_state=drive_state(statusword).value,
-               error_code=f"0x{error_code:04X}", error=describe_error(error_code))
+def _drive(row: SlaveRow, statusword: int, error_code: int) -> None:
+    row["statusword"] = statusword
+    row["drive_state"] = drive_state(statusword).value
+    row["error_code"] = f"0x{error_code:04X}"
+    row["error"] = describe_error(error_code)
 
 
-def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -> None:
+def _scan_soem(args: argparse.Namespace, robot: Robot, report: ScanReport) -> None:
     from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 
     hw = robot.hardware
@@ -152,17 +189,17 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
         report["mailbox_drops"] = master.mailbox_drops()
 
 
-def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -> None:
+def _scan_igh(args: argparse.Namespace, robot: Robot, report: ScanReport) -> None:
     from humanoid_prime.drivers.ethercat.igh import IghSdo
 
     hw = robot.hardware
     joints = {pos: joint for joint, pos in hw.erob_slaves.items()}
     sdo = IghSdo(hw.ethercat.master)
-    report["interface"] = f"IgH master {hw.ethercat.master}"
+    report["interface"] = interface = f"IgH master {hw.ethercat.master}"
     found = sdo.slaves()
     rows = [_row(s, joints) for s in found]
     report["slaves"] = rows
-    check_ring(found, expected_ring(hw.erob_slaves), report["interface"])
+    check_ring(found, expected_ring(hw.erob_slaves), interface)
     report["ring_matches"] = True
     for row in rows:
         position = row["ring"]
@@ -179,7 +216,7 @@ def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) ->
 
 def run_scan(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
-    report: dict[str, Any] = {"backend": args.backend, "interface": None, "slaves": [], "ring_matches": False,
+    report: ScanReport = {"backend": args.backend, "interface": None, "slaves": [], "ring_matches": False,
                               "bringup_seconds": None, "retried": [], "mailbox": None, "mailbox_drops": {},
                               "problem": None}
     try:
@@ -195,7 +232,7 @@ def run_scan(args: argparse.Namespace) -> int:
     return 0 if report["problem"] is None else 1
 
 
-def _print_scan(report: dict[str, Any]) -> None:
+def _print_scan(report: ScanReport) -> None:
     rows = report["slaves"]
     head = f"EtherCAT ring on {report['interface']} ({report['backend']}): {len(rows)} slaves"
     if report["ring_matches"]:
@@ -240,8 +277,21 @@ def _decode(raw: bytes, type_name: str | None) -> tuple[int, int]:
     return int.from_bytes(raw[:size], "little", signed=signed), size
 
 
+class SdoResult(TypedDict):
+    """An object read (or written and read back) by ``prime ec sdo``."""
+
+    ring: int
+    index: str
+    sub_index: int
+    backend: str
+    type: str
+    value: int
+    hex: str
+    written: NotRequired[int]  # what was written, where it was
+
+
 def _result(args: argparse.Namespace, index: int, sub_index: int, value: int, size: int,
-            type_name: str | None) -> dict[str, Any]:
+            type_name: str | None) -> SdoResult:
     return {"ring": args.ring, "index": f"0x{index:04X}", "sub_index": sub_index, "backend": args.backend,
             "type": type_name or _UNSIGNED.get(size, f"{size} bytes"), "value": value,
             "hex": f"0x{value & ((1 << (8 * size)) - 1):0{2 * size}X}"}
@@ -250,14 +300,14 @@ def _result(args: argparse.Namespace, index: int, sub_index: int, value: int, si
 _UNSIGNED = {1: "uint8", 2: "uint16", 4: "uint32"}
 
 
-def _read(sdo, args: argparse.Namespace, index: int, sub_index: int) -> tuple[int, int]:
+def _read(sdo: SdoClient, args: argparse.Namespace, index: int, sub_index: int) -> tuple[int, int]:
     type_name = _type(args)
-    if args.backend == "igh":
+    if isinstance(sdo, IghSdo):  # the igh backend's: typed uploads
         return sdo.upload(args.ring, index, sub_index, type_name)
     return _decode(sdo.sdo_read(args.ring, index, sub_index), type_name)
 
 
-def _session(args: argparse.Namespace):
+def _session(args: argparse.Namespace) -> AbstractContextManager[SdoClient]:
     robot = load_robot(args.hardware)
     update_rate, bringup_rate = _rates(args, robot)
     if not 0 <= args.ring < len(robot.hardware.erob_slaves):
@@ -290,7 +340,7 @@ def run_sdo_write(args: argparse.Namespace) -> int:
         raise PrimeError(f"VALUE {value} is negative; give --type with a signed type (int8, int16, int32) for a "
                          "signed object")
     with _session(args) as sdo:
-        if args.backend == "igh":
+        if isinstance(sdo, IghSdo):
             if type_name is None:
                 _, size = sdo.upload(args.ring, index, sub_index)
                 type_name = _UNSIGNED.get(size)

@@ -27,7 +27,7 @@ from humanoid_prime.virtual.ring import __main__ as emulator_main
 from humanoid_prime.virtual.ring.options import RingOptions
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("emulate", help=summary("emulate"),
                               description="Emulated hardware a real driver can talk to.")
     kinds = p.add_subparsers(dest="emulate_kind", metavar="KIND", required=True)

@@ -20,7 +20,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "gains", help=summary("gains"),
         description="Convert stiffness kp (Nm/rad) and damping kd (Nm*s/rad), or a mode's gains, to the eRob "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import TypedDict
 
 from rich.table import Table
 
@@ -12,7 +13,7 @@ from humanoid_prime.config.calibration import load_calibration
 from humanoid_prime.config.robot import load_robot
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("info", help=summary("info"),
                               description="Show Prime's 14 joints in canonical order with the bus and address "
                                           "each lives on, the described limits and the calibration.")
@@ -21,10 +22,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+class JointRow(TypedDict):
+    """One joint of ``prime info``: where it is, its limits and its calibration."""
+
+    index: int
+    joint: str
+    family: str
+    bus: str
+    address: str
+    ring_position: int | None
+    can_id: int | None
+    lower: float
+    upper: float
+    effort_limit: float
+    velocity_limit: float
+    direction: int
+    homing_offset: float
+
+
 def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     calibration = load_calibration(robot.hardware, args.calibration)
-    rows = []
+    rows: list[JointRow] = []
     for j in robot.joints:
         cal = calibration.joints[j.name]
         rows.append({
@@ -36,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(rows)
         return 0
-    table = Table(title=f"Prime joints ({robot.hardware.path.name}, {calibration.path.name})")
+    calibration_file = calibration.path.name if calibration.path is not None else "no calibration file"
+    table = Table(title=f"Prime joints ({robot.hardware.path.name}, {calibration_file})")
     for name in ("#", "joint", "family", "bus", "address", "lower", "upper", "effort", "direction", "offset"):
         table.add_column(name, no_wrap=True,
                          justify="right" if name in ("#", "lower", "upper", "effort", "offset") else "left")

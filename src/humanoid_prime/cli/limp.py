@@ -29,7 +29,7 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SocketSdoClient
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "limp", help=summary("limp"),
         description="Make one eRob damped-limp for a hand sweep: snapshot its gains, arm the gate, position "
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         interrupted = True
     finally:
         try:
-            if marked and not limp.unrestored:
+            if marker is not None and marked and not limp.unrestored:
                 marker.mark_limp(args.ring_position, False)  # restored: hold where it is now
         finally:
             for sig, handler in previous.items():

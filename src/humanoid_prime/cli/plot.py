@@ -8,7 +8,7 @@ from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, output_file
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "plot", help=summary("plot"),
         description="Read a recording made with --record and draw, one row per joint, the measured position "

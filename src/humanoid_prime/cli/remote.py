@@ -9,8 +9,10 @@ import json
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
@@ -30,11 +32,15 @@ from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.signals import stop_on_signals
 
+if TYPE_CHECKING:  # the client is imported when the command runs
+    from humanoid_prime.config.robot import Robot
+    from humanoid_prime.dds.remote import RemoteClient, Tracking
+
 DEFAULT_WAVE = "left_elbow_pitch,right_elbow_pitch,left_wrist_pitch,right_wrist_pitch"
 STATUS_EVERY_S = 1.0
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "remote", help=summary("remote"),
         description="The reference REMOTE client: a separate DDS participant that streams "
@@ -70,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _wave_mask(robot, text: str) -> np.ndarray:
+def _wave_mask(robot: Robot, text: str) -> npt.NDArray[np.bool_]:
     mask = np.zeros(robot.n, dtype=bool)
     for name in (item.strip() for item in text.split(",") if item.strip()):
         if name not in robot.names:
@@ -102,10 +108,11 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals(stop), RemoteClient(robot, domain=domain, namespace=namespace,
                                                     command_topic=config.remote.topic) as client:
         print(f"prime remote: domain {domain}, waiting for /prime/joint_states ...", file=out, flush=True)
-        if not client.wait_for_joint_states(args.wait, sleep=lambda s: stop.wait(s)):
+        seen = client.seen.position if client.wait_for_joint_states(args.wait, sleep=stop.wait) else None
+        if seen is None:
             raise PrimeError(f"no joint states from Prime on ROS 2 domain {domain} within {args.wait:g} s (is it "
                              "running with --dds, in the same domain and namespace, reachable on this network?)")
-        motion = Motion(start=np.clip(client.seen.position, robot.lower, robot.upper),
+        motion = Motion(start=np.clip(seen, robot.lower, robot.upper),
                         pose=pose_array(robot, poses[pose_name]), lower=robot.lower, upper=robot.upper, wave=wave,
                         amplitude=args.amplitude, frequency=args.frequency, ramp=args.ramp)
         began = time.monotonic()
@@ -131,8 +138,9 @@ def run(args: argparse.Namespace) -> int:
                 next_status = now + STATUS_EVERY_S
                 print(_status_line(client, tracking, t), file=out, flush=True)
         client.poll()
+        seconds = round(time.monotonic() - began, 3)
         summary = {
-            "domain": domain, "commands_sent": client.sent, "seconds": round(time.monotonic() - began, 3),
+            "domain": domain, "commands_sent": client.sent, "seconds": seconds,
             "joint_states_received": client.seen.joint_states, "joint_state_rate_hz": client.seen.joint_state_rate(),
             "modes_seen": client.seen.modes, "safety_at_end": [list(s) for s in client.seen.safety],
             "tracking": tracking.as_dict(), "pose": pose_name, "wave": [n for n, w in zip(robot.names, wave,
@@ -144,12 +152,12 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"sent {summary['commands_sent']} commands in {summary['seconds']:.1f} s; received "
-              f"{summary['joint_states_received']} joint states; modes seen: {' -> '.join(summary['modes_seen'])}")
+        print(f"sent {client.sent} commands in {seconds:.1f} s; received "
+              f"{client.seen.joint_states} joint states; modes seen: {' -> '.join(client.seen.modes)}")
     return 0
 
 
-def _status_line(client, tracking, t: float) -> str:
+def _status_line(client: RemoteClient, tracking: Tracking, t: float) -> str:
     seen = client.seen
     rate = seen.joint_state_rate()
     problems = [f"{name} {level}: {message}" for name, level, message in seen.safety if level != "OK"]

@@ -9,7 +9,7 @@ from humanoid_prime.cli._common import add_json_option, add_socket_option, print
 from humanoid_prime.runtime.socket import send_reset_request
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("reset", help=summary("reset"),
                               description="A drive fault latches until the operator resets it. This asks the "
                                           "running prime sim, bringup or calibrate to send every faulted drive a "

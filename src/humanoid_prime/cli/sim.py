@@ -14,9 +14,11 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import AbstractContextManager
 from itertools import groupby
-from typing import Any
+from types import FrameType
+from typing import Protocol
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
@@ -40,7 +42,16 @@ from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.socket import ControlServer, default_socket_path
 from humanoid_prime.runtime.switching import mode_switcher
-from humanoid_prime.sim.demo import DEMO_SECONDS, SCHEDULE, START_POSE, Simulation, Step, build_simulation, demo_stream
+from humanoid_prime.sim.demo import (
+    DEMO_SECONDS,
+    SCHEDULE,
+    START_POSE,
+    SimSummary,
+    Simulation,
+    Step,
+    build_simulation,
+    demo_stream,
+)
 from humanoid_prime.virtual.hil import build_hil_simulation
 
 VIEWER_SYNC_S = 1.0 / 60.0
@@ -48,7 +59,7 @@ VIEWER_CLOSE_S = 5.0
 HIL_CHOICES = ("none", "can")
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "sim", help=summary("sim"),
         description="Bring up the simulated Prime (MuJoCo, MIT law at the physics rate) with the staged start and "
@@ -73,7 +84,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _open_viewer(system: MujocoSystem) -> tuple[Any, Callable[[], None]]:
+class Viewer(Protocol):
+    """What the run uses of MuJoCo's passive viewer (``mujoco.viewer.Handle``)."""
+
+    def lock(self) -> AbstractContextManager[object]: ...
+
+    def is_running(self) -> bool: ...
+
+    def sync(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _open_viewer(system: MujocoSystem) -> tuple[Viewer, Callable[[], None]]:
     """The passive MuJoCo viewer on ``system`` and the function that closes it."""
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise PrimeError("--viewer needs a display but neither DISPLAY nor WAYLAND_DISPLAY is set; "
@@ -91,7 +114,8 @@ def _open_viewer(system: MujocoSystem) -> tuple[Any, Callable[[], None]]:
             raise PrimeError(f"cannot open the MuJoCo viewer: {reason}")
         glfw.terminate()
         before = set(threading.enumerate())
-        viewer = mujoco.viewer.launch_passive(system.model, system.data, show_left_ui=False, show_right_ui=False)
+        viewer: Viewer = mujoco.viewer.launch_passive(system.model, system.data, show_left_ui=False,
+                                                      show_right_ui=False)
         viewer_threads = set(threading.enumerate()) - before
     except PrimeError:
         raise
@@ -107,7 +131,7 @@ def _open_viewer(system: MujocoSystem) -> tuple[Any, Callable[[], None]]:
     return viewer, close
 
 
-def _viewer_sync(viewer: Any, stop: threading.Event) -> Callable[[], None]:
+def _viewer_sync(viewer: Viewer, stop: threading.Event) -> Callable[[], None]:
     """A per-tick hook that redraws the viewer at about 60 Hz and stops the run when its window closes."""
     last = -math.inf
 
@@ -128,29 +152,32 @@ def _visits(modes: list[str]) -> str:
     return " -> ".join(mode if (n := len(list(run))) == 1 else f"{mode} x{n}" for mode, run in groupby(modes))
 
 
-def _format_line(summary: dict[str, Any]) -> str:
+def _format_line(summary: SimSummary, record: Mapping[str, object] | None, can: Mapping[str, int] | None) -> str:
+    """The run in one line; with the recording's figures when it dropped ticks, and the CAN frames with --hil."""
     median, p99 = summary["tick_us"]["median"], summary["tick_us"]["p99"]
     rtf = summary["realtime_factor"]
     tick = f"tick {median:.0f}/{p99:.0f} us median/p99" if median is not None else "no ticks"
+    recorded = ""
+    if record is not None and record.get("dropped_ticks"):
+        messages = record.get("messages")
+        ticks = messages.get("/prime/joint_states", 0) if isinstance(messages, dict) else 0
+        recorded = f" | recorded {ticks} ticks, {record['dropped_ticks']} DROPPED"
     return (f"visited {_visits(summary['modes_visited'])} | {summary['ticks']} ticks, "
             f"{summary['sim_seconds']:.2f} s simulated in {summary['wall_seconds']:.2f} s"
             f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks"
-            f" | {summary['refused']['count']} commands refused by the body check"
-            + (f" | recorded {summary['record']['messages'].get('/prime/joint_states', 0)} ticks, "
-               f"{summary['record']['dropped_ticks']} DROPPED" if summary.get("record", {}).get("dropped_ticks")
-               else "")
-            + (f" | CAN {summary['can']['host_frames_sent']} frames sent, {summary['can']['host_frames_received']} "
-               "received" if "can" in summary else ""))
+            f" | {summary['refused']['count']} commands refused by the body check" + recorded
+            + (f" | CAN {can['host_frames_sent']} frames sent, {can['host_frames_received']} received"
+               if can is not None else ""))
 
 
 @contextlib.contextmanager
-def _sigterm_stops() -> Any:
+def _sigterm_stops() -> Iterator[None]:
     """SIGTERM stops the run like Ctrl-C, so every cleanup (terminal, hardware) runs."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def interrupt(signum: int, frame: Any) -> None:
+    def interrupt(signum: int, frame: FrameType | None) -> None:
         raise KeyboardInterrupt
 
     previous = signal.signal(signal.SIGTERM, interrupt)
@@ -266,21 +293,23 @@ def _run(args: argparse.Namespace, robot: Robot, config: ControllersConfig, mode
             sim.run(duration, stop=stop, on_tick=on_tick if hooks else None)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM before the loop began
             sim.stopped_by = "interrupt"
-        summary = sim.summary()
-    summary["hil"] = args.hil
-    summary.update(addons.summaries())
-    if hil is not None:
-        summary["can"] = hil.frame_counts()  # after shutdown: the disable frames count too
+        run_summary = sim.summary()
+    extras = addons.summaries()
+    can = hil.frame_counts() if hil is not None else None  # after shutdown: the disable frames count too
+    summary: dict[str, object] = {**run_summary, "hil": args.hil, **extras}
+    if can is not None:
+        summary["can"] = can
 
     if args.summary:
         atomic_write_text(args.summary, json.dumps(summary, indent=2) + "\n")
     if args.json:
         print_json(summary)
     else:
-        print(_format_line(summary), flush=True)
-    if mode is None and sim.following_schedule and summary["fallbacks"]:
-        first = summary["fallbacks"][0]
-        print(f"prime sim: {len(summary['fallbacks'])} fallbacks during the demonstration; first at tick "
+        print(_format_line(run_summary, extras.get("record"), can), flush=True)
+    fallbacks = run_summary["fallbacks"]
+    if mode is None and sim.following_schedule and fallbacks:
+        first = fallbacks[0]
+        print(f"prime sim: {len(fallbacks)} fallbacks during the demonstration; first at tick "
               f"{first['tick']}: {first['reason']}", file=sys.stderr)
         return 1
     return 0

@@ -15,7 +15,7 @@ from humanoid_prime.runtime.switching import describe
 DEFAULT_WAIT_S = 10.0  # a mode switch on the robot takes well under a second; a loaded host far less than this
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("switch", help=summary("switch"),
                               description="Switch the control mode of a running prime sim or prime bringup "
                                           "from another terminal. The switch lands between two ticks; the command "
@@ -36,10 +36,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise PrimeError(str(exc)) from None
     answer = send_mode_request(mode, args.socket, wait=0.0 if args.no_wait else args.timeout)
-    answer.pop("ok", None)
     done = answer["outcome"] in ("requested", "active")
     if args.json:
-        print_json(answer)
+        print_json({key: value for key, value in answer.items() if key != "ok"})  # the socket's own "ok" left out
     elif done:
         print(describe(answer))
     if not done:

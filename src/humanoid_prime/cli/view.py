@@ -7,6 +7,8 @@ import argparse
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,13 +25,18 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.runtime.signals import stop_on_signals
 
+if TYPE_CHECKING:  # the page and the recording are imported when a view is served
+    from humanoid_prime.record.read import Recording
+    from humanoid_prime.runtime.readout import JsonObject
+    from humanoid_prime.view.page import PrimeView
+
 
 def _port(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=whole(at_least=0, at_most=65535), default=DEFAULT_WEB_PORT, metavar="PORT",
                    help=f"serve on http://127.0.0.1:PORT/ (default {DEFAULT_WEB_PORT}; the next free port if taken)")
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "view", help=summary("view"),
         description="Serve a page on 127.0.0.1 (offline: nothing is fetched from the internet) showing the robot "
@@ -64,6 +71,8 @@ def run_view(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware, use_sim=True)
     stop = threading.Event()
     source = None
+    state: Callable[[], JsonObject]
+    request_mode: Callable[[str], object]
     if domain is not None:
         from humanoid_prime.view.feeds import DdsSource
 
@@ -118,10 +127,12 @@ def run_replay(args: argparse.Namespace) -> int:
 FRAME_S = 1.0 / 60.0  # the replay redraws at most this often, whatever the recording's tick rate
 
 
-def _play(recording, view, speed: float, loop: bool, stop: threading.Event) -> None:
-    """Play ``recording`` into ``view`` from its start at ``speed``, following the page's pause and seek; to its
-    end (again from the start with ``loop``) or until ``stop``."""
+def _play(recording: Recording, view: PrimeView, speed: float, loop: bool, stop: threading.Event) -> None:
+    """Play ``recording`` into ``view`` (a replay's, with its timeline) from its start at ``speed``, following the
+    page's pause and seek; to its end (again from the start with ``loop``) or until ``stop``."""
     times, timeline = recording.time, view.timeline
+    if timeline is None:
+        raise ValueError("a replay plays into a view with a timeline")
     mode_times = np.array([t for t, _ in recording.modes])
     position = 0.0  # seconds into the recording
     anchor = time.monotonic()

@@ -119,7 +119,7 @@ class ControllersConfig:
 
 
 class _Reader:
-    def __init__(self, path: Path, data: dict[str, object]) -> None:
+    def __init__(self, path: Path, data: dict[object, object]) -> None:
         self.path = path
         self.data = data
 

@@ -110,7 +110,7 @@ MAILBOXES = ("prime", "soem")
 MAX_CAN_BITRATE = 1_000_000  # classic CAN's highest rate
 
 
-def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLimits]:
+def _command_limits(data: dict[object, object], path: Path) -> dict[str, CommandLimits]:
     """``command_limits`` per family; a value the file leaves out is the bundled template's (a robot's file
     written before the section existed still loads, with the product's limits)."""
     limits = data.get("command_limits", {})
@@ -118,10 +118,12 @@ def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLim
         raise ConfigError(path, "command_limits", "expected a mapping family -> limits")
     check_keys(path, "command_limits", limits, FAMILIES)
     template = path == bundled(HARDWARE_FILE)
-    defaults = {} if template else load_yaml(bundled(HARDWARE_FILE))["command_limits"]
+    defaults = {} if template else _section(load_yaml(bundled(HARDWARE_FILE)), bundled(HARDWARE_FILE),
+                                            "command_limits")
     result = {}
     for family in FAMILIES:
         key = f"command_limits.{family}"
+        fallback = {} if template else _section(defaults, bundled(HARDWARE_FILE), key)
         section = limits.get(family, {})
         if not isinstance(section, dict):
             raise ConfigError(path, key, "expected a mapping of stiffness, damping, velocity")
@@ -129,12 +131,12 @@ def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLim
         if template and set(section) != set(LIMIT_NAMES):
             raise ConfigError(path, key, "the template must give stiffness, damping and velocity")
         result[family] = CommandLimits(**{
-            name: _positive_float(section[name] if name in section else defaults[family][name], path,
+            name: _positive_float(section[name] if name in section else fallback[name], path,
                                   f"{key}.{name}") for name in LIMIT_NAMES})
     return result
 
 
-def _safety(data: dict[str, object], path: Path) -> tuple[float, float]:
+def _safety(data: dict[object, object], path: Path) -> tuple[float, float]:
     """``safety.collision_margin`` and ``safety.stopping_time``; a value the file leaves out (a file written before
     the section existed) is the template's."""
     safety = data.get("safety", {})
@@ -146,7 +148,7 @@ def _safety(data: dict[str, object], path: Path) -> tuple[float, float]:
         if missing:
             raise ConfigError(path, f"safety.{missing[0]}", "missing", "the template must give every safety value")
     else:
-        safety = {**load_yaml(bundled(HARDWARE_FILE))["safety"], **safety}
+        safety = {**_section(load_yaml(bundled(HARDWARE_FILE)), bundled(HARDWARE_FILE), "safety"), **safety}
     values = []
     for key, most, fix in (("collision_margin", MAX_COLLISION_MARGIN_M, "give it in metres, e.g. 0.03 for 3 cm"),
                            ("stopping_time", MAX_STOPPING_TIME_S, "give it in seconds, e.g. 0.2")):
@@ -320,7 +322,8 @@ def write_erob_torque_efficiency(path: str | Path, values: dict[str, float]) -> 
     if unknown:
         raise ConfigError(path, "joints.erob_torque_efficiency", f"{', '.join(unknown)} is not an eRob joint")
     data = load_yaml(path)
-    merged = dict((data.get("joints") or {}).get("erob_torque_efficiency") or {})
+    given = _section(data, path, "joints").get("erob_torque_efficiency")  # load_hardware checked its shape
+    merged = dict(given) if isinstance(given, dict) else {}
     merged.update(values)
     lines = path.read_text().splitlines(keepends=True)
     top = next((k for k, line in enumerate(lines) if line.rstrip() == "joints:"), None)

@@ -42,7 +42,7 @@ class Motion:
     pose: Array
     lower: Array
     upper: Array
-    wave: Array  # bool per joint
+    wave: npt.NDArray[np.bool_]  # per joint
     amplitude: float = 0.0
     frequency: float = 0.5
     ramp: float = 2.0
@@ -122,7 +122,7 @@ class RemoteClient:
         for status in take(self.safety_status):
             self.seen.safety = [(s.name, msg.LEVEL_NAMES.get(s.level, str(s.level)), s.message) for s in status.status]
 
-    def wait_for_joint_states(self, timeout: float, sleep: Callable[[float], None] = time.sleep) -> bool:
+    def wait_for_joint_states(self, timeout: float, sleep: Callable[[float], object] = time.sleep) -> bool:
         """Poll until a joint state of Prime arrived or ``timeout`` seconds passed."""
         deadline = self.clock() + timeout
         while self.seen.position is None and self.clock() < deadline:
@@ -159,7 +159,7 @@ class Tracking:
     about 0.15 rad for a shoulder at kp 20); what is left once that is taken out (``residual_rms``) is how well
     the motion is followed, and ``range_ratio`` is the measured swing over the commanded swing."""
 
-    def __init__(self, joints: Array, target: Callable[[float], Array], since: float) -> None:
+    def __init__(self, joints: npt.NDArray[np.bool_], target: Callable[[float], Array], since: float) -> None:
         self.joints = joints
         self.target = target
         self.since = since

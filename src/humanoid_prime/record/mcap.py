@@ -18,10 +18,12 @@ one killed with SIGKILL still reads to its last complete chunk with a streaming 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TypedDict
 
+from cyclonedds.idl import IdlStruct
 from mcap.writer import CompressionType, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
 
 from humanoid_prime import __version__
 from humanoid_prime.control.flags import Level, SafetyFlags
@@ -72,12 +74,23 @@ TF_QOS = _QOS.format(depth=100, durability=2)
 CLOCK_QOS = _QOS.format(depth=1, durability=2)
 
 
-def type_store() -> Any:
+def type_store() -> Typestore:
     """ROS 2's message definitions (Jazzy; these types are identical in Humble) plus ``prime_msgs``."""
     store = get_typestore(Stores.ROS2_JAZZY)
     for path in sorted(bundled("prime_msgs").glob("*.msg")):
         store.register(get_types_from_msg(path.read_text(), f"prime_msgs/msg/{path.stem}"))
     return store
+
+
+class RecordSummary(TypedDict):
+    """What a recording holds, in a run's summary under ``record``."""
+
+    file: str
+    messages: dict[str, int]  # per topic
+    dropped_ticks: int
+    errors: int
+    last_error: str
+    bytes: int | None  # the file's size (None: it is gone)
 
 
 class Recorder(SafetyFlags):
@@ -171,7 +184,7 @@ class Recorder(SafetyFlags):
         self.set_flag("dropped", f"{self.dropped + dropped} ticks not recorded: the recorder fell behind the loop",
                       Level.WARN)
 
-    def _add(self, topic: str, sample: Any, log_ns: int) -> None:
+    def _add(self, topic: str, sample: IdlStruct, log_ns: int) -> None:
         if topic not in self._channels:  # a topic left out (--topics)
             return
         try:
@@ -245,7 +258,7 @@ class Recorder(SafetyFlags):
         finally:
             self._file.close()
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> RecordSummary:
         return {"file": str(self.path), "messages": dict(self.counts), "dropped_ticks": self.dropped,
                 "errors": self.errors, "last_error": self.last_error,
                 "bytes": self.path.stat().st_size if self.path.exists() else None}

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from humanoid_prime.files import atomic_write_bytes
 from humanoid_prime.record.read import Recording
+
+if TYPE_CHECKING:  # matplotlib is imported when a plot is drawn
+    from matplotlib.axes import Axes
 
 MODE_COLOURS = {"ZERO_TORQUE": "#dddddd", "DAMPING": "#c6dbef", "STANDBY": "#c7e9c0", "LOCOMOTION": "#fdd0a2",
                 "REMOTE": "#dadaeb"}
@@ -58,7 +62,7 @@ def plot_recording(recording: Recording, joints: Sequence[str], output: str | Pa
     atomic_write_bytes(output, buffer.getvalue())
 
 
-def _shade_modes(axis, recording: Recording, end: float, *, label: bool = False) -> None:
+def _shade_modes(axis: Axes, recording: Recording, end: float, *, label: bool = False) -> None:
     if not recording.modes:
         return
     starts = [(max(t, 0.0), mode) for t, mode in recording.modes]

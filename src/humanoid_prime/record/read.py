@@ -3,17 +3,21 @@ and its modes, for plots and replays."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 from mcap.reader import make_reader
 
 from humanoid_prime.control.interfaces import COMMAND_NAMES, STATE_NAMES
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.errors import PrimeError
-from humanoid_prime.record.mcap import COMMAND_TOPIC
+from humanoid_prime.record.topics import COMMAND as COMMAND_TOPIC
+
+Floats = npt.NDArray[np.float64]
 
 
 @dataclass
@@ -23,12 +27,12 @@ class Recording:
 
     path: Path
     names: tuple[str, ...]
-    time: np.ndarray
-    position: np.ndarray
-    velocity: np.ndarray
-    effort: np.ndarray
-    command_time: np.ndarray
-    command: np.ndarray  # ticks x 5 x joints: position, velocity, effort, stiffness, damping
+    time: Floats
+    position: Floats
+    velocity: Floats
+    effort: Floats
+    command_time: Floats
+    command: Floats  # ticks x 5 x joints: position, velocity, effort, stiffness, damping
     modes: list[tuple[float, str]] = field(default_factory=list)  # (time, mode) as the mode changed
 
     def index(self, joint: str) -> int:
@@ -36,7 +40,7 @@ class Recording:
             raise PrimeError(f"{self.path}: no joint {joint!r} in the recording (joints: {', '.join(self.names)})")
         return self.names.index(joint)
 
-    def commanded_torque(self) -> np.ndarray:
+    def commanded_torque(self) -> Floats:
         """The MIT law's torque at each commanded tick, on the measured state of the same tick:
         effort + stiffness (position - q) + damping (velocity - dq); NaN where no command was written."""
         n = min(len(self.command_time), len(self.time))
@@ -80,8 +84,9 @@ def read_recording(path: str | Path, joints: tuple[str, ...] | None = None) -> R
         raise PrimeError(f"{path}: it records the joints {', '.join(names)}, not this robot's "
                          f"({', '.join(joints)}); give the recording of a Prime, or its --hardware file")
     t0 = state_times[0]
-    for what, samples, times, fields in ((JOINT_STATES, states, state_times, STATE_NAMES),
-                                         (COMMAND_TOPIC, commands, command_times, COMMAND_NAMES)):
+    series: tuple[tuple[str, Sequence[msg.JointState | msg.MitCommand], list[int], tuple[str, ...]], ...] = (
+        (JOINT_STATES, states, state_times, STATE_NAMES), (COMMAND_TOPIC, commands, command_times, COMMAND_NAMES))
+    for what, samples, times, fields in series:
         for k, sample in enumerate(samples):
             sizes = {len(getattr(sample, f)) for f in fields}
             if tuple(sample.name) != names or sizes != {len(names)}:
@@ -89,11 +94,14 @@ def read_recording(path: str | Path, joints: tuple[str, ...] | None = None) -> R
                                  f"{len(sample.name)} joint names and arrays of {sorted(sizes)} values, where the "
                                  f"recording's joints are {len(names)}: not a recording prime can read")
 
-    def rows(samples, fields):
+    def rows(samples: Sequence[msg.JointState | msg.MitCommand], fields: tuple[str, ...]) -> Floats:
         return np.array([[getattr(s, f) for f in fields] for s in samples], dtype=np.float64)
+
+    def seconds(times: list[int]) -> Floats:
+        """Log times (ns) in seconds from the first joint state, the difference taken exactly, in integers."""
+        return (np.array(times, dtype=np.int64) - t0).astype(np.float64) * 1e-9
 
     state = rows(states, STATE_NAMES)
     command = rows(commands, COMMAND_NAMES) if commands else np.zeros((0, len(COMMAND_NAMES), len(names)))
-    return Recording(path, names, (np.array(state_times) - t0) * 1e-9, state[:, 0], state[:, 1], state[:, 2],
-                     (np.array(command_times, dtype=np.int64) - t0) * 1e-9, command,
-                     [((t - t0) * 1e-9, mode) for t, mode in modes])
+    return Recording(path, names, seconds(state_times), state[:, 0], state[:, 1], state[:, 2],
+                     seconds(command_times), command, [((t - t0) * 1e-9, mode) for t, mode in modes])

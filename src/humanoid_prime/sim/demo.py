@@ -14,16 +14,17 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.calibration import identity_calibration
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.description import MUJOCO_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import gain_rows, pose_array
-from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.control.manager import ControllerManager, Fallback
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.topics import MitCommand, TopicBus
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
@@ -72,8 +73,8 @@ class RemoteStream:
     One message is rewritten in place every tick (subscribers copy what they keep).
     """
 
-    def __init__(self, robot: Robot, topics: TopicBus, topic: str, center: np.ndarray, erob_gains: tuple[float, float],
-                 *, period_s: float = WAVE_PERIOD_S) -> None:
+    def __init__(self, robot: Robot, topics: TopicBus, topic: str, center: npt.NDArray[np.float64],
+                 erob_gains: tuple[float, float], *, period_s: float = WAVE_PERIOD_S) -> None:
         self.topics = topics
         self.topic = topic
         self.center = np.asarray(center, dtype=np.float64)
@@ -111,6 +112,7 @@ def build_simulation(robot: Robot, config: ControllersConfig, *, initial_pose: M
                                  initial_pose=initial_pose)
     manager = assemble(settings, config, (MUJOCO_BLOCK,), broadcaster_only=broadcaster_only, clock=clock)
     (system,) = manager.resources.components
+    assert isinstance(system, MujocoSystem)  # the one block asked for
     return system, manager
 
 
@@ -121,6 +123,31 @@ def demo_stream(robot: Robot, config: ControllersConfig, manager: ControllerMana
     return RemoteStream(robot, manager.topics, config.remote.topic, center, erob_gains)
 
 
+class Stage(TypedDict):
+    stage: str
+    seconds: float
+
+
+class SimSummary(TypedDict):
+    """What a simulation run did (``prime sim --summary``)."""
+
+    modes_visited: list[str]
+    final_mode: str | None
+    ticks: int
+    sim_seconds: float
+    wall_seconds: float
+    realtime_factor: float | None  # None: no wall time passed
+    tick_us: dict[str, float | None]  # median, p99, max (None: no tick yet)
+    overruns: int
+    fallbacks: list[Fallback]
+    refused: dict[str, object]  # the body check's refusals (``CommandGate.refused``)
+    update_rate: float
+    physics_rate: float
+    stages: list[Stage]  # the staged start
+    stopped_by: str  # duration, operator or interrupt
+    config: dict[str, dict[str, object]]  # the configuration files the run read
+
+
 class Simulation:
     """Runs a started controller manager on a ``MujocoSystem``, following a schedule of modes.
 
@@ -129,7 +156,7 @@ class Simulation:
 
     def __init__(self, system: MujocoSystem, manager: ControllerManager, *, schedule: Sequence[Step] = (),
                  stream: RemoteStream | None = None, realtime: bool = True,
-                 lock: Callable[[], contextlib.AbstractContextManager[Any]] | None = None) -> None:
+                 lock: Callable[[], contextlib.AbstractContextManager[object]] | None = None) -> None:
         self.system = system
         self.manager = manager
         self.schedule = tuple(sorted(schedule, key=lambda step: step.at))
@@ -195,19 +222,19 @@ class Simulation:
             self.wall_seconds += time.perf_counter() - began
             self._running_since = None
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> SimSummary:
         manager, system = self.manager, self.system
-        stats = manager.stats.summary()
+        stats = manager.stats
         sim_seconds = system.sim_time
         return {
             "modes_visited": list(manager.modes_visited),
             "final_mode": manager.active_mode.value if manager.active_mode is not None else None,
-            "ticks": stats["ticks"],
+            "ticks": stats.ticks,
             "sim_seconds": round(sim_seconds, 6),
             "wall_seconds": round(self.wall_seconds, 6),
             "realtime_factor": round(sim_seconds / self.wall_seconds, 3) if self.wall_seconds > 0 else None,
-            "tick_us": stats["tick_us"],
-            "overruns": stats["overruns"],
+            "tick_us": stats.tick_us(),
+            "overruns": stats.overruns,
             "fallbacks": list(manager.fallbacks),
             "refused": manager.gate.refused.as_dict(),
             "update_rate": system.update_rate,

@@ -4,32 +4,32 @@ the ROS 2 graph (``prime view --dds``); and where its mode buttons send requests
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from pathlib import Path
 
 import numpy as np
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.manager import ControllerManager
-from humanoid_prime.runtime.readout import state_source
-from humanoid_prime.runtime.socket import request, request_state
+from humanoid_prime.runtime.readout import JsonObject, state_source
+from humanoid_prime.runtime.socket import Reply, request, request_state
 
 STATE_KEYS = ("position", "mode", "flags", "levels")
 READOUT_KEYS = ("elapsed_s", "rate_hz", "update_rate_hz", "effort", "drives")  # Readout.as_dict's
 
 
-def manager_source(manager: ControllerManager) -> tuple[Callable[[], dict[str, Any]], Callable[[], None]]:
+def manager_source(manager: ControllerManager) -> tuple[Callable[[], JsonObject], Callable[[], None]]:
     """The run's own latest state (one copy of 14 positions per tick, the readout when asked) and the function that
     detaches it."""
     return state_source(manager)
 
 
-def socket_source(path: Any) -> tuple[Callable[[], dict[str, Any]], Callable[[str], Any]]:
+def socket_source(path: str | Path | None) -> tuple[Callable[[], JsonObject], Callable[[str], Reply]]:
     """A running instance's state over its control socket, and its mode requests (what `prime switch` does)."""
-    def state() -> dict[str, Any]:
+    def state() -> JsonObject:
         reply = request_state(path)
         return {key: reply[key] for key in (*STATE_KEYS, *READOUT_KEYS) if key in reply}
 
-    def mode(name: str) -> Any:
+    def mode(name: str) -> Reply:
         return request(path, {"op": "mode", "mode": name})
 
     return state, mode
@@ -51,9 +51,9 @@ class DdsSource:
         self._mode = self.node.reader(CONTROL_MODE, msg.String, latched=True, depth=1)
         self._safety = self.node.reader(SAFETY_STATUS, msg.DiagnosticArray, latched=True, depth=1)
         self._requests = self.node.writer(MODE_REQUEST, msg.String)
-        self.latest: dict[str, Any] = {}
+        self.latest: JsonObject = {}
 
-    def __call__(self) -> dict[str, Any]:
+    def __call__(self) -> JsonObject:
         from humanoid_prime.dds.node import take
 
         states = take(self._joint_states, 256)
@@ -63,9 +63,9 @@ class DdsSource:
                 self.latest["effort"] = [float(v) for v in states[-1].effort]
         for sample in take(self._mode, 8):
             self.latest["mode"] = sample.data
-        for sample in take(self._safety, 8):
+        for array in take(self._safety, 8):
             flags, levels = {}, {}
-            for status in sample.status:
+            for status in array.status:
                 for value in status.values:
                     key = f"{status.name.removeprefix('prime/')}/{value.key}"
                     flags[key] = value.value

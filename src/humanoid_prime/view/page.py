@@ -14,9 +14,9 @@ import contextlib
 import html
 import io
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -24,9 +24,13 @@ from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import DriveStatus
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.readout import NONE, DriveWords, drive_from_dict, loop_words
+from humanoid_prime.runtime.readout import NONE, DriveWords, JsonObject, drive_from_dict, loop_words
 from humanoid_prime.view.scene import RobotScene
 
+if TYPE_CHECKING:  # viser is imported when a page is served
+    from viser import GuiApi, GuiEvent, GuiInputHandle, GuiMultiSliderHandle, GuiSliderHandle
+
+T = TypeVar("T")
 REDRAW_HZ = 20.0
 LEVEL_MARK = {"WARN": "⚠️", "ERROR": "⛔"}
 
@@ -50,7 +54,7 @@ class Timeline:
     reads ``playing`` and takes ``seek_request()``; a person's drag of the slider is a seek, the player's own
     moves of it are not."""
 
-    def __init__(self, gui: Any, duration: float) -> None:
+    def __init__(self, gui: GuiApi, duration: float) -> None:
         self.duration = duration
         self.playing = threading.Event()
         self.playing.set()
@@ -70,7 +74,7 @@ class Timeline:
             self.playing.set()
             self._button.label = "pause"
 
-    def _on_slider(self, event: Any) -> None:
+    def _on_slider(self, event: GuiEvent[GuiSliderHandle[float]]) -> None:
         if event.client is None:  # the player moved it
             return
         with self._lock:
@@ -83,16 +87,25 @@ class Timeline:
         return seek
 
     def show(self, t: float) -> None:
-        self._slider.value = float(min(max(t, 0.0), self._slider.max))
+        _set(self._slider, float(min(max(t, 0.0), self._slider.max)))
         self._readout.content = self._words(t)
 
     def _words(self, t: float) -> str:
         return f"**t** {t:6.2f} s of {self.duration:.2f} s" + ("" if self.playing.is_set() else " (paused)")
 
 
+def _set(handle: GuiInputHandle[T], value: T) -> None:
+    """``handle.value = value``: viser defines that setter apart from its getter, where mypy does not see it."""
+    handle.value = value  # type: ignore[misc]
+
+
+def _number(value: object) -> float | None:
+    return float(value) if isinstance(value, (int, float)) else None
+
+
 class PrimeView:
     def __init__(self, robot: Robot, *, port: int = 8080, host: str = "127.0.0.1", title: str = "Prime",
-                 request_mode: Callable[[str], Any] | None = None, source: Callable[[], dict[str, Any]] | None = None,
+                 request_mode: Callable[[str], object] | None = None, source: Callable[[], JsonObject] | None = None,
                  sweeps: bool = False, model_path: str | Path | None = None, rate: float = REDRAW_HZ,
                  timeline: float | None = None) -> None:
         import viser
@@ -134,14 +147,14 @@ class PrimeView:
             self._joints = [gui.add_slider(j.name, min=j.lower, max=j.upper, step=0.001,
                                            initial_value=float(np.clip(0.0, j.lower, j.upper)), disabled=True)
                             for j in robot.joints]
-        self._sweeps = []
+        self._sweeps: list[GuiMultiSliderHandle[float]] = []
         if sweeps:
             with gui.add_folder("calibration: swept range within limits (rad)"):
                 self._sweeps = [gui.add_multi_slider(f"{j.name} swept", min=j.lower, max=j.upper, step=0.001,
                                                      initial_value=(j.lower, j.lower), disabled=True)
                                 for j in robot.joints]
         self._lock = threading.Lock()
-        self._latest: dict[str, Any] = {}
+        self._latest: JsonObject = {}
         self._version = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._redraw, args=(1.0 / rate,), name="view", daemon=True)
@@ -149,7 +162,7 @@ class PrimeView:
 
     # ---- fed from anywhere ---------------------------------------------------------------------------
 
-    def update(self, **latest: Any) -> None:
+    def update(self, **latest: object) -> None:
         """Keep the newest of ``position`` (14 rad), ``mode`` (str), ``flags`` and ``levels`` (dicts keyed by
         flag), ``sweeps`` (14 (min, max) pairs), and what ``Readout.as_dict`` gives (``elapsed_s``, ``rate_hz``,
         ``update_rate_hz``, ``effort``, ``drives``); the view thread draws them."""
@@ -187,33 +200,38 @@ class PrimeView:
             except Exception:  # a browser that went away mid-update; the next frame redraws everything
                 continue
 
-    def _draw(self, latest: dict[str, Any]) -> None:
+    def _draw(self, latest: Mapping[str, object]) -> None:
+        """Draw what ``latest`` holds; a value of another shape than ``update`` names (a socket's garbled
+        answer) is left undrawn."""
         position = latest.get("position")
-        if position is not None:
-            position = np.asarray(position, dtype=np.float64)
-            self.scene.pose(position)
-            for slider, joint, value in zip(self._joints, self.robot.joints, position, strict=True):
+        if isinstance(position, (list, tuple, np.ndarray)):
+            q = np.asarray(position, dtype=np.float64)
+            self.scene.pose(q)
+            for slider, joint, value in zip(self._joints, self.robot.joints, q, strict=True):
                 if value == value:
-                    slider.value = float(np.clip(value, joint.lower, joint.upper))
+                    _set(slider, float(np.clip(value, joint.lower, joint.upper)))
         if "mode" in latest:
             self._mode.content = f"**mode** {latest['mode'] or '—'}"
-        if "flags" in latest:
-            levels = latest.get("levels", {})
+        flags, levels = latest.get("flags"), latest.get("levels")
+        if isinstance(flags, dict):
+            levels = levels if isinstance(levels, dict) else {}
             lines = [f"- {LEVEL_MARK.get(str(levels.get(key, 'ERROR')), '')} `{key}`: {text}"
-                     for key, text in sorted(latest["flags"].items())]
+                     for key, text in sorted(flags.items())]
             self._safety.content = "\n".join(lines) or "ok"
         if "rate_hz" in latest or "elapsed_s" in latest:
-            self._loop.content = loop_words(latest.get("elapsed_s"), latest.get("rate_hz"),
-                                            latest.get("update_rate_hz"))
+            self._loop.content = loop_words(_number(latest.get("elapsed_s")), _number(latest.get("rate_hz")),
+                                            _number(latest.get("update_rate_hz")))
         if "effort" in latest or "drives" in latest:
-            drives = {joint: drive_from_dict(joint, entry) for joint, entry in (latest.get("drives") or {}).items()}
-            self._drives.content = drive_table(self.robot, latest.get("effort"), drives)
+            effort, entries = latest.get("effort"), latest.get("drives")
+            drives = {joint: drive_from_dict(joint, entry) for joint, entry in entries.items()} \
+                if isinstance(entries, dict) else {}
+            self._drives.content = drive_table(self.robot, effort if isinstance(effort, list) else None, drives)
         sweeps = latest.get("sweeps")
-        if sweeps is not None and self._sweeps:
-            for slider, joint, (low, high) in zip(self._sweeps, self.robot.joints, sweeps, strict=True):
+        if isinstance(sweeps, (list, tuple, np.ndarray)) and self._sweeps:
+            for sweep, joint, (low, high) in zip(self._sweeps, self.robot.joints, sweeps, strict=True):
                 if low <= high:
-                    slider.value = (float(np.clip(low, joint.lower, joint.upper)),
-                                    float(np.clip(high, joint.lower, joint.upper)))
+                    _set(sweep, (float(np.clip(low, joint.lower, joint.upper)),
+                                 float(np.clip(high, joint.lower, joint.upper))))
 
     def close(self) -> None:
         self._stop.set()

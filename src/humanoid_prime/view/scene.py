@@ -4,24 +4,29 @@ per body, posed by MuJoCo's forward kinematics from the 14 joint positions."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.model import load_model
 from humanoid_prime.config.robot import Robot
+
+if TYPE_CHECKING:  # viser is imported when a page is served
+    from viser import FrameHandle, ViserServer
 
 ROOT = "/prime"
 
 
 class RobotScene:
-    def __init__(self, server, robot: Robot, model_path: str | Path | None = None) -> None:
+    def __init__(self, server: ViserServer, robot: Robot, model_path: str | Path | None = None) -> None:
         self.server = server
         self.model = model = load_model(robot, model_path)
         self.data = mujoco.MjData(model)
         self._qpos = np.array([model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)]
                                for name in robot.names])
-        self._frames: dict[int, object] = {}
+        self._frames: dict[int, FrameHandle] = {}
         scene = server.scene
         scene.add_grid(f"{ROOT}/floor", width=2.0, height=2.0, cell_size=0.1, section_size=0.5)
         for body in range(1, model.nbody):
@@ -41,21 +46,27 @@ class RobotScene:
         model, scene = self.model, self.server.scene
         kind = model.geom_type[g]
         size = model.geom_size[g]
-        colour = tuple(int(round(255 * c)) for c in model.geom_rgba[g][:3])
-        placed = {"position": tuple(model.geom_pos[g]), "wxyz": tuple(model.geom_quat[g])}
+        red, green, blue = (int(round(255 * c)) for c in model.geom_rgba[g][:3])
+        colour = (red, green, blue)
+        x, y, z = (float(v) for v in model.geom_pos[g])
+        w, i, j, k = (float(v) for v in model.geom_quat[g])
+        position, wxyz = (x, y, z), (w, i, j, k)
         if kind == mujoco.mjtGeom.mjGEOM_BOX:
-            scene.add_box(name, color=colour, dimensions=tuple(2 * size), **placed)
+            sx, sy, sz = (2.0 * float(v) for v in size)
+            scene.add_box(name, color=colour, dimensions=(sx, sy, sz), position=position, wxyz=wxyz)
         elif kind == mujoco.mjtGeom.mjGEOM_CYLINDER:
-            scene.add_cylinder(name, radius=float(size[0]), height=float(2 * size[1]), color=colour, **placed)
+            scene.add_cylinder(name, radius=float(size[0]), height=float(2 * size[1]), color=colour,
+                               position=position, wxyz=wxyz)
         elif kind == mujoco.mjtGeom.mjGEOM_CAPSULE:  # a cylinder with a sphere at each end
-            scene.add_frame(name, show_axes=False, **placed)
+            scene.add_frame(name, show_axes=False, position=position, wxyz=wxyz)
             scene.add_cylinder(f"{name}/body", radius=float(size[0]), height=float(2 * size[1]), color=colour)
-            for end, z in (("top", size[1]), ("bottom", -size[1])):
-                scene.add_icosphere(f"{name}/{end}", radius=float(size[0]), color=colour, position=(0.0, 0.0, z))
+            for end, height in (("top", float(size[1])), ("bottom", -float(size[1]))):
+                scene.add_icosphere(f"{name}/{end}", radius=float(size[0]), color=colour,
+                                    position=(0.0, 0.0, height))
         elif kind == mujoco.mjtGeom.mjGEOM_SPHERE:
-            scene.add_icosphere(name, radius=float(size[0]), color=colour, **placed)
+            scene.add_icosphere(name, radius=float(size[0]), color=colour, position=position, wxyz=wxyz)
 
-    def pose(self, positions: np.ndarray) -> None:
+    def pose(self, positions: npt.NDArray[np.float64]) -> None:
         """Put the joints at ``positions`` (rad, canonical order); a NaN joint (not measured) stays at 0."""
         model, data = self.model, self.data
         data.qpos[self._qpos] = np.nan_to_num(positions, nan=0.0)

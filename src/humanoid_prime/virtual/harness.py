@@ -22,12 +22,18 @@ import subprocess
 import sys
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict, Unpack, cast
 
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SOCKET_ENV, default_socket_path
 from humanoid_prime.virtual.netns import EmulatedRing, EmulationUnavailable, ip, netns_unavailable_reason
+from humanoid_prime.virtual.ring.control import RingControl
+from humanoid_prime.virtual.ring.options import RingSettings
+
+if TYPE_CHECKING:
+    from humanoid_prime.virtual.prime import SitoFaults
+    from humanoid_prime.virtual.ring.server import SdoLogEntry
 
 PRIVATE_NETNS_MARK = "PRIME_PRIVATE_NETNS"
 HOST_NETNS_FD = "PRIME_HOST_NETNS_FD"  # a descriptor of the host's network namespace, kept across the re-exec
@@ -89,26 +95,62 @@ def host_network() -> Iterator[bool]:
         os.close(private)
 
 
+class PrimeControl(RingControl):
+    """The virtual Prime's control channel: the ring's operations and the whole robot's (``virtual/prime.py``)."""
+
+    def joints(self) -> dict[str, float]:
+        """Every joint's true angle (description frame, rad)."""
+        return cast("dict[str, float]", self.call("joints"))  # as ``_op_joints`` sends it
+
+    def push(self, joint: str, torque_nm: float) -> None:
+        """A constant external torque on ``joint`` (a test load; 0 takes it off)."""
+        self.call("push", joint=joint, torque_nm=torque_nm)
+
+    def hand(self, joint: str, speed_rad_s: float, force_nm: float) -> None:
+        """An operator's hand moves ``joint`` at ``speed_rad_s`` pushing with at most ``force_nm`` (0: lets go)."""
+        self.call("hand", joint=joint, speed_rad_s=speed_rad_s, force_nm=force_nm)
+
+    def gravity(self, enabled: bool) -> list[float]:
+        """Gravity in the plant on or off; the gravity vector now."""
+        return cast("list[float]", self.call("gravity", enabled=enabled))  # as ``_op_gravity`` sends it
+
+    def sito(self, joint: str, *, silent: bool | None = None, drop_fraction: float | None = None,
+             garbage: bool | None = None, late_s: float | None = None) -> SitoFaults:
+        """Faults of one wrist motor (None: as they are); the motor's faults now."""
+        return cast("SitoFaults", self.call("sito", joint=joint, silent=silent, drop_fraction=drop_fraction,
+                                            garbage=garbage, late_s=late_s))  # as ``_op_sito`` sends it
+
+    def truth(self) -> dict[str, dict[str, float]]:
+        """The wiring directions and factory offsets the virtual robot was given, per joint."""
+        return cast("dict[str, dict[str, float]]", self.call("truth"))  # as ``_op_truth`` sends it
+
+
 class VirtualPrime(EmulatedRing):
     """The virtual Prime process on one end of a veth pair, both ends in this (private) namespace; a
     context manager.
 
     ``master_interface`` is the EtherCAT interface to open; ``can_interface``/``can_channel`` the python-can
-    bus of the Sito motors; ``control`` a RingControl with the whole-robot operations (``joints``,
-    ``push``, ``gravity``, ``sito``, ``truth``) besides the ring's own.
+    bus of the Sito motors; ``control`` a PrimeControl.
     """
 
     isolate_emulator = False  # the CAN bus is multicast on this namespace's loopback: share the namespace
+    client = PrimeControl
 
-    def __init__(self, *, slaves: int = 10, hardware_file: str | Path | None = None,
-                 truth_file: str | Path | None = None, pose: Mapping[str, float] | None = None,
-                 startup_timeout_s: float = 20.0, **options: Any) -> None:
-        super().__init__(slaves, startup_timeout_s=startup_timeout_s, **options)
+    def __init__(self, *, hardware_file: str | Path | None = None, truth_file: str | Path | None = None,
+                 pose: Mapping[str, float] | None = None, startup_timeout_s: float = 20.0,
+                 avoid_cpu: int | None = None, **options: Unpack[RingSettings]) -> None:
+        super().__init__(startup_timeout_s=startup_timeout_s, avoid_cpu=avoid_cpu, **options)
         self.hardware_file = hardware_file
         self.truth_file = truth_file
         self.pose = dict(pose or {})
         self.can_interface = CAN_INTERFACE
         self.can_channel = CAN_CHANNEL
+
+    @property
+    def control(self) -> PrimeControl:
+        control = super().control
+        assert isinstance(control, PrimeControl)  # ``client``
+        return control
 
     def start(self) -> None:
         if not in_private_netns():
@@ -140,8 +182,8 @@ EMULATOR_STAGE = "virtual prime"  # the start-up stage of a run that starts the 
 
 
 def attach_virtual_prime(stack: contextlib.ExitStack, *, hardware_file: str | Path | None = None,
-                         truth_file: str | Path | None = None, ring_options: Mapping[str, Any] | None = None,
-                         record: dict[str, Any] | None = None, avoid_cpu: int | None = None) -> VirtualPrime:
+                         truth_file: str | Path | None = None, ring_options: RingSettings | None = None,
+                         record: EmulatorRecord | None = None, avoid_cpu: int | None = None) -> VirtualPrime:
     """Start the virtual Prime (robot at the demonstration's start pose) on ``stack``. With ``record``, what
     the drives themselves recorded (final state, gain-register writes) is put there at teardown, after
     everything entered on ``stack`` later has been closed (gate reset, drives disabled). With ``avoid_cpu``
@@ -150,7 +192,7 @@ def attach_virtual_prime(stack: contextlib.ExitStack, *, hardware_file: str | Pa
     from humanoid_prime.sim.demo import START_POSE
 
     virtual = stack.enter_context(VirtualPrime(hardware_file=hardware_file, truth_file=truth_file, pose=START_POSE,
-                                               avoid_cpu=avoid_cpu, **dict(ring_options or {})))
+                                               avoid_cpu=avoid_cpu, **(ring_options or {})))
     if record is not None:
         stack.callback(_record_emulator, virtual, record)
     return virtual
@@ -160,7 +202,36 @@ _POLICIES = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO", os.SCHE
              os.SCHED_BATCH: "SCHED_BATCH", os.SCHED_IDLE: "SCHED_IDLE"}
 
 
-def scheduling(pid: int) -> dict[str, Any]:
+class Scheduling(TypedDict):
+    cpus: list[int]
+    policy: str  # SCHED_OTHER, SCHED_FIFO, ...
+    priority: int
+
+
+class SlaveRecord(TypedDict):
+    """One drive at the end of a run, with its gain registers."""
+
+    position: int
+    al_state: str
+    state: str
+    mailbox_faults: int
+    error_history: list[int]
+    gate: int
+    pos_reg: int
+    vel_reg: int
+    integral: int
+
+
+class EmulatorRecord(TypedDict, total=False):
+    """What the emulated drives recorded of a run (``attach_virtual_prime(record=...)``), filled at teardown."""
+
+    process: Scheduling
+    slaves: list[SlaveRecord]
+    sdo_log: list[SdoLogEntry]
+    joints: dict[str, float]  # the true joint angles when the loop ended (``prime bringup --emulate``)
+
+
+def scheduling(pid: int) -> Scheduling:
     """The CPUs, policy and real-time priority of process ``pid``'s main thread, read from the kernel."""
     policy = os.sched_getscheduler(pid)
     return {"cpus": sorted(os.sched_getaffinity(pid)), "policy": _POLICIES.get(policy, str(policy)),
@@ -170,16 +241,16 @@ def scheduling(pid: int) -> dict[str, Any]:
 _GAIN_OBJECTS = {POS_LOOP_GAIN[0], VEL_LOOP_GAIN[0], BUS_GAIN_GATE[0]}
 
 
-def _record_emulator(virtual: VirtualPrime, record: dict[str, Any]) -> None:
+def _record_emulator(virtual: VirtualPrime, record: EmulatorRecord) -> None:
     """Where the emulator ran (as the kernel has it), the drives' final state and their log of gain-register
     writes, as the emulator saw them."""
     if virtual.pid is not None:
         with contextlib.suppress(OSError):  # the emulator is already gone: its problems say why
             record["process"] = scheduling(virtual.pid)
     with contextlib.suppress(PrimeError):
-        slaves = virtual.control.call("status")
         record["slaves"] = [{"position": s["position"], "al_state": s["al_state"], "state": s["drive"]["state"],
                              "mailbox_faults": s["mailbox_faults"], "error_history": s["drive"]["error_history"],
-                             **{k: s["drive"][k] for k in ("gate", "pos_reg", "vel_reg", "integral")}}
-                            for s in slaves]
-        record["sdo_log"] = [e for e in virtual.control.call("sdo_log") if e["index"] in _GAIN_OBJECTS]
+                             "gate": s["drive"]["gate"], "pos_reg": s["drive"]["pos_reg"],
+                             "vel_reg": s["drive"]["vel_reg"], "integral": s["drive"]["integral"]}
+                            for s in virtual.control.status()]
+        record["sdo_log"] = [e for e in virtual.control.sdo_log() if e["index"] in _GAIN_OBJECTS]

@@ -12,22 +12,35 @@ import contextlib
 import threading
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.session import Session
-from humanoid_prime.virtual.ring.control import RingControl
+from humanoid_prime.virtual.harness import PrimeControl
+
+
+class Stiffness(TypedDict):
+    """One joint's load test: its deflection under +/- ``torque_nm`` and the stiffness that makes."""
+
+    joint: str
+    torque_nm: float
+    deflection_rad: float
+    kp_nominal: float
+    kp_realised: float  # NaN: it did not deflect
+    ratio: float  # realised / nominal
+    torque_efficiency: float
+
 
 SETTLED_RAD = 5e-4  # a joint that moved less than this over SETTLE_WINDOW_S has settled under its push
 SETTLE_WINDOW_S = 0.5
 
 
-def measure_stiffness(session: Session, control: RingControl, joints: Sequence[str], *, torque_nm: float = 5.0,
+def measure_stiffness(session: Session, control: PrimeControl, joints: Sequence[str], *, torque_nm: float = 5.0,
                       settle_s: float = 3.0, average_s: float = 1.0, settle_timeout_s: float = 20.0,
-                      stop: threading.Event | None = None) -> list[dict[str, Any]]:
+                      stop: threading.Event | None = None) -> list[Stiffness]:
     """Nominal against realised kp per joint of ``joints`` (eRob joints of the running ``session``)."""
     robot, manager = session.robot, session.manager
     for joint in joints:
@@ -36,7 +49,7 @@ def measure_stiffness(session: Session, control: RingControl, joints: Sequence[s
                              f"(eRob joints: {', '.join(robot.hardware.erob_joints)})")
     kp_nominal, _ = session.config.mode_gains()[Mode.STANDBY]
     efficiency = robot.hardware.torque_efficiency
-    results = []
+    results: list[Stiffness] = []
 
     stop = stop or threading.Event()
 
@@ -58,22 +71,22 @@ def measure_stiffness(session: Session, control: RingControl, joints: Sequence[s
                 break
             if stop.wait(0.01):
                 raise PrimeError("load test stopped before it finished")
-        samples = []
+        samples: list[float] = []
         end = time.monotonic() + average_s
         while time.monotonic() < end:
             samples.append(float(manager.resources.state.position[i]))
             time.sleep(0.01)
         return float(np.mean(samples))
 
-    control.call("gravity", enabled=False)
+    control.gravity(False)
     try:
         for joint in joints:
             i = robot.index(joint)
-            control.call("push", joint=joint, torque_nm=torque_nm)
+            control.push(joint, torque_nm)
             q_plus = settle_and_average(i)
-            control.call("push", joint=joint, torque_nm=-torque_nm)
+            control.push(joint, -torque_nm)
             q_minus = settle_and_average(i)
-            control.call("push", joint=joint, torque_nm=0.0)
+            control.push(joint, 0.0)
             deflection = q_plus - q_minus
             kp = 2.0 * torque_nm / deflection if deflection > 0 else float("nan")
             ratio = kp / kp_nominal if kp_nominal > 0 else float("nan")
@@ -83,6 +96,6 @@ def measure_stiffness(session: Session, control: RingControl, joints: Sequence[s
     finally:
         for joint in joints:
             with contextlib.suppress(PrimeError):
-                control.call("push", joint=joint, torque_nm=0.0)
-        control.call("gravity", enabled=True)
+                control.push(joint, 0.0)
+        control.gravity(True)
     return results

@@ -31,7 +31,8 @@ from collections.abc import Callable, Mapping, Sequence
 import mujoco
 import numpy as np
 
-from humanoid_prime.calibration.auto import AutoCalibration, AutoResult, SteppedTicks
+from humanoid_prime.calibration.auto import AutoCalibration, SteppedTicks
+from humanoid_prime.calibration.report import AutoResult
 from humanoid_prime.calibration.workflow import identity_from
 from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.controllers import ControllersConfig
@@ -62,7 +63,7 @@ from humanoid_prime.runtime.registry import ComponentSettings
 from humanoid_prime.runtime.session import assemble
 from humanoid_prime.sim.demo import START_POSE
 from humanoid_prime.virtual.operator import WatchingOperator
-from humanoid_prime.virtual.plant import Plant
+from humanoid_prime.virtual.plant import Bools, Floats, Plant
 from humanoid_prime.virtual.ring.drive import Cia402State, ErobDrive
 from humanoid_prime.virtual.ring.od import SdoAbort
 from humanoid_prime.virtual.sito import SitoMotor
@@ -77,7 +78,7 @@ _I32 = (-0x80000000, 0x7FFFFFFF)
 class _RawWrists(Plant):
     """The wrists' raw state as the emulated motors read it when they are enabled (moved by MuJoCo, not here)."""
 
-    def step(self, torque: np.ndarray, braked: np.ndarray, dt: float) -> None:
+    def step(self, torque: Floats, braked: Bools, dt: float) -> None:
         pass
 
 

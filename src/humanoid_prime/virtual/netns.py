@@ -33,13 +33,13 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import NoReturn, Self, Unpack
 
 from humanoid_prime.drivers.ethercat.wire import ETHERTYPE, Command
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.ring.control import ControlError, RingControl
 from humanoid_prime.virtual.ring.frames import Datagram, build_frame, parse_frame
-from humanoid_prime.virtual.ring.options import RingOptions
+from humanoid_prime.virtual.ring.options import RingOptions, RingSettings
 from humanoid_prime.virtual.ring.server import disable_ipv6
 
 _REEXEC_MARK = "PRIME_EMULATION_USERNS"
@@ -91,9 +91,11 @@ class EmulatedRing:
     (``slaves``, ``dc_lock_cycles``, ``mailbox_latency_s``, ...). With ``avoid_cpu``, the emulator process runs
     on every CPU this process may use but that one (the control loop's, with ``--cpu``), where there is another."""
 
-    def __init__(self, slaves: int = 10, *, startup_timeout_s: float = 10.0, avoid_cpu: int | None = None,
-                 **options: Any) -> None:
-        self.options = RingOptions(slaves=slaves, **options)
+    client: type[RingControl] = RingControl  # of the control channel
+
+    def __init__(self, *, startup_timeout_s: float = 10.0, avoid_cpu: int | None = None,
+                 **options: Unpack[RingSettings]) -> None:
+        self.options = RingOptions(**options)
         self.options.check()
         self.startup_timeout_s = startup_timeout_s
         others = sorted(set(os.sched_getaffinity(0)) - {avoid_cpu}) if avoid_cpu is not None else []
@@ -122,7 +124,7 @@ class EmulatedRing:
         """The emulator process is alive."""
         return self._process is not None and self._process.poll() is None
 
-    def __enter__(self) -> EmulatedRing:
+    def __enter__(self) -> Self:
         self.start()
         return self
 
@@ -189,7 +191,7 @@ class EmulatedRing:
             self._check_alive()
             if os.path.exists(control_path):
                 with contextlib.suppress(ControlError):
-                    self._control = RingControl(control_path)
+                    self._control = self.client(control_path)
             if self._control is None:
                 self._check_deadline(deadline, "open its control socket")
                 time.sleep(0.005)

@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.limp import DampedLimp
@@ -31,7 +32,7 @@ from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.erob.gains import vel_reg_exact
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.session import Session
-from humanoid_prime.virtual.ring.control import RingControl
+from humanoid_prime.virtual.harness import PrimeControl
 
 PUSH_FRACTION = 0.5  # of the joint's effort limit: the most the hand pushes; overcomes gravity on every joint
 HAND_SPEED_RAD_S = 1.0  # how fast the hand moves a joint toward a stop, as a person does
@@ -45,7 +46,7 @@ RETURN_SPEED_MIN_RAD_S = 0.05  # never below this
 class ScriptedOperator:
     """Moves joints of the running ``session`` by hand through the virtual Prime's ``control`` channel."""
 
-    def __init__(self, session: Session, control: RingControl, *, limp_kd: float = 2.0, timeout_s: float = 3.0,
+    def __init__(self, session: Session, control: PrimeControl, *, limp_kd: float = 2.0, timeout_s: float = 3.0,
                  stop: threading.Event | None = None) -> None:
         self.session = session
         self.robot = session.robot
@@ -84,7 +85,7 @@ class ScriptedOperator:
             yield
             return
         ethercat = self.session.ethercat
-        if ethercat is None:
+        if ethercat is None or ethercat.master is None:
             raise PrimeError(f"{joint} is an eRob joint but this run has no EtherCAT bus")
         vel_reg = round(vel_reg_exact(self.limp_kd, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
                                       efficiency=hw.erob_torque_efficiency[joint]))
@@ -146,7 +147,7 @@ class ScriptedOperator:
                 time.sleep(0.25 * manager.period)
                 continue
             seen = manager.tick_count
-            error = angle - float(self.control.call("joints")[joint])
+            error = angle - self.control.joints()[joint]
             if abs(error) < RETURN_TOLERANCE_RAD:
                 break
             speed = min(HAND_SPEED_RAD_S, max(RETURN_SPEED_MIN_RAD_S, RETURN_GAIN * abs(error)))
@@ -158,7 +159,7 @@ class ScriptedOperator:
         it was before its drive takes it again, it is brought back and held there by hand until its drive holds it,
         and let go. Every joint is swept from where the robot started, so no sweep folds an arm into the other or
         the torso that another sweep left somewhere else."""
-        start = float(self.control.call("joints")[joint])
+        start = self.control.joints()[joint]
         try:
             with self.limp(joint):
                 readings = self.push_to(joint, -1), self.push_to(joint, +1)
@@ -195,7 +196,7 @@ class WatchingOperator:
     def watch(self, joint: str) -> None:
         self._before = self.true_angles()
 
-    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
+    def turned_counter_clockwise(self, joint: str, view: npt.NDArray[np.float64], where: str) -> bool | None:
         after = self.true_angles()
         turned = after[joint] - self._before[joint]
         q = np.array([after[name] for name in self.robot.names])

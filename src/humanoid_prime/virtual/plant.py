@@ -19,10 +19,10 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
 
 import mujoco
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration
 from humanoid_prime.config.model import load_model
@@ -42,6 +42,10 @@ ARM_FRICTION = (0.5, 0.5, 0.3, 0.3, 0.1)
 WRIST_INERTIA = 0.005  # kg*m^2, hand plus reflected rotor
 WRIST_FRICTION = 0.01  # Nm*s/rad
 
+Floats = npt.NDArray[np.float64]
+Bools = npt.NDArray[np.bool_]
+PerJoint = float | Sequence[float] | Floats  # one value for every joint, or one per joint
+
 
 class Plant(ABC):
     """Joint state ``q``, ``qd`` and the external torque, one entry per joint, in the devices' raw frames."""
@@ -53,11 +57,11 @@ class Plant(ABC):
         self.external = np.zeros(n)
 
     @abstractmethod
-    def step(self, torque: np.ndarray, braked: np.ndarray, dt: float) -> None:
+    def step(self, torque: Floats, braked: Bools, dt: float) -> None:
         """Apply ``torque`` (Nm, one per joint) for ``dt``; joints where ``braked`` is True hold still."""
 
 
-def _per_joint(value: float | Sequence[float] | np.ndarray | None, n: int, default: float) -> np.ndarray:
+def _per_joint(value: PerJoint | None, n: int, default: float) -> Floats:
     return np.full(n, default) if value is None else np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy()
 
 
@@ -66,12 +70,9 @@ class InertiaPlant(Plant):
     plus hard stops, integrated semi-implicitly in ``substeps`` per step. Coulomb friction holds a link at
     rest against a net torque it exceeds, and stops a moving link rather than reverse it."""
 
-    def __init__(self, inertia: float | Sequence[float] | np.ndarray, *,
-                 friction: float | Sequence[float] | np.ndarray | None = None,
-                 coulomb: float | Sequence[float] | np.ndarray | None = None,
-                 gravity: float | Sequence[float] | np.ndarray | None = None,
-                 lower: float | Sequence[float] | np.ndarray | None = None,
-                 upper: float | Sequence[float] | np.ndarray | None = None, substeps: int = 1) -> None:
+    def __init__(self, inertia: PerJoint, *, friction: PerJoint | None = None, coulomb: PerJoint | None = None,
+                 gravity: PerJoint | None = None, lower: PerJoint | None = None, upper: PerJoint | None = None,
+                 substeps: int = 1) -> None:
         inertia = np.atleast_1d(np.asarray(inertia, dtype=float))
         super().__init__(len(inertia))
         if np.any(inertia <= 0):
@@ -101,7 +102,7 @@ class InertiaPlant(Plant):
         """``n`` Sito wrist links (hand plus reflected rotor), integrated four times per firmware tick."""
         return cls(np.full(n, WRIST_INERTIA), friction=WRIST_FRICTION, coulomb=coulomb, gravity=gravity, substeps=4)
 
-    def step(self, torque: np.ndarray, braked: np.ndarray, dt: float) -> None:
+    def step(self, torque: Floats, braked: Bools, dt: float) -> None:
         h = dt / self.substeps
         net, stop = self._net, self._stop
         for _ in range(self.substeps):
@@ -148,13 +149,15 @@ class PrimeWorld:
 
     def __init__(self, robot: Robot, truth: Calibration, *, physics_dt: float = 0.001,
                  initial_pose: Mapping[str, float] | None = None, held: Sequence[str] = (),
-                 model: Any = None, data: Any = None) -> None:
+                 model: mujoco.MjModel | None = None, data: mujoco.MjData | None = None) -> None:
         self.robot = robot
         self.truth = truth
         if model is None:
             model = load_model(robot, physics_rate=1.0 / physics_dt)
             # Mechanical stops are metal: the stiffest limit constraint stable at this step (time constant 2 dt).
             model.jnt_solref[:] = (2.0 * physics_dt, 1.0)
+            data = mujoco.MjData(model)
+        elif data is None:  # another world's model, a state of our own
             data = mujoco.MjData(model)
         self.model, self.data = model, data
         n = robot.n
@@ -266,7 +269,7 @@ class MujocoPlant(Plant):
         np.multiply(self.direction, data.qvel[self._dof], out=self.qd)
         np.copyto(self._published, self.q)
 
-    def step(self, torque: np.ndarray, braked: np.ndarray, dt: float) -> None:
+    def step(self, torque: Floats, braked: Bools, dt: float) -> None:
         world = self.world
         moved = self.q != self._published
         if moved.any():

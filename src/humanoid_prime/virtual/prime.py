@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TypedDict
 
 import can
 
@@ -27,6 +27,16 @@ from humanoid_prime.virtual.ring.server import EmulatorServer, bring_up, raise_t
 from humanoid_prime.virtual.sito import SitoEmulator
 
 EMULATOR_PRIORITY = 70  # SCHED_FIFO, below the control loop's 80
+
+
+class SitoFaults(TypedDict):
+    """One wrist motor's injected faults (the control channel's ``sito``)."""
+
+    can_id: int
+    silent: bool
+    drop_fraction: float
+    garbage: bool
+    late_s: float
 
 
 class VirtualPrimeServer(EmulatorServer):
@@ -56,7 +66,7 @@ class VirtualPrimeServer(EmulatorServer):
                 for j, c in self.world.truth.joints.items()}
 
     def _op_sito(self, joint: str, silent: bool | None = None, drop_fraction: float | None = None,
-                 garbage: bool | None = None, late_s: float | None = None) -> dict[str, Any]:
+                 garbage: bool | None = None, late_s: float | None = None) -> SitoFaults:
         if self.sito is None:
             raise KeyError("this virtual Prime has no Sito motors")
         can_id = self.world.robot.hardware.mit_joints[joint]

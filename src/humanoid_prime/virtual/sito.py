@@ -21,7 +21,7 @@ import struct
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TypedDict, Unpack
 
 import can
 import numpy as np
@@ -225,6 +225,14 @@ class SitoMotor:
         return can.Message(arbitration_id=self.ids[FrameType.FEEDBACK1], is_extended_id=True, data=wild[:7])
 
 
+class EmulatorSettings(TypedDict, total=False):
+    """``SitoEmulator``'s keyword arguments, for ``for_robot``."""
+
+    rate_hz: float
+    world_step: Callable[[float], None] | None
+    log_length: int
+
+
 class SitoEmulator:
     """Emulated Sito motors on one python-can bus (the caller owns the bus)."""
 
@@ -257,7 +265,7 @@ class SitoEmulator:
 
     @classmethod
     def for_robot(cls, robot: Robot, bus: can.BusABC, plant: Plant | None = None, *,
-                  model: str = "TA40-50", **options: Any) -> SitoEmulator:
+                  model: str = "TA40-50", **options: Unpack[EmulatorSettings]) -> SitoEmulator:
         """One motor per ``robot.hardware.mit_joints`` entry, joint ``k`` of ``plant`` driven by the ``k``-th
         Sito joint in canonical order (default: free wrist links), saturated at the joint's effort limit."""
         joints = robot.hardware.sito_joints

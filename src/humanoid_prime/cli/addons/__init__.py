@@ -20,16 +20,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import Any, Protocol
+from typing import Protocol
 
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.readout import JsonObject
 from humanoid_prime.runtime.switching import SwitchAnswer
 
-Summary = Callable[[], dict[str, Any]]
+Summary = Callable[[], Mapping[str, object]]  # an add-on's figures, for the run's JSON summary
 
 
 @dataclass
@@ -38,14 +39,14 @@ class Run:
 
     manager: ControllerManager
     report: Callable[[str], None]  # a startup line ("view: URL"), where the command prints them
-    request_mode: Callable[[str], Any] | None = None  # an operator's mode request (None: the manager's own)
+    request_mode: Callable[[str], object] | None = None  # an operator's mode request (None: the manager's own)
     switch: Callable[[Mode, float], SwitchAnswer] | None = None  # a switch followed to its outcome (None: the
     # manager's own, as runtime.switching.mode_switcher makes it)
     epoch_offset: float = 0.0  # added to the loop's monotonic stamps for the system clock, as on the robot
     sim_clock: bool = False  # stamps are simulated time, published on /clock for ROS 2's use_sim_time
     wait: bool = False  # no real-time deadline (--fast): a writer makes the loop wait rather than drop a tick
     title: str = "Prime"
-    state: Callable[[], dict[str, Any]] | None = None  # the run's state source if it keeps one (None: its own)
+    state: Callable[[], JsonObject] | None = None  # the run's state source if it keeps one (None: its own)
     host_graph: Callable[[], contextlib.AbstractContextManager[bool]] | None = None  # enter to be on this
     # machine's ROS 2 graph (an emulated run lives in a private network namespace); yields whether it is
     followers: list[Callable[[ControllerManager, contextlib.ExitStack], None]] = field(default_factory=list)
@@ -76,7 +77,7 @@ ADDONS: dict[str, str | Addon | ModuleType] = {
 def addon(name: str) -> Addon:
     """The add-on registered as ``name``."""
     entry = ADDONS[name]
-    return importlib.import_module(entry) if isinstance(entry, str) else entry  # type: ignore[return-value]
+    return importlib.import_module(entry) if isinstance(entry, str) else entry
 
 
 def add_addon_options(parser: argparse.ArgumentParser, names: Iterable[str] | None = None) -> None:
@@ -108,5 +109,5 @@ class Addons:
             if provider is not None:
                 self.providers[name] = provider
 
-    def summaries(self) -> dict[str, dict[str, Any]]:
+    def summaries(self) -> dict[str, Mapping[str, object]]:
         return {name: provider() for name, provider in self.providers.items()}

@@ -15,7 +15,9 @@ from humanoid_prime.control.flags import Level
 from humanoid_prime.errors import PrimeError
 
 if TYPE_CHECKING:  # the options are added without importing the node
+    from humanoid_prime.dds.bridge import DdsBridge
     from humanoid_prime.dds.controllers import Switch
+    from humanoid_prime.dds.rclpy_node import RclpyBridge
     from humanoid_prime.modes import Mode
 
 
@@ -45,6 +47,7 @@ def attach(run: Run, args: argparse.Namespace, stack: contextlib.ExitStack) -> S
             run.report(f"rclpy does not import here ({exc}): the bare DDS node instead")
             backend = "dds"
     network = run.host_graph() if run.host_graph is not None else contextlib.nullcontext(True)
+    bridge: RclpyBridge | DdsBridge
     with network as on_host:
         if backend == "rclpy":
             bridge = rclpy_bridge(run.manager, domain=dds.domain, namespace=dds.namespace, control=dds.control,

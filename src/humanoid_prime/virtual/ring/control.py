@@ -10,9 +10,14 @@ from __future__ import annotations
 import json
 import socket
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Unpack, cast
 
 from humanoid_prime.errors import PrimeError
+
+if TYPE_CHECKING:  # the shapes of the answers; the client itself imports nothing of the emulator
+    from humanoid_prime.virtual.ring.options import RingSettings
+    from humanoid_prime.virtual.ring.server import RingStats, SdoLogEntry
+    from humanoid_prime.virtual.ring.status import SlaveStatus
 
 
 class ControlError(PrimeError):
@@ -45,8 +50,8 @@ class RingControl:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def call(self, op: str, **arguments: Any) -> Any:
-        """Send one request and return its result; ControlError when the emulator refuses it."""
+    def call(self, op: str, **arguments: object) -> object:
+        """Send one request and return its result (a JSON value); ControlError when the emulator refuses it."""
         request = json.dumps({"op": op, **arguments}).encode() + b"\n"
         with self._lock:
             try:
@@ -56,7 +61,7 @@ class RingControl:
                 raise ControlError(f"emulator control request {op!r} failed: {exc}") from exc
         if not line:
             raise ControlError(f"the emulator closed the control channel during {op!r}")
-        reply = json.loads(line)
+        reply: dict[str, object] = json.loads(line)  # the server answers every request with an object
         if not reply.get("ok"):
             raise ControlError(f"emulator refused {op!r}: {reply.get('error')}")
         return reply.get("result")
@@ -65,22 +70,22 @@ class RingControl:
     def ping(self) -> None:
         self.call("ping")
 
-    def status(self) -> list[dict[str, Any]]:
+    def status(self) -> list[SlaveStatus]:
         """One dict per slave in ring order: AL state and code, DC lock, drive state, registers, joint."""
-        return self.call("status")
+        return cast("list[SlaveStatus]", self.call("status"))  # as the server's ``_op_status`` sends it
 
-    def slave(self, position: int) -> dict[str, Any]:
-        return self.call("status", position=position)[0]
+    def slave(self, position: int) -> SlaveStatus:
+        return cast("list[SlaveStatus]", self.call("status", position=position))[0]
 
-    def sdo_log(self, since: int = 0) -> list[dict[str, Any]]:
+    def sdo_log(self, since: int = 0) -> list[SdoLogEntry]:
         """SDO downloads the slaves executed, oldest first, from entry ``since`` on. Each entry: ``seq``,
         ``time`` (monotonic s), ``position``, ``index``, ``sub``, ``value``, ``applied`` (False for a gain
         write the drive ignored because its gate 0x2383 was 0)."""
-        return self.call("sdo_log", since=since)
+        return cast("list[SdoLogEntry]", self.call("sdo_log", since=since))  # as ``_op_sdo_log`` sends it
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> RingStats:
         """Frame counters and the responder's receive-to-send turnaround (median/p99 in us)."""
-        return self.call("stats")
+        return cast("RingStats", self.call("stats"))  # as ``_op_stats`` sends it
 
     # ---- the mechanics ----------------------------------------------------------------------------------
     def set_external_torque(self, position: int, torque_nm: float) -> None:
@@ -143,7 +148,7 @@ class RingControl:
     def clear_latched(self, position: int) -> None:
         self.call("clear_latched", position=position)
 
-    def set_options(self, **options: Any) -> None:
+    def set_options(self, **options: Unpack[RingSettings]) -> None:
         """Change tunables at run time: dc_lock_cycles, sync_tolerance, sync_fault_cycles, state_change_s, the
         mailbox latency model (mailbox_latency_s, mailbox_jitter_s, mailbox_burst_*) and random stalls
         (stall_interval_s, stall_s)."""

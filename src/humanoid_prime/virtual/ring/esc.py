@@ -151,20 +151,24 @@ class Esc:
     # ---- identity -------------------------------------------------------------------------------------
     @property
     def station_address(self) -> int:
-        return _U16.unpack_from(self.mem, REG_STATION_ADDRESS)[0]
+        value: int = _U16.unpack_from(self.mem, REG_STATION_ADDRESS)[0]
+        return value
 
     # ---- AL registers, written by the firmware --------------------------------------------------------
     @property
     def al_control_value(self) -> int:
-        return _U16.unpack_from(self.mem, REG_AL_CONTROL)[0]
+        value: int = _U16.unpack_from(self.mem, REG_AL_CONTROL)[0]
+        return value
 
     @property
     def al_status(self) -> int:
-        return _U16.unpack_from(self.mem, REG_AL_STATUS)[0]
+        value: int = _U16.unpack_from(self.mem, REG_AL_STATUS)[0]
+        return value
 
     @property
     def al_status_code(self) -> int:
-        return _U16.unpack_from(self.mem, REG_AL_STATUS_CODE)[0]
+        value: int = _U16.unpack_from(self.mem, REG_AL_STATUS_CODE)[0]
+        return value
 
     def set_al_status(self, state: int, error: bool, code: int) -> None:
         _U16.pack_into(self.mem, REG_AL_STATUS, state | (AL_ERROR if error else 0))

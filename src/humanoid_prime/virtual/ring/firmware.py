@@ -310,8 +310,8 @@ class ErobFirmware:
         in_start, in_length, in_control, in_activate = self.esc.sync_manager(1)
         expected = sii_content(self.options, 0).sync_managers
         return (out_start == expected[0].start and out_length == size and out_control & 0x0F == 0x06
-                and out_activate & SM_ENABLE and in_start == expected[1].start and in_length == size
-                and in_control & 0x0F == 0x02 and in_activate & SM_ENABLE)
+                and bool(out_activate & SM_ENABLE) and in_start == expected[1].start and in_length == size
+                and in_control & 0x0F == 0x02 and bool(in_activate & SM_ENABLE))
 
     # ---- mailbox ------------------------------------------------------------------------------------------
     def _downloaded(self, index: int, sub: int, data: bytes) -> None:

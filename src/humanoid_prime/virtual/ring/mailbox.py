@@ -344,4 +344,5 @@ def sdo_abort_code(reply: bytes) -> int | None:
         return None
     if command_specifier(reply[MAILBOX_HEADER_SIZE + 2]) != CS_ABORT:
         return None
-    return struct.unpack_from("<I", reply, MAILBOX_HEADER_SIZE + 6)[0]
+    code: int = struct.unpack_from("<I", reply, MAILBOX_HEADER_SIZE + 6)[0]
+    return code

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field, fields
+from typing import TypedDict, TypeVar
 
 from humanoid_prime.virtual.ring.quirks import PROFILES, Quirks
 
@@ -13,7 +14,10 @@ DEFAULT_DC_LOCK_CYCLES = 350
 PLANTS = ("inertia", "mujoco")
 
 
-def _option(default: float | int | str, text: str) -> object:
+T = TypeVar("T", int, float, str)
+
+
+def _option(default: T, text: str) -> T:
     return field(default=default, metadata={"help": text})
 
 
@@ -103,7 +107,7 @@ class RingOptions:
 
     def to_args(self) -> list[str]:
         """Command-line arguments that reproduce these options."""
-        out = []
+        out: list[str] = []
         for f in fields(self):
             out += ["--" + f.name.replace("_", "-"), str(getattr(self, f.name))]
         return out
@@ -122,3 +126,30 @@ class RingOptions:
         options = cls(**{f.name: getattr(args, f.name) for f in fields(cls)})
         options.check()
         return options
+
+
+class RingSettings(TypedDict, total=False):
+    """``RingOptions``' fields as keyword arguments, any of them (``EmulatedRing(slaves=2, dc_lock_cycles=20)``);
+    the checker holds each to its field."""
+
+    slaves: int
+    dc_lock_cycles: int
+    sync_tolerance: float
+    dc_sync_window_ns: int
+    sync_fault_cycles: int
+    mailbox_latency_s: float
+    mailbox_jitter_s: float
+    mailbox_burst_s: float
+    mailbox_burst_chance: float
+    mailbox_burst_replies: int
+    stall_interval_s: float
+    stall_s: float
+    seed: int
+    mailbox_size: int
+    state_change_s: float
+    physics_dt_s: float
+    hop_delay_ns: int
+    plant: str
+    gain_bytes: int
+    rated_torque_mnm: int
+    quirks: str

@@ -28,19 +28,47 @@ import struct
 import time
 from array import array
 from collections.abc import Callable
-from typing import Any
+from typing import TypedDict, Unpack
 
 from humanoid_prime.drivers.erob.objects import IDENTITY
 from humanoid_prime.drivers.ethercat.wire import ETHERTYPE, SII_IDENTITY, Command
+from humanoid_prime.virtual.ring.firmware import ErobFirmware
 from humanoid_prime.virtual.ring.frames import Datagram, build_frame
+from humanoid_prime.virtual.ring.options import RingSettings
 from humanoid_prime.virtual.ring.ring import Ring
-from humanoid_prime.virtual.ring.status import describe_slave
+from humanoid_prime.virtual.ring.status import SlaveStatus, describe_slave
 
 _TURNAROUND_SAMPLES = 65536
 _IDLE_GC_NS = 200_000_000  # collect generation 0 only after this long without a frame
 # Physics steps between two looks at the sockets: behind real time (a stalled host), the plant catches up one
 # step at a time and a frame waiting meanwhile is answered after at most one step, not after all of them.
 _STEPS_PER_LOOK = 1
+
+
+class SdoLogEntry(TypedDict):
+    """An SDO download a slave executed (the control channel's ``sdo_log``)."""
+
+    seq: int
+    time: float  # monotonic s
+    position: int
+    index: int
+    sub: int
+    value: int
+    applied: bool  # False: a gain write the drive ignored, its gate 0x2383 being 0
+
+
+class RingStats(TypedDict):
+    """Frame counters and the responder's turnaround (the control channel's ``stats``)."""
+
+    frames: int
+    malformed: int
+    stalls: int
+    held_reply_frames: int
+    slow_replies: int
+    replies_timed: int
+    turnaround_median_us: float | None  # None: no reply timed yet
+    turnaround_p99_us: float | None
+    turnaround_max_us: float | None
 
 
 class EmulatorServer:
@@ -248,9 +276,11 @@ class EmulatorServer:
             finally:
                 client.setblocking(False)
 
-    def _dispatch(self, line: bytes) -> dict[str, Any]:
+    def _dispatch(self, line: bytes | bytearray) -> dict[str, object]:
         try:
             request = json.loads(line)
+            if not isinstance(request, dict):
+                return {"ok": False, "error": f"a request is a JSON object, got {line.decode(errors='replace')!r}"}
             op = request.pop("op")
             handler = getattr(self, f"_op_{op}", None)
             if handler is None:
@@ -259,7 +289,7 @@ class EmulatorServer:
         except (TypeError, ValueError, KeyError, IndexError) as exc:
             return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
 
-    def _slave(self, position: int) -> Any:
+    def _slave(self, position: int) -> ErobFirmware:
         if not 0 <= position < len(self.ring.slaves):
             raise IndexError(f"no slave at ring position {position} (ring has {len(self.ring.slaves)})")
         return self.ring.slaves[position]
@@ -267,17 +297,17 @@ class EmulatorServer:
     def _op_ping(self) -> str:
         return "pong"
 
-    def _op_status(self, position: int | None = None) -> list[dict[str, Any]]:
+    def _op_status(self, position: int | None = None) -> list[SlaveStatus]:
         positions = range(len(self.ring.slaves)) if position is None else [self._slave(position).position]
         now = self.clock()
         return [describe_slave(self.ring, p, now) for p in positions]
 
-    def _op_sdo_log(self, since: int = 0) -> list[dict[str, Any]]:
+    def _op_sdo_log(self, since: int = 0) -> list[SdoLogEntry]:
         return [{"seq": since + i, "time": t, "position": p, "index": index, "sub": sub, "value": value,
                  "applied": applied}
                 for i, (t, p, index, sub, value, applied) in enumerate(self.ring.sdo_log[since:])]
 
-    def _op_stats(self) -> dict[str, Any]:
+    def _op_stats(self) -> RingStats:
         count = min(self._turnaround_count, _TURNAROUND_SAMPLES)
         samples = sorted(self._turnaround_ns[:count])
         def percentile(p: float) -> float | None:
@@ -352,7 +382,7 @@ class EmulatorServer:
     def _op_clear_latched(self, position: int) -> None:
         self._slave(position).drive.clear_latched()
 
-    def _op_set_options(self, **options: Any) -> None:
+    def _op_set_options(self, **options: Unpack[RingSettings]) -> None:
         allowed = {"dc_lock_cycles", "sync_tolerance", "sync_fault_cycles", "mailbox_latency_s", "state_change_s",
                    "mailbox_jitter_s", "mailbox_burst_s", "mailbox_burst_chance", "mailbox_burst_replies",
                    "stall_interval_s", "stall_s"}

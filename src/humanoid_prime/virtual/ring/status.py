@@ -3,14 +3,76 @@ mailbox faults, its drive and its joint, as plain JSON values for the tests and 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TypedDict
 
 from humanoid_prime.drivers.ethercat.wire import AL_STATE_NAMES
 from humanoid_prime.virtual.ring.drive import Cia402State
 from humanoid_prime.virtual.ring.ring import Ring
 
 
-def describe_slave(ring: Ring, position: int, now: int) -> dict[str, Any]:
+class ClockStatus(TypedDict):
+    """The slave's distributed clock: SYNC0 and the lock onto the ring's time."""
+
+    activation: int  # 0x0981
+    sync0_cycle_ns: int
+    sync0_running: bool
+    locked: bool
+    lock_count: int
+    time_samples: int
+    time_difference_ns: int | None  # None: not sampled yet
+
+
+class DriveRegisters(TypedDict):
+    """The drive's CiA402 state and the objects the tests and tools watch."""
+
+    state: str  # a Cia402State name
+    statusword: int
+    controlword: int
+    error_code: int
+    error_history: list[int]
+    mode_display: int
+    target_position: int
+    position_actual: int
+    velocity_actual: int
+    torque_actual: int
+    gate: int
+    pos_reg: int
+    vel_reg: int
+    integral: int
+    kp: float
+    kd: float
+    ki: float
+    torque_nm: float
+
+
+class JointTruth(TypedDict):
+    """The joint the drive moves, as the plant has it (raw frame)."""
+
+    q_rad: float
+    qd_rad_s: float
+    external_nm: float
+
+
+class SlaveStatus(TypedDict):
+    """One slave as the control channel's ``status`` tells it."""
+
+    position: int
+    powered: bool
+    reachable: bool
+    silent: bool
+    station_address: int
+    al_state: str
+    al_status: int
+    al_status_code: int
+    al_pending_op: bool
+    al_change_frames: list[int]
+    dc: ClockStatus
+    mailbox_faults: int
+    drive: DriveRegisters
+    joint: JointTruth
+
+
+def describe_slave(ring: Ring, position: int, now: int) -> SlaveStatus:
     """The slave at ring ``position`` as the control channel's ``status`` tells it (``now``: the server's clock, ns)."""
     slave = ring.slaves[position]
     esc = slave.esc

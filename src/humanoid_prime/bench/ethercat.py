@@ -33,7 +33,7 @@ from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VE
 from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
-from humanoid_prime.runtime.impedance import Rendezvous
+from humanoid_prime.runtime.gain_switch import Rendezvous
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 # Two register sets a switch alternates between (pos_reg, vel_reg): STANDBY-like and DAMPING-like.

@@ -6,7 +6,7 @@ import time
 
 from humanoid_prime.bench.soak import FAULTS, SETTLE_S, Injection, explained, judge
 from humanoid_prime.control.flags import Level
-from humanoid_prime.runtime.session import FaultRecord
+from humanoid_prime.runtime.report import FaultRecord
 
 BY_NAME = {fault.name: fault for fault in FAULTS}
 LOST = BY_NAME["slave lost and returned"]

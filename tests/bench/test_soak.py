@@ -4,9 +4,10 @@ explains reported."""
 import threading
 import time
 
-from humanoid_prime.bench.soak import FAULTS, SETTLE_S, Injection, explained, judge
+from humanoid_prime.bench.soak_faults import FAULTS, SETTLE_S
+from humanoid_prime.bench.soak_judge import Injection, explained, judge
 from humanoid_prime.control.flags import Level
-from humanoid_prime.runtime.session import FaultRecord
+from humanoid_prime.runtime.report import FaultRecord
 
 BY_NAME = {fault.name: fault for fault in FAULTS}
 LOST = BY_NAME["slave lost and returned"]
@@ -103,7 +104,7 @@ class _Control:
 def test_the_soak_checks_the_returned_drive_holds_the_gate_and_the_applied_modes_registers():
     from types import SimpleNamespace
 
-    from humanoid_prime.bench.soak import LOST_RING
+    from humanoid_prime.bench.soak_faults import LOST_RING
     from humanoid_prime.drivers.erob.gains import ErobRegisters
 
     session = SimpleNamespace(impedance=_Impedance({LOST_RING: ErobRegisters(pos_reg=515, vel_reg=19, integral=5)}))
@@ -143,29 +144,30 @@ def test_a_latched_fault_whose_ring_was_whole_only_after_its_settle_time_is_rese
 
     import numpy as np
 
-    from humanoid_prime.bench.soak import Injector
+    from humanoid_prime.bench.soak import Operator
 
     requested = []
     ethercat = SimpleNamespace(master=SimpleNamespace(slave_ok=np.ones(10, dtype=bool)), restore_pending=lambda: [9])
     session = SimpleNamespace(plan=SimpleNamespace(began=0.0), ethercat=ethercat, impedance=None,
                               faults=[record("PrimeEtherCATSide/ethercat/ring9/disabled", 12.0)],
                               manager=LoopManager(lambda: requested.append(True)))
-    injector = Injector(None, session, 6.0, threading.Event(), 600.0)
+    operator = Operator(None, session, threading.Event())
     owed = Injection(LOST, at_s=10.0, done_s=11.0)
-    injector.owed.append(owed)
-    injector._reset_owed()
-    assert not requested and injector.owed == [owed]  # its settings are not back yet: no reset
+    operator.owed.append(owed)
+    assert operator.owes("ethercat") and not operator.owes("can")
+    operator.pay_owed()
+    assert not requested and operator.owed == [owed]  # its settings are not back yet: no reset
     ethercat.restore_pending = lambda: []
-    injector._reset_owed()
-    assert requested == [True] and injector.owed == [] and len(injector.resets) == 1
+    operator.pay_owed()
+    assert requested == [True] and operator.owed == [] and len(operator.resets) == 1
     cleared = Injection(LOST, at_s=10.0, done_s=11.0)  # another fault's reset cleared its flag: nothing owed
     session.faults = [record("PrimeEtherCATSide/ethercat/ring9/disabled", 12.0, 30.0)]
-    injector.owed.append(cleared)
-    injector._reset_owed()
-    assert requested == [True] and injector.owed == []
+    operator.owed.append(cleared)
+    operator.pay_owed()
+    assert requested == [True] and operator.owed == []
 
 
-def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(monkeypatch):
+def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset():
     """Injected onto a drive still held from the last slave loss, a fault finds its flag already up and is judged
     not flagged (seen in a soak of slave losses alone). The injector waits for the owed reset instead."""
     import threading
@@ -174,7 +176,7 @@ def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(m
 
     import numpy as np
 
-    from humanoid_prime.bench import soak
+    from humanoid_prime.bench.soak import Injector, Operator
 
     injected, looked = threading.Event(), threading.Semaphore(0)
     applied_before_injection = []
@@ -183,8 +185,14 @@ def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(m
         applied_before_injection.append(session.manager.resets)
         injected.set()
 
+    class Watched(Operator):
+        """The operator, telling each time the injector has it pay what it owes (once per turn)."""
+
+        def pay_owed(self) -> None:
+            super().pay_owed()
+            looked.release()
+
     fault = replace(LOST, inject=inject, hold_s=0.0, end=None, verify=None)
-    monkeypatch.setattr(soak, "FAULTS", (fault,))
     slave_ok = np.zeros(10, dtype=bool)
     session = SimpleNamespace(plan=SimpleNamespace(began=time.monotonic()), impedance=None,
                               ethercat=SimpleNamespace(master=SimpleNamespace(slave_ok=slave_ok),
@@ -192,24 +200,18 @@ def test_no_fault_goes_onto_a_bus_that_still_waits_for_a_latched_fault_s_reset(m
                               faults=[record("PrimeEtherCATSide/ethercat/ring9/disabled", 0.0)],
                               manager=LoopManager())
     stop = threading.Event()
-    injector = soak.Injector(None, session, 0.001, stop, 600.0)
-    injector.owed.append(Injection(fault, at_s=0.0, done_s=0.0))
-    original = injector._reset_owed
-
-    def reset_owed() -> None:
-        original()
-        looked.release()
-
-    injector._reset_owed = reset_owed
+    operator = Watched(None, session, stop)
+    operator.owed.append(Injection(fault, at_s=0.0, done_s=0.0))
+    injector = Injector(operator, 0.001, 600.0, faults=(fault,))
     injector.start()
     try:
         for _ in range(3):  # three turns of the injector with ring 9 still away
             assert looked.acquire(timeout=60.0)
-        assert not injected.is_set() and len(injector.owed) == 1
+        assert not injected.is_set() and len(operator.owed) == 1
         slave_ok[:] = True  # whole again: the owed reset goes out, then the next fault
         assert injected.wait(timeout=60.0)
-        assert all(owed.at_s > 0.0 for owed in injector.owed)  # the one it was owed went out
-        assert len(injector.resets) >= 1
+        assert all(owed.at_s > 0.0 for owed in operator.owed)  # the one it was owed went out
+        assert len(operator.resets) >= 1
         assert applied_before_injection[0] >= 1  # the loop applied it before the next fault went in
     finally:
         stop.set()

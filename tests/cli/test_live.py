@@ -9,7 +9,7 @@ import time
 import pytest
 from rich.console import Console
 
-from humanoid_prime.cli._live import MODE_KEYS, LiveTable, ModeKeys, ProgressLines
+from humanoid_prime.cli._live import MODE_KEYS, LiveTable, ModeKeys, ProgressLines  # private to cli/: no terminal
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.modes import Mode
 from humanoid_prime.sim.demo import Simulation, Step, build_simulation
@@ -133,7 +133,7 @@ def test_working_shows_what_is_done_how_far_and_for_how_long_on_a_terminal_only(
 
     from rich.console import Console
 
-    from humanoid_prime.cli._live import Working
+    from humanoid_prime.cli._live import Working  # private to cli/: see the imports above
 
     screen = io.StringIO()
     terminal = Console(file=screen, force_terminal=True, width=100)

@@ -4,6 +4,7 @@ alone and together (the manager's and REMOTE's own tests check the words, the fa
 import numpy as np
 import pytest
 
+# private to control/: the compiled kernel itself, whose contract these tests pin beside its NumPy statement
 from humanoid_prime.control._tick import (
     ABOVE,
     BELOW,

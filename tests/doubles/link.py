@@ -128,7 +128,9 @@ class RingHub:
         """What a packet socket that only looks would see: the frames sent through the hub from now on."""
         return HubWatch(self)
 
-    def _take(self, indices: set[int], timeout_s: float) -> bytes | None:
+    def take(self, indices: set[int], timeout_s: float) -> bytes | None:
+        """The earliest frame with one of ``indices`` due within ``timeout_s`` of the emulated clock, which moves
+        on to it (or to the timeout: None)."""
         with self._lock:
             mine = [item for item in self._queue if frame_index(item[2]) in indices]
             limit = self.clock.now + max(timeout_s, 1e-6)  # time always moves on (a float step can vanish at 1e3 s)
@@ -164,7 +166,7 @@ class HubPort:
         self.hub.send(frame)
 
     def receive(self, timeout_s: float) -> bytes | None:
-        return self.hub._take(self.indices, timeout_s)
+        return self.hub.take(self.indices, timeout_s)
 
     def close(self) -> None:
         pass

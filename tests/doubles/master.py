@@ -8,6 +8,7 @@ requested, so the base class's bring-up loop runs for real.
 from __future__ import annotations
 
 import struct
+import sys
 from collections.abc import Sequence
 
 import numpy as np
@@ -54,6 +55,7 @@ class FakeMaster(EthercatMaster):
         self.sdo_log: list[tuple[str, int, int, int]] = []
         self.closed = False
         self._prev_cw = np.zeros(n, dtype=np.int64)
+        self.switch_interval_at_op: list[float] = []  # the interpreter's switch interval at each request for OP
 
     def _discover(self) -> Sequence[SlaveInfo]:
         return self.found
@@ -71,6 +73,7 @@ class FakeMaster(EthercatMaster):
                 self.store_rated_torque(k, struct.pack("<I", milli))
 
     def _request_op(self) -> None:
+        self.switch_interval_at_op.append(sys.getswitchinterval())
         self._op_requested_at = self.frames
 
     def _read_states(self) -> list[tuple[int, int]]:

@@ -33,13 +33,48 @@ def wait_until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -
         time.sleep(0.0002)
 
 
+class HoldableBus(can.BusABC):
+    """A virtual CAN bus whose receiving can be held: while held, frames wait in the channel, as they wait in the
+    socket while a busy process does not run its receive thread."""
+
+    def __init__(self, channel: str) -> None:
+        self._inner = can.Bus(interface="virtual", channel=channel)
+        self._released = threading.Event()
+        self._released.set()
+        self._receiving = threading.Lock()
+        super().__init__(channel=channel)
+
+    def hold(self) -> None:
+        """From now on nothing is received until ``release``: a receive under way is finished first."""
+        with self._receiving:
+            self._released.clear()
+
+    def release(self) -> None:
+        self._released.set()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self._released.wait(timeout):
+            return None, False
+        with self._receiving:
+            if not self._released.is_set():
+                return None, False
+            return self._inner.recv(timeout), False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._inner.send(msg, timeout)
+
+    def shutdown(self) -> None:
+        self._inner.shutdown()
+        super().shutdown()
+
+
 class Rig:
     def __init__(self, robot: Robot, calibration: Calibration | None = None,
                  plant: Plant | None = None, update_rate: float = UPDATE_RATE, **system_options: object) -> None:
         self.robot = robot
         self.channel = f"sito-test-{uuid.uuid4().hex}"
         self.emulator_bus = can.Bus(interface="virtual", channel=self.channel)
-        self.host_bus = can.Bus(interface="virtual", channel=self.channel)
+        self.host_bus = HoldableBus(self.channel)
         self.sniffer = can.Bus(interface="virtual", channel=self.channel)
         self.plant = plant or InertiaPlant.wrists(len(robot.hardware.sito_joints))
         self.emulator = SitoEmulator.for_robot(robot, self.emulator_bus, self.plant)

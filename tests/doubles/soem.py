@@ -183,22 +183,22 @@ class FakeSoemSlave:
         if replies is None or replies[0].wkc != 1:
             raise pysoem.WkcError()
 
-    def _rd(self, address: int, size: int, timeout_s: float = EC_TIMEOUTRET) -> tuple[int, bytes]:
+    def read_register(self, address: int, size: int, timeout_s: float = EC_TIMEOUTRET) -> tuple[int, bytes]:
         replies = self._master.frames.srconfirm([Request(Command.FPRD, self.station, address, size=size)], timeout_s)
         return (0, bytes(size)) if replies is None else (replies[0].wkc, replies[0].data)
 
-    def _wr(self, address: int, data: bytes, timeout_s: float = EC_TIMEOUTRET) -> int:
+    def write_register(self, address: int, data: bytes, timeout_s: float = EC_TIMEOUTRET) -> int:
         request = Request(Command.FPWR, self.station, address, data=bytes(data))
         replies = self._master.frames.srconfirm([request], timeout_s)
         return 0 if replies is None else replies[0].wkc
 
     def write_state(self) -> int:
-        return self._wr(0x0120, _U16.pack(self.state))
+        return self.write_register(0x0120, _U16.pack(self.state))
 
     def state_check(self, expected_state: int, timeout: int = 2000) -> int:
         clock, deadline = self._master.clock, self._master.clock() + timeout / 1e6
         while True:
-            wkc, data = self._rd(0x0130, 2)
+            wkc, data = self.read_register(0x0130, 2)
             state = _U16.unpack(data)[0] if wkc else 0
             self.state = state
             if state == expected_state or clock() >= deadline:
@@ -207,14 +207,14 @@ class FakeSoemSlave:
 
     def dc_sync(self, act: bool, sync0_cycle_time: int, sync0_shift_time: int = 0, sync1_cycle_time=None) -> None:
         """ecx_dcsync0."""
-        self._wr(0x0981, b"\x00")
-        self._wr(0x0980, b"\x00")
-        _wkc, data = self._rd(0x0910, 8)
+        self.write_register(0x0981, b"\x00")
+        self.write_register(0x0980, b"\x00")
+        _wkc, data = self.read_register(0x0910, 8)
         now = _U64.unpack(data)[0]
         start = ((now + 100_000_000) // sync0_cycle_time) * sync0_cycle_time + sync0_cycle_time
-        self._wr(0x0990, _U64.pack(start))
-        self._wr(0x09A0, _U32.pack(sync0_cycle_time))
-        self._wr(0x0981, b"\x03" if act else b"\x00")
+        self.write_register(0x0990, _U64.pack(start))
+        self.write_register(0x09A0, _U32.pack(sync0_cycle_time))
+        self.write_register(0x0981, b"\x03" if act else b"\x00")
 
     def recover(self, timeout: int = 500) -> int:
         """ecx_recover_slave: its station address read by position; a slave found without one gets it back."""
@@ -238,7 +238,7 @@ class FakeSoemSlave:
         _out_start, _out_size, in_start, in_size = self.mailbox
         deadline = clock() + timeout_s
         while True:
-            wkc, data = self._rd(0x080D, 2)
+            wkc, data = self.read_register(0x080D, 2)
             sm_stat = _U16.unpack(data)[0]
             full = wkc > 0 and sm_stat & 0x08
             if not full and timeout_s > EC_LOCALDELAY:
@@ -248,7 +248,7 @@ class FakeSoemSlave:
         if not full:
             return 0, b""
         while True:
-            wkc, message = self._rd(in_start, in_size)
+            wkc, message = self.read_register(in_start, in_size)
             if wkc > 0 and message[5] & 0x0F == 0x03 and len(message) >= 8 and message[7] >> 4 == 0x01:
                 code = _U16.unpack_from(message, 8)[0]
                 for callback in self._callbacks:
@@ -256,13 +256,13 @@ class FakeSoemSlave:
                 wkc = 0
             elif wkc <= 0:  # read mailbox lost: toggle the repeat request in the status word just read
                 sm_stat ^= 0x0200
-                self._wr(0x080D, _U16.pack(sm_stat))
+                self.write_register(0x080D, _U16.pack(sm_stat))
                 while clock() < deadline:
-                    wkc2, control = self._rd(0x080F, 1)
+                    wkc2, control = self.read_register(0x080F, 1)
                     if wkc2 > 0 and control[0] & 0x02 == (sm_stat >> 8) & 0x02:
                         break
                 while clock() < deadline:
-                    wkc2, data = self._rd(0x080D, 2)
+                    wkc2, data = self.read_register(0x080D, 2)
                     sm_stat = _U16.unpack(data)[0]
                     if wkc2 > 0 and sm_stat & 0x08:
                         break
@@ -276,7 +276,7 @@ class FakeSoemSlave:
         out_start, out_size, _in_start, _in_size = self.mailbox
         deadline = clock() + EC_TIMEOUTTXM
         while True:
-            wkc, data = self._rd(0x0805, 1)
+            wkc, data = self.read_register(0x0805, 1)
             if wkc > 0 and not data[0] & 0x08:
                 break
             if clock() >= deadline:
@@ -284,7 +284,7 @@ class FakeSoemSlave:
             clock.sleep(EC_LOCALDELAY)
         self.mbx_cnt = self.mbx_cnt % 7 + 1
         message = struct.pack("<HHBB", len(payload), 0, 0, 0x03 | (self.mbx_cnt << 4)) + payload
-        return self._wr(out_start, message.ljust(out_size, b"\0"), EC_TIMEOUTRET3)
+        return self.write_register(out_start, message.ljust(out_size, b"\0"), EC_TIMEOUTRET3)
 
     def _sdo(self, payload: bytes, index: int, sub: int, timeout_s: float) -> bytes:
         self._mbxreceive(0.0)  # empty the slave's read mailbox first
@@ -405,14 +405,14 @@ class FakeSoemMaster:
             address = Request(Command.APWR, (-k) & 0xFFFF, 0x0010, data=_U16.pack(slave.station))
             frames.srconfirm([address], EC_TIMEOUTRET3)
             out_start, out_size, in_start, in_size = slave.mailbox
-            slave._wr(0x0800, struct.pack("<HHBBBB", out_start, out_size, 0x26, 0, 1, 0)
+            slave.write_register(0x0800, struct.pack("<HHBBBB", out_start, out_size, 0x26, 0, 1, 0)
                       + struct.pack("<HHBBBB", in_start, in_size, 0x22, 0, 1, 0), EC_TIMEOUTRET3)
-            slave._wr(0x0120, _U16.pack(pysoem.PREOP_STATE | pysoem.STATE_ACK), EC_TIMEOUTRET3)
+            slave.write_register(0x0120, _U16.pack(pysoem.PREOP_STATE | pysoem.STATE_ACK), EC_TIMEOUTRET3)
         return count if count else -1 if replies is None else 0
 
     def read_state(self) -> int:
         for slave in self.slaves:
-            wkc, data = slave._rd(0x0130, 6)
+            wkc, data = slave.read_register(0x0130, 6)
             slave.state = _U16.unpack_from(data)[0] if wkc else pysoem.NONE_STATE
             slave.al_status = _U16.unpack_from(data, 4)[0] if wkc else slave.al_status
         return min((s.state for s in self.slaves), default=0)
@@ -446,10 +446,13 @@ class FakeSoemMaster:
             out_bytes, in_bytes = (slave.obits + 7) // 8, (slave.ibits + 7) // 8
             slave.output, slave.input = bytes(out_bytes), bytes(in_bytes)
             outputs_at = max(0x1100, slave.mailbox[0] + 2 * slave.mailbox[1])
-            slave._wr(0x0810, struct.pack("<HHBBBB", outputs_at, out_bytes, 0x64, 0, 1 if out_bytes else 0, 0))
-            slave._wr(0x0818, struct.pack("<HHBBBB", outputs_at + 0x80, in_bytes, 0x20, 0, 1 if in_bytes else 0, 0))
-            slave._wr(0x0600, struct.pack("<IHBBHBBBxxx", log_out, out_bytes, 0, 7, outputs_at, 0, 2, 1))
-            slave._wr(0x0610, struct.pack("<IHBBHBBBxxx", log_in, in_bytes, 0, 7, outputs_at + 0x80, 0, 1, 1))
+            sm2 = struct.pack("<HHBBBB", outputs_at, out_bytes, 0x64, 0, 1 if out_bytes else 0, 0)
+            sm3 = struct.pack("<HHBBBB", outputs_at + 0x80, in_bytes, 0x20, 0, 1 if in_bytes else 0, 0)
+            slave.write_register(0x0810, sm2)
+            slave.write_register(0x0818, sm3)
+            slave.write_register(0x0600, struct.pack("<IHBBHBBBxxx", log_out, out_bytes, 0, 7, outputs_at, 0, 2, 1))
+            slave.write_register(0x0610,
+                                 struct.pack("<IHBBHBBBxxx", log_in, in_bytes, 0, 7, outputs_at + 0x80, 0, 1, 1))
             log_out += out_bytes
             log_in += in_bytes
         self._image_out, self._image_in = out_total, log_in - out_total
@@ -464,12 +467,12 @@ class FakeSoemMaster:
         self.frames.srconfirm([Request(Command.BWR, 0, 0x0900, data=bytes(4))], EC_TIMEOUTRET3)
         reference = None
         for slave in self.slaves:
-            _wkc, data = slave._rd(0x0918, 8)
+            _wkc, data = slave.read_register(0x0918, 8)
             local = _U64.unpack(data)[0]
             if reference is None:
                 reference = local
-            slave._wr(0x0920, _U64.pack((reference - local + 700 * slave.position) % (1 << 64)))
-            slave._wr(0x0928, _U32.pack(700 * slave.position))
+            slave.write_register(0x0920, _U64.pack((reference - local + 700 * slave.position) % (1 << 64)))
+            slave.write_register(0x0928, _U32.pack(700 * slave.position))
         return True
 
     # ---- the cycle ------------------------------------------------------------------------------------------

@@ -435,6 +435,7 @@ class Dropped:
         self.on_restore_needed = None
         self.waiting = list(positions)
         self.released: list[int] = []
+        self.restored = threading.Event()
 
     def awaiting_restore(self):
         return [(p, 0) for p in self.waiting if p not in self.released]
@@ -444,26 +445,38 @@ class Dropped:
 
     def settings_restored(self, position, left_op):
         self.released.append(position)
+        self.restored.set()
+
+
+def flagged(mgr, key, timeout=30.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while key not in mgr.flags:
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
 
 
 def test_a_slave_back_from_a_power_loss_gets_window_gate_and_the_current_modes_gains_again(robot, gains):
-    drives = DriveMailboxes()
-    mgr = make(robot, gains, drives)
-    mgr._dropped = dropped = Dropped([])
-    mgr.arm()
-    mgr.apply(Mode.STANDBY)
+    drives, topics, mgr = on_topics(robot, gains)
+    dropped = Dropped([])
+    topics.publish(CONTROL_MODE, ControlMode("STANDBY", "standby_controller"))
+    mgr.start(topics, lambda: True, dropped=dropped)
+    assert mgr.wait_idle(5.0) and mgr.wait_checked(5.0) and mgr.flags == {}
     chosen = dict(drives.values[5])
     drives.values[5] = {"gate": 0, "pos_reg": 300, "vel_reg": 94, "integral": 5, "window": FACTORY_WINDOW}
-    dropped.waiting = [5]
     drives.fail_next[5] = 100  # the restore fails: the drive stays held, and it is flagged
-    mgr._restore_dropped()
+    dropped.waiting = [5]
+    dropped.on_restore_needed()  # as the EtherCAT side says once the slave is back in OP
+    assert flagged(mgr, "erob/impedance/ring5")
     assert dropped.released == [] and dropped.restore_pending() == [5]  # still pending: the worker looks again
     assert "ring 5" in mgr.flags["erob/impedance/ring5"] and "stays held disabled" in mgr.flags["erob/impedance/ring5"]
     drives.fail_next[5] = 0
-    mgr._restore_dropped()
+    dropped.on_restore_needed()
+    assert dropped.restored.wait(30.0)
     assert dropped.released == [5] and drives.values[5] == chosen
     assert "erob/impedance/ring5" not in mgr.flags
-    names = [name for _, position, name, _ in mgr.sdo_log[-5:] if position == 5]
+    names = [name for _, position, name, _ in mgr.sdo_log if position == 5][-5:]
     assert names[:2] == ["following_window", "gate"]  # the window, then the gate, before any gain
     mgr.close()
 

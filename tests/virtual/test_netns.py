@@ -150,6 +150,7 @@ def test_a_second_master_session_finds_the_mailbox_empty(ring):
         first.config_init()
         slave = first.slaves[2]
         assert slave.sdo_read(0x1000, 0) == struct.pack("<I", 0x00020192)  # the last reply: device type
+        # private to pysoem: _fprd/_fpwr, its only raw register access, read the mailbox SyncManager's own state
         ack = slave._fprd(0x080E, 1)[0]
         slave._fpwr(0x080E, bytes([ack ^ 0x02]))  # repeat request: the reply is offered again ...
         for _ in range(1000):
@@ -162,7 +163,7 @@ def test_a_second_master_session_finds_the_mailbox_empty(ring):
     second.open(ring.master_interface)
     try:
         assert second.config_init() == SLAVES
-        assert not second.slaves[2]._fprd(0x080D, 1)[0] & 0x08  # SM1 empty
+        assert not second.slaves[2]._fprd(0x080D, 1)[0] & 0x08  # SM1 empty (private to pysoem: see above)
         assert second.slaves[2].sdo_read(0x6502, 0) == struct.pack("<I", 0x38D)  # its own answer, not the old one
     finally:
         second.close()

@@ -1,6 +1,8 @@
 """Sito wrists (DESIGN §6): ``SitoSystem.read() + write()`` cost for the four motors and the bus load at 50 Hz.
 
-The emulated wrists answer on a virtual bus in this process (a background thread at the 1 kHz firmware
+The run is put together as every run is (``runtime.session.assemble``: the registry's wrists component under one
+controller manager, started in stages); the measured calls are the component's own. The emulated wrists answer on
+a virtual bus in this process (a background thread at the 1 kHz firmware
 rate, so their work competes with the measured calls as it would not on the robot). The cost is reported
 paced at 50 Hz, as the control loop calls it (each call starts with caches cooled by the 20 ms wait), and
 back to back (warm). A sniffer on the same channel records every frame; the load is each frame's exact
@@ -19,12 +21,16 @@ import numpy as np
 
 from humanoid_prime.bench import TARGET_LOAD_PERCENT
 from humanoid_prime.config.calibration import identity_calibration
+from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.config.description import SITO_BLOCK
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.sito.bus import frame_bits
 from humanoid_prime.drivers.sito.protocol import HOST_FRAME_TYPES
 from humanoid_prime.drivers.sito.system import SitoSystem
+from humanoid_prime.runtime.registry import ComponentSettings
+from humanoid_prime.runtime.session import assemble
 from humanoid_prime.virtual.plant import InertiaPlant
 from humanoid_prime.virtual.sito import SitoEmulator
 
@@ -43,11 +49,15 @@ def bench_sito(seconds: float = 2.0) -> dict[str, object]:
     robot = load_robot()
     bitrate = robot.hardware.can.bitrate
     channel = f"sito-bench-{uuid.uuid4().hex}"
-    buses = [can.Bus(interface="virtual", channel=channel) for _ in range(3)]
-    emulator_bus, host_bus, sniffer = buses
+    buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
+    emulator_bus, sniffer = buses
     plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
     emulator = SitoEmulator.for_robot(robot, emulator_bus, plant)
-    system = SitoSystem(robot, identity_calibration(robot.hardware), update_rate=UPDATE_RATE, bus=host_bus)
+    settings = ComponentSettings(robot, identity_calibration(robot.hardware), update_rate=UPDATE_RATE,
+                                 can_interface="virtual", can_channel=channel, emulated=True)
+    manager = assemble(settings, load_controllers(robot.names), (SITO_BLOCK,), broadcaster_only=True)
+    system = manager.resources.components[0]
+    assert isinstance(system, SitoSystem)  # the registry builds the wrists as a SitoSystem
     command, state = CommandArrays(robot.n), StateArrays(robot.n)
     idx = system.indices
     command.stiffness[idx] = 20.0
@@ -57,8 +67,7 @@ def bench_sito(seconds: float = 2.0) -> dict[str, object]:
     warm: list[int] = []
     try:
         emulator.start()
-        system.configure()
-        system.activate()
+        manager.start()
         while sniffer.recv(0.0) is not None:  # activation traffic is not steady state
             pass
         start = time.monotonic()
@@ -92,7 +101,7 @@ def bench_sito(seconds: float = 2.0) -> dict[str, object]:
             system.write(0.0, command)
             warm.append(time.perf_counter_ns() - begin)
     finally:
-        system.shutdown()
+        manager.shutdown()
         emulator.stop()
         for bus in buses:
             bus.shutdown()

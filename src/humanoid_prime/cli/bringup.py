@@ -37,7 +37,7 @@ from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_text
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.impedance import RENDEZVOUS_S
+from humanoid_prime.runtime.gain_switch import RENDEZVOUS_S
 from humanoid_prime.runtime.run import run_loop
 from humanoid_prime.runtime.session import (
     BACKENDS,

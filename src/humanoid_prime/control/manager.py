@@ -1,5 +1,3 @@
-# Over 450 lines: the loop, the staged lifecycle and the switching share one lock and one state; what stands alone
-# is beside it (stats, gate, rate, resources).
 """The controller manager: one fixed-rate loop, read -> update -> write, and everything around it.
 
 - Staged start: hardware configure and activate, then the joint-state broadcaster, then ZERO_TORQUE
@@ -8,18 +6,18 @@
   the joints marked limp following), until a task controller claims them (``claim``: the hands-free
   calibration) and after it hands them back (``release``).
 - Flat switching: ``request_mode`` (any thread) is applied at the start of the next tick, after the
-  read, so the new controller activates on the live measured state. Exactly one controller is active
-  and it owns every command interface (``command_owner``); the old one is deactivated before the
-  new one activates.
+  read, so the new controller activates on the live measured state (the hand-over between threads is
+  ``LoopRequests``). Exactly one controller is active and it owns every command interface (``command_owner``);
+  the old one is deactivated before the new one activates.
 - The one gate (control/gate.py): whatever the active controller proposes is checked once per tick, against
   the bounds and the body, and only then committed to the command the hardware components write; nothing
   else can write it. A controller's plan (STANDBY's entry trajectory) is checked when it activates.
 - Fallback within one tick: a controller that raises, fails to activate (its plan refused), or whose command
-  breaks a bound, is discarded for that tick and replaced (a mode by DAMPING, then ZERO_TORQUE, then a limp
-  command; a task controller by the passive command) whose update runs in the same tick, so every write is
-  already safe. A command the body refuses holds the arms it would drive, without a fallback.
+  breaks a bound, is discarded for that tick and replaced (``FallbackChain``: a mode by DAMPING, then
+  ZERO_TORQUE, then a limp command; a task controller by the passive command) whose update runs in the same tick,
+  so every write is already safe. A command the body refuses holds the arms it would drive, without a fallback.
 - Telemetry: ``/control_mode`` on start and every mode switch; ``/safety_status`` (latched) whenever any
-  component's, controller's or the manager's flags change.
+  component's, controller's or the manager's flags change (``FlagSources``).
 """
 
 from __future__ import annotations
@@ -29,8 +27,6 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import TypedDict
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
@@ -38,11 +34,13 @@ from humanoid_prime.control._tick import OK
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
 from humanoid_prime.control.controllers.passive import PassiveController
-from humanoid_prime.control.flags import Level, SafetyFlags
+from humanoid_prime.control.fallback import FallbackChain
+from humanoid_prime.control.flags import FlagSources, Level, SafetyFlags
 from humanoid_prime.control.gate import CommandGate
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
 from humanoid_prime.control.interfaces import CommandArrays
 from humanoid_prime.control.rate import Rate
+from humanoid_prime.control.requests import LoopRequests, ModeOutcome
 from humanoid_prime.control.resources import ResourceManager
 from humanoid_prime.control.stats import LoopStats
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
@@ -50,27 +48,6 @@ from humanoid_prime.errors import ControllerError, LifecycleError, PrimeError
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
 
 SPIN_S = 0.0005  # the last part of each period is busy-waited: sleep() wakes up to ~0.1 ms late on Linux
-FALLBACK: dict[Mode, Mode | None] = {
-    Mode.LOCOMOTION: Mode.DAMPING,
-    Mode.REMOTE: Mode.DAMPING,
-    Mode.STANDBY: Mode.DAMPING,
-    Mode.DAMPING: Mode.ZERO_TORQUE,
-    Mode.ZERO_TORQUE: None,
-}
-
-
-# A fallback as the run's summary lists it.
-Fallback = TypedDict("Fallback", {"tick": int, "from": str, "to": str, "reason": str})
-
-
-@dataclass(frozen=True)
-class ModeOutcome:
-    """What became of a mode request, once the tick that applied it has run: the mode asked for, the mode
-    active at the end of that tick, and why they differ (empty when they do not)."""
-
-    requested: Mode
-    active: Mode | None
-    reason: str = ""
 
 
 class ControllerManager:
@@ -104,7 +81,6 @@ class ControllerManager:
         self.stats = LoopStats(self.period)
         self.active: Controller | None = None
         self.active_mode: Mode | None = None
-        self.fallbacks: list[Fallback] = []
         self.modes_visited: list[str] = []
         self.stages: list[tuple[str, float]] = []
         self.flags = SafetyFlags("controller_manager")
@@ -114,20 +90,12 @@ class ControllerManager:
         self.started_at: float | None = None  # the clock when ``start`` finished: the run's elapsed time counts from it
         self.resets = 0  # operator fault resets applied
         self._by_mode = {c.mode: c for c in self.controllers.values() if c.mode is not None}
+        self._fallbacks = FallbackChain(self._by_mode, self.passive, self.flags)
+        self.fallbacks = self._fallbacks.records
         self._broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
-        self._flag_sources: tuple[SafetyFlags, ...] = (*self.resources.components, *self.controllers.values(),
-                                                        self.flags)
-        self._flags_seen = -1
-        self._change_seen = -1
+        self._flag_sources = FlagSources((*self.resources.components, *self.controllers.values(), self.flags))
         self._end_of_tick: tuple[Callable[[], None], ...] = ()
-        self._lock = threading.Lock()
-        self._request: Controller | None = None
-        self._reset = False
-        self._refused: dict[Mode, str] = {}  # modes this run may not enter, and why
-        self._tickets = 0  # mode requests made; the latest one is the one applied
-        self._applying: tuple[int, Controller] | None = None  # the request applied in this tick, until it ends
-        self._outcome: tuple[int, ModeOutcome] | None = None  # the latest applied request and what came of it
-        self._applied = threading.Condition(self._lock)
+        self._requests = LoopRequests()
         self._started = False
         self._closed = False
         self._last_now: float | None = None
@@ -206,7 +174,7 @@ class ControllerManager:
     @property
     def flag_source_names(self) -> list[str]:
         """Every source of /safety_status flags, in order (the first part of each flag key)."""
-        return [source.name for source in self._flag_sources]
+        return self._flag_sources.names
 
     def add_end_of_tick(self, hook: Callable[[], None]) -> None:
         """Call ``hook`` at the end of every tick, after ``write()`` (it must be quick: it is part of the tick).
@@ -219,15 +187,12 @@ class ControllerManager:
 
     def add_flag_source(self, source: SafetyFlags) -> None:
         """Publish ``source``'s flags on /safety_status too (e.g. the eRob impedance manager)."""
-        self._flag_sources = (*self._flag_sources, source)
-        self._flags_seen = -1
-        self._change_seen = -1
+        self._flag_sources.add(source)
 
     def refuse_modes(self, modes: Sequence[Mode], reason: str) -> None:
         """From now on, requests for ``modes`` are refused with ``reason`` (e.g. a robot that is not
         calibrated may not enter a mode that moves a joint)."""
-        with self._lock:
-            self._refused.update({mode: reason for mode in modes})
+        self._requests.refuse(modes, reason)
 
     def request_mode(self, mode: Mode | str) -> int:
         """Ask for ``mode`` (thread-safe); it is applied at the start of the next tick. The latest request
@@ -237,28 +202,16 @@ class ControllerManager:
         if self.broadcaster_only:
             raise PrimeError("this run has only the joint-state broadcaster (a single-bus or calibration run); "
                              "no mode controller can be switched on")
-        with self._lock:
-            refused = self._refused.get(mode)
-            if refused is None:
-                self._request = self._by_mode[mode]
-                self._tickets += 1
-                return self._tickets
-        self.flags.set_flag("refused", f"{mode.value} refused: {refused}", Level.WARN)
-        raise PrimeError(f"{mode.value} refused: {refused}")
+        try:
+            return self._requests.ask(self._by_mode[mode])
+        except PrimeError as exc:
+            self.flags.set_flag("refused", str(exc), Level.WARN)
+            raise
 
     def wait_mode(self, ticket: int, timeout: float) -> ModeOutcome | None:
         """Wait until the tick that applied request ``ticket`` (or a later one, which superseded it) has run;
         what came of it, or None if no tick applied it within ``timeout`` seconds."""
-        with self._applied:
-            if not self._applied.wait_for(lambda: self._outcome is not None and self._outcome[0] >= ticket,
-                                          timeout):
-                return None
-            assert self._outcome is not None  # the wait above ended on it
-            applied, outcome = self._outcome
-        if applied != ticket:
-            return ModeOutcome(outcome.requested, outcome.active, f"superseded by a later request for "
-                                                                  f"{outcome.requested.value}")
-        return outcome
+        return self._requests.wait(ticket, timeout)
 
     def claim(self, controller: Controller) -> None:
         """Hand the commands to ``controller`` from the next tick on (any thread): a task of a broadcaster-only
@@ -270,16 +223,12 @@ class ControllerManager:
         if controller.lifecycle is Lifecycle.UNCONFIGURED:
             self._configure(controller)
             self.add_flag_source(controller)
-        with self._lock:
-            self._request = controller
-            self._tickets += 1
+        self._requests.ask(controller)
 
     def release(self, controller: Controller) -> None:
         """``controller`` hands the commands back to the passive command from the next tick (any thread)."""
-        with self._lock:
-            if self.passive is not None and (self.active is controller or self._request is controller):
-                self._request = self.passive
-                self._tickets += 1
+        if self.passive is not None:
+            self._requests.hand_back(controller, self.passive, self.active)
 
     def request_reset(self) -> list[str]:
         """Ask for the operator's fault reset (thread-safe), applied at the start of the next tick: every
@@ -287,16 +236,11 @@ class ControllerManager:
         again from the measured state, so a drive that comes back holds where its joint is. Returns the
         latched faults at the time of the request."""
         faults = self.resources.latched_faults()
-        with self._lock:
-            self._reset = True
+        self._requests.ask_reset()
         return faults
 
     def _apply_request(self, now: float) -> None:
-        with self._lock:
-            controller, self._request = self._request, None
-            reset, self._reset = self._reset, False
-            if controller is not None:
-                self._applying = (self._tickets, controller)
+        controller, reset = self._requests.take()
         if reset:
             self.resources.reset_faults()
             self.resets += 1
@@ -305,13 +249,6 @@ class ControllerManager:
         if controller is not None:
             self.flags.clear_flag("fallback")
             self._activate(controller, now)
-
-    def _fallback(self, controller: Controller) -> Controller | None:
-        """A mode's fallback mode; a task's, the passive command; the passive command's: none."""
-        if controller.mode is not None:
-            fallback = FALLBACK[controller.mode]
-            return None if fallback is None else self._by_mode[fallback]
-        return None if controller is self.passive else self.passive
 
     def _activate(self, controller: Controller, now: float) -> None:
         """Make ``controller`` active on the current measured state, its plan checked by the gate; a controller
@@ -328,11 +265,11 @@ class ControllerManager:
                 if activated:
                     with contextlib.suppress(Exception):
                         controller.on_deactivate()
-                fallback = self._fallback(controller)
+                fallback = self._fallbacks.after(controller)
                 if fallback is None:
                     raise
-                self._record_fallback(controller, fallback, f"{controller.name} could not activate: "
-                                                            f"{_describe(exc)}")
+                self._fallbacks.record(self.tick_count, controller, fallback,
+                                       f"{controller.name} could not activate: {_describe(exc)}")
                 controller = fallback
                 continue
             controller.lifecycle = Lifecycle.ACTIVE
@@ -374,11 +311,6 @@ class ControllerManager:
         active = self.active
         return active.name if active is not None and active.claims_commands else None
 
-    def _record_fallback(self, failed: Controller, to: Controller, reason: str) -> None:
-        names = [c.mode.value if c.mode is not None else c.name for c in (failed, to)]
-        self.fallbacks.append({"tick": self.tick_count, "from": names[0], "to": names[1], "reason": reason})
-        self.flags.set_flag("fallback", f"{reason}; fell back from {names[0]} to {names[1]}")
-
     # ---- the loop --------------------------------------------------------------------------------
 
     def tick(self, now: float | None = None) -> None:
@@ -394,15 +326,15 @@ class ControllerManager:
         self._last_now = now
         resources = self.resources
         resources.read(now)
-        if self._request is not None or self._reset:
+        if self._requests.waiting:
             self._apply_request(now)
         self._broadcast(now, dt)
         if self.active is not None:
             self._update(now, dt)
         resources.write(now)
         self._publish_safety(now)
-        if self._applying is not None:
-            self._tell_outcome()
+        if self._requests.taken:
+            self._requests.tell(self.active_mode, self._fallbacks.last_reason)
         for hook in self._end_of_tick:
             hook()
         self.tick_count += 1
@@ -411,23 +343,6 @@ class ControllerManager:
             io += component.io_s
         fresh, self._fresh_schedule = self._fresh_schedule, False
         self.stats.record(self.clock() - began, math.nan if last is None or fresh else dt, io)
-
-    def _tell_outcome(self) -> None:
-        """The request applied in this tick has had its first update: tell ``wait_mode`` what became of it."""
-        assert self._applying is not None  # tick() calls this only while a request is being applied
-        ticket, controller = self._applying
-        self._applying = None
-        requested = controller.mode
-        if requested is None:
-            return  # a task's claim or release: no mode outcome to tell
-        active = self.active_mode
-        reason = ""
-        if active is not requested:
-            fallback = self.fallbacks[-1]["reason"] if self.fallbacks else "no mode controller is active"
-            reason = f"fell back to {active.value if active is not None else 'a limp command'}: {fallback}"
-        with self._applied:
-            self._outcome = (ticket, ModeOutcome(requested, active, reason))
-            self._applied.notify_all()
 
     def _broadcast(self, now: float, dt: float) -> None:
         broadcaster = self._broadcaster
@@ -443,14 +358,14 @@ class ControllerManager:
         while reason is not None:
             failed = self.active
             assert failed is not None  # tick() updates only while a controller is active
-            fallback = self._fallback(failed)
+            fallback = self._fallbacks.after(failed)
             if fallback is None:
                 # Last resort: limp on every joint, target left on the last valid command.
-                self._record_fallback(failed, failed, f"{reason}; writing a limp command")
+                self._fallbacks.record(self.tick_count, failed, failed, f"{reason}; writing a limp command")
                 gate.propose()
                 self._proposal.data[1:] = 0.0
                 break
-            self._record_fallback(failed, fallback, reason)
+            self._fallbacks.record(self.tick_count, failed, fallback, reason)
             self._activate(fallback, now)
             gate.propose()
             reason = self._run_active(now, dt)
@@ -478,23 +393,10 @@ class ControllerManager:
         return f"{controller.name}: {self.bounds.refusal(found, row, col, self._proposal.data[row, col])}"
 
     def _publish_safety(self, now: float) -> None:
-        change = SafetyFlags.last_change
-        if change == self._change_seen:
-            return  # no source anywhere has changed its flags since the last look
-        self._change_seen = change
-        version = 0
-        for source in self._flag_sources:
-            version += source.flags_version
-        if version == self._flags_seen:
-            return
-        self._flags_seen = version
-        flags: dict[str, str] = {}
-        levels: dict[str, Level] = {}
-        for source in self._flag_sources:
-            for key, text in dict(source.flags).items():
-                flags[f"{source.name}/{key}"] = text
-                levels[f"{source.name}/{key}"] = source.levels.get(key, Level.ERROR)
-        self.topics.publish(SAFETY_STATUS, SafetyStatus(ok=not flags, flags=flags, levels=levels, stamp=now))
+        merged = self._flag_sources.changed()
+        if merged is not None:
+            flags, levels = merged
+            self.topics.publish(SAFETY_STATUS, SafetyStatus(ok=not flags, flags=flags, levels=levels, stamp=now))
 
     def run(self, duration: float | None = None, stop: threading.Event | None = None,
             on_tick: Callable[[ControllerManager], None] | None = None,

@@ -30,7 +30,8 @@ per mode, not per tick (DESIGN §2, §3). The manager:
   puts back the following-error window.
 
 Mode changes arrive on ``/control_mode`` in the control loop's thread; they are queued and applied
-by a worker thread, newest first (an intermediate mode nobody is in any more is skipped).
+by a worker thread, newest first (an intermediate mode nobody is in any more is skipped). What is done on one
+drive is ``DriveSettings`` (``drive_settings.py``); the parts of one switch, ``gain_switch.py``.
 """
 
 from __future__ import annotations
@@ -40,132 +41,27 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
-from typing import Protocol, TypedDict, TypeVar, cast
+from typing import Protocol, TypeVar, cast
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level, SafetyFlags
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, ControlMode, TopicBus
-from humanoid_prime.drivers.erob.gains import ErobRegisters, following_window_counts, gains_to_registers, write_order
-from humanoid_prime.drivers.erob.objects import (
-    BUS_GAIN_GATE,
-    FOLLOWING_ERROR_WINDOW,
-    POS_LOOP_GAIN,
-    VEL_LOOP_GAIN,
-    VEL_LOOP_INTEGRAL,
-)
+from humanoid_prime.drivers.erob.gains import following_window_counts, gains_to_registers
 from humanoid_prime.drivers.ethercat.priority import HELPER_PRIORITY, raise_thread
 from humanoid_prime.drivers.ethercat.ring import SlaveInfo
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.drive_settings import DriveSettings, Problem
+from humanoid_prime.runtime.gain_switch import RENDEZVOUS_S, Rendezvous, SlaveSwitch, SwitchReport
 
 _T = TypeVar("_T")
 
-
-class SlaveSwitchDict(TypedDict):
-    """``SlaveSwitch.as_dict``: one slave's part of a switch, in the reports and the control socket's answer."""
-
-    joint: str
-    position: int
-    written: dict[str, int]
-    read_back: dict[str, int] | None
-    retries: int
-    seconds: float
-    al_state: str | None
-    ok: bool
-    problem: str | None
-
-
-class SwitchReportDict(TypedDict):
-    """``SwitchReport.as_dict``."""
-
-    mode: str
-    wall_seconds: float
-    skew_seconds: float
-    retries: int
-    together: bool
-    ok: bool
-    read_back: str  # "done" or "pending"
-    failed: dict[str, str]  # joint -> its problem
-    slaves: list[SlaveSwitchDict]
-
-
-@dataclass
-class SlaveSwitch:
-    """One slave's part of a mode switch: what was written, when it finished, how it ended, its AL state read right
-    after the switch, and what its registers read back afterwards (filled in by the background read-back)."""
-
-    position: int
-    joint: str
-    writes: tuple[tuple[str, int], ...]
-    retries: int
-    finished_s: float  # seconds after the switch started
-    error: str | None = None
-    mode: str = ""
-    al_state: str | None = None  # None: not read (no ring states where the manager's SDOs go)
-    read_back: dict[str, int] | None = None  # pos_reg, vel_reg, integral as the drive holds them
-    read_back_error: str | None = None  # why they could not be read, or how they differ from what was written
-
-    @property
-    def problem(self) -> str | None:
-        """Why this slave's part of the switch is not ok (None: it is, as far as known yet)."""
-        if self.error:
-            return self.error
-        if self.al_state is not None and self.al_state != "OP":
-            return f"{self.mode} switch: the slave is in {self.al_state} after it, not OP"
-        return self.read_back_error
-
-    def as_dict(self) -> SlaveSwitchDict:
-        return {"joint": self.joint, "position": self.position, "written": dict(self.writes),
-                "read_back": self.read_back, "retries": self.retries, "seconds": self.finished_s,
-                "al_state": self.al_state, "ok": self.problem is None, "problem": self.problem}
-
-
-@dataclass
-class SwitchReport:
-    mode: str
-    wall_seconds: float
-    skew_seconds: float
-    retries: int
-    slaves: tuple[SlaveSwitch, ...]
-    together: bool  # every slave met the others before its last write (``Rendezvous``)
-    checked: threading.Event = field(default_factory=threading.Event, repr=False)  # the read-back is done
-
-    @property
-    def ok(self) -> bool:
-        """Every slave written, in OP after the switch, and (once read back) holding what was written."""
-        return all(s.problem is None for s in self.slaves)
-
-    def as_dict(self) -> SwitchReportDict:
-        return {
-            "mode": self.mode,
-            "wall_seconds": self.wall_seconds,
-            "skew_seconds": self.skew_seconds,
-            "retries": self.retries,
-            "together": self.together,
-            "ok": self.ok,
-            "read_back": "done" if self.checked.is_set() else "pending",
-            "failed": {s.joint: s.problem for s in self.slaves if s.problem},
-            "slaves": [s.as_dict() for s in self.slaves],
-        }
-
-
-RETRY_BACKOFF_S = 0.005
-# The longest the slaves of a switch wait for the slowest before their last write: one tick at 50 Hz, the time a
-# whole switch is allowed. A slave that is retrying or gone lets the others go after that.
-RENDEZVOUS_S = 0.02
 # While a held drive waits for its settings (after a failed restore too), the worker also looks this often.
 # Otherwise it sleeps until a mode change or the EtherCAT side's word that a held drive waits: a thread that wakes
 # on a timer can be preempted by a busy machine while it holds the interpreter, and the control loop then waits.
 RESTORE_RETRY_S = 0.5
 _RESTORE = "restore"  # on the worker's queue: look for held drives whose settings wait
-# The following-error window admits this much more than the sag of a joint holding its effort limit at the
-# stiffest mode's nominal kp: the drive realises about 0.7x the nominal stiffness (DESIGN §2), 1/0.7 = 1.43.
-WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
-
-_NAMES = {POS_LOOP_GAIN: "pos_reg", VEL_LOOP_GAIN: "vel_reg", VEL_LOOP_INTEGRAL: "integral"}
-_LOGGED = {**_NAMES, BUS_GAIN_GATE: "gate", (FOLLOWING_ERROR_WINDOW, 0x00): "following_window"}
 
 
 class DroppedDrives(Protocol):
@@ -179,46 +75,6 @@ class DroppedDrives(Protocol):
     def restore_pending(self) -> list[int]: ...
 
     def settings_restored(self, position: int, left_op: int) -> None: ...
-
-
-class Rendezvous:
-    """Where the workers of one parallel switch meet before each one's last write.
-
-    Ten workers started together do not start together: on two cores the last one starts milliseconds after the
-    first, and the first may have finished by then. Met before the last write, they send it within a
-    fraction of that (the skew of ``prime bench``). ``meet`` returns for everybody once every party has
-    arrived, or once ``timeout`` has passed since the first waited; ``together`` says which.
-
-    It costs wall time: the first drive's new gains wait for the slowest worker's earlier writes. On the emulated
-    robot with frames polled (48 switches each way) the skew's median fell from 6.9 to 5.0 ms and the wall's rose
-    from 11.2 to 14.7 ms; switches within both targets (skew <= 5 ms, wall <= 20 ms) went from 7 to 26.
-    """
-
-    def __init__(self, parties: int, timeout: float = RENDEZVOUS_S) -> None:
-        self._barrier = threading.Barrier(parties, timeout=timeout) if parties > 1 else None
-        self.together = True
-
-    def meet(self) -> None:
-        if self._barrier is None:
-            return
-        try:
-            self._barrier.wait()
-        except threading.BrokenBarrierError:  # the wait ran out; late arrivals find the barrier broken at once
-            self.together = False
-
-
-@dataclass
-class _Slave:
-    joint: str
-    position: int
-    kt: float
-    gear: float
-    window_counts: int | None  # the following-error window this run needs; None: leave the drive's
-    registers: ErobRegisters | None = None  # what the drive holds now; None = unknown
-    gate_armed: bool = False
-    factory_window: int | None = None  # the drive's own window, put back on close
-    written: int = 0  # gain writes so far: a read-back that finds this moved on is for an older switch
-    lock: threading.Lock = field(default_factory=threading.Lock)
 
 
 class RingStates(Protocol):
@@ -236,22 +92,23 @@ class ImpedanceManager(SafetyFlags):
                  rendezvous_s: float = RENDEZVOUS_S, states: RingStates | None = None) -> None:
         super().__init__("erob_impedance_manager")
         hw = robot.hardware
-        self.sdo = sdo
         self.states = states if states is not None else (
             cast(RingStates, sdo) if callable(getattr(sdo, "read_states", None)) else None)
         self.parallel = parallel
-        self.retries = retries
         self.clock = clock
         self.rendezvous_s = rendezvous_s
         self.mode_gains = dict(mode_gains)
-        self.slaves = [_Slave(j, hw.erob_slaves[j], hw.erob_kt[j], hw.erob_gear[j],
-                              following_window_counts(robot.joints[robot.index(j)].effort_limit, mode_gains))
+        self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
+        self._closing = threading.Event()
+        objects = SizedSdo(sdo)
+        self.slaves = [DriveSettings(j, hw.erob_slaves[j], objects,
+                                     following_window_counts(robot.joints[robot.index(j)].effort_limit, mode_gains),
+                                     retries=retries, closing=self._closing, log=self.sdo_log, clock=clock)
                        for j in hw.erob_joints]
-        self.objects = SizedSdo(sdo)
         self.targets = {
-            mode: {s.position: gains_to_registers(kp, kd, kt=s.kt, gear=s.gear,
-                                                  efficiency=hw.erob_torque_efficiency[s.joint])
-                   for s in self.slaves}
+            mode: {hw.erob_slaves[j]: gains_to_registers(kp, kd, kt=hw.erob_kt[j], gear=hw.erob_gear[j],
+                                                         efficiency=hw.erob_torque_efficiency[j])
+                   for j in hw.erob_joints}
             for mode, (kp, kd) in self.mode_gains.items()
         }
         self.reports: list[SwitchReport] = []
@@ -260,7 +117,6 @@ class ImpedanceManager(SafetyFlags):
         self.mode: Mode | None = None  # the mode whose gains were last applied
         self._by_position = {s.position: s for s in self.slaves}
         self._dropped: DroppedDrives | None = None
-        self.sdo_log: list[tuple[float, int, str, int]] = []  # (t, position, register, value), for reports
         # helpers of the ring: real-time below the loop where permitted (master.HELPER_PRIORITY says why)
         self._pool = ThreadPoolExecutor(max_workers=len(self.slaves), thread_name_prefix="erob-sdo",
                                         initializer=raise_thread, initargs=(HELPER_PRIORITY,)) \
@@ -274,7 +130,6 @@ class ImpedanceManager(SafetyFlags):
         self._worker: threading.Thread | None = None
         self._joint_states_seen = threading.Event()
         self._arming_done = threading.Event()
-        self._closing = False
         self._topics: TopicBus | None = None
         self._busy = threading.Lock()
         self._idle = threading.Condition()
@@ -363,26 +218,8 @@ class ImpedanceManager(SafetyFlags):
         with self._idle:
             return self._idle.wait_for(lambda: self._done >= self._submitted, timeout)
 
-    # ------------------------------------------------------------------------------------- bus
-    def _write(self, slave: _Slave, address: tuple[int, int], value: int) -> int:
-        """Write one object with bounded retries; returns the retries used, raises the last error."""
-        for attempt in range(self.retries + 1):
-            try:
-                self.objects.write(slave.position, address, value)
-                self.sdo_log.append((self.clock(), slave.position, _LOGGED[address], value))
-                return attempt
-            except Exception:
-                if attempt == self.retries:
-                    raise
-                time.sleep(RETRY_BACKOFF_S * (attempt + 1))  # a recovering slave needs a moment, not a burst
-        return self.retries
-
-    def _read_registers(self, slave: _Slave) -> ErobRegisters:
-        read = self.objects.read
-        return ErobRegisters(pos_reg=read(slave.position, POS_LOOP_GAIN), vel_reg=read(slave.position, VEL_LOOP_GAIN),
-                             integral=read(slave.position, VEL_LOOP_INTEGRAL))
-
-    def _each(self, fn: Callable[[_Slave], _T]) -> list[_T]:
+    # ---------------------------------------------------------------------------------- switching
+    def _each(self, fn: Callable[[DriveSettings], _T]) -> list[_T]:
         if self._pool is not None:
             return list(self._pool.map(fn, self.slaves))
         return [fn(s) for s in self.slaves]
@@ -390,35 +227,11 @@ class ImpedanceManager(SafetyFlags):
     def arm(self) -> None:
         """On every slave: the following-error window first, then the gate to 1, then learn what the gain
         registers hold. Nothing once ``close`` has begun."""
-        if self._closing:
+        if self._closing.is_set():
             return
         self.armed = True  # from here on, close() resets the gate and the window on every slave
-        for slave, problem in zip(self.slaves, self._each(self._arm_one), strict=True):
+        for slave, problem in zip(self.slaves, self._each(DriveSettings.arm), strict=True):
             self._set_flag(f"erob/impedance/ring{slave.position}", problem)
-
-    def _arm_one(self, slave: _Slave, again: bool = False) -> tuple[str, Level] | None:
-        """The window, then the gate; ``again`` for a slave whose drive may have lost both (back from a drop)."""
-        with slave.lock:
-            if self._closing:  # close() resets this slave after us, or has already: arm nothing
-                return None
-            where = f"{slave.joint} (ring {slave.position})"
-            try:
-                if slave.window_counts is not None and (slave.factory_window is None or again):
-                    if slave.factory_window is None:
-                        slave.factory_window = self.objects.read(slave.position, WINDOW)
-                    self._write(slave, WINDOW, max(slave.window_counts, slave.factory_window))
-                self._write(slave, BUS_GAIN_GATE, 1)
-            except Exception as exc:
-                slave.registers = None
-                return f"{where}: gate not armed, no gains will be written until it is: {exc}", Level.ERROR
-            slave.gate_armed = True
-            try:
-                slave.registers = self._read_registers(slave)
-            except Exception as exc:  # armed; the registers are unknown, so the next switch writes all three
-                slave.registers = None
-                return f"{where}: gate armed, gain registers not read back ({exc}); all three will be written", \
-                    Level.WARN
-        return None
 
     def apply(self, mode: Mode) -> SwitchReport:
         """Write ``mode``'s registers to every slave and report the switch."""
@@ -431,7 +244,7 @@ class ImpedanceManager(SafetyFlags):
             # Each worker arrives once: before its last write, or on its way out (nothing to write, or failed).
             rendezvous = Rendezvous(len(self.slaves) if self._pool is not None else 1, self.rendezvous_s)
 
-            def switch_one(slave: _Slave) -> SlaveSwitch:
+            def switch_one(slave: DriveSettings) -> SlaveSwitch:
                 met = False
 
                 def meet() -> None:
@@ -445,31 +258,21 @@ class ImpedanceManager(SafetyFlags):
                     if not met:
                         rendezvous.meet()
 
-            def switch_slave(slave: _Slave, meet: Callable[[], None]) -> SlaveSwitch:
-                new = targets[slave.position]
+            def switch_slave(slave: DriveSettings, meet: Callable[[], None]) -> SlaveSwitch:
                 if not slave.gate_armed:  # gain writes are ignored until the gate is 1: arm it first
-                    problem = self._arm_one(slave)
+                    problem = slave.arm()
                     if problem is not None and problem[1] is Level.ERROR:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
                                            f"{mode.value} gains not applied: {problem[0]}", mode.value)
                     if not slave.gate_armed:
                         return SlaveSwitch(slave.position, slave.joint, (), 0, self.clock() - start,
                                            f"{mode.value} gains not applied: the manager is closing", mode.value)
-                written, retries, error = self._write_gains(slave, mode, new, before_last=meet)
+                written, retries, error = slave.write_gains(mode, targets[slave.position], before_last=meet)
                 return SlaveSwitch(slave.position, slave.joint, written, retries, self.clock() - start, error,
                                    mode.value)
 
             self.mode = mode
-            results = [r for r in self._each(switch_one) if isinstance(r, SlaveSwitch)]
-            finished = [r.finished_s for r in results]
-            report = SwitchReport(
-                mode=mode.value,
-                wall_seconds=max(finished, default=0.0),
-                skew_seconds=(max(finished) - min(finished)) if finished else 0.0,
-                retries=sum(r.retries for r in results),
-                slaves=tuple(results),
-                together=rendezvous.together,
-            )
+            report = SwitchReport.of(mode.value, tuple(self._each(switch_one)), rendezvous.together)
             self._confirm_op(report)
             self.reports.append(report)
             self._flag(report)
@@ -499,31 +302,17 @@ class ImpedanceManager(SafetyFlags):
 
     def _read_back(self, report: SwitchReport) -> None:
         """Read every written slave's gain registers back, in the background: the switch does not wait for it. A
-        slave whose drive holds other values is flagged, and its registers count as unknown (the next switch
-        writes all three)."""
+        slave whose drive holds other values is flagged (``DriveSettings.check``)."""
         written = {s.position: s.written for s in self.slaves}
+        want = self.targets[Mode(report.mode)]
 
         def check(r: SlaveSwitch) -> None:
-            slave = self._by_position[r.position]
-            with slave.lock:
-                if slave.written != written[r.position]:
-                    return  # a later switch wrote it meanwhile: its own read-back checks it
-                try:
-                    held = self._read_registers(slave)
-                except Exception as exc:
-                    r.read_back_error = f"gains not read back: {exc}"
-                    return
-                r.read_back = {"pos_reg": held.pos_reg, "vel_reg": held.vel_reg, "integral": held.integral}
-                want = self.targets[Mode(report.mode)][r.position]
-                if held != want:
-                    slave.registers = None
-                    r.read_back_error = (f"{report.mode} switch: gains read back as {r.read_back}, not "
-                                         f"{dict(pos_reg=want.pos_reg, vel_reg=want.vel_reg, integral=want.integral)}")
+            self._by_position[r.position].check(r, written[r.position], want[r.position])
 
         def check_all() -> None:
             raise_thread(HELPER_PRIORITY)
             try:
-                targets = [r for r in report.slaves if r.error is None and not self._closing]
+                targets = [r for r in report.slaves if r.error is None and not self._closing.is_set()]
                 if self._checks is not None:
                     list(self._checks.map(check, targets))
                 else:
@@ -534,67 +323,28 @@ class ImpedanceManager(SafetyFlags):
             finally:
                 report.checked.set()
 
-        if self._closing:
+        if self._closing.is_set():
             report.checked.set()
             return
         self._pending = [r for r in self._pending if not r.checked.is_set()] + [report]
         threading.Thread(target=check_all, name="erob-read-back", daemon=True).start()
 
-    def _write_gains(self, slave: _Slave, mode: Mode, new: ErobRegisters,
-                     before_last: Callable[[], None] | None = None
-                     ) -> tuple[tuple[tuple[str, int], ...], int, str | None]:
-        """``mode``'s registers to one armed slave, only those that change, in the safe order: (what was
-        written, retries, error or None). ``before_last`` runs before the last write."""
-        written: list[tuple[str, int]] = []
-        retries = 0
-        with slave.lock:
-            try:
-                writes = write_order(slave.registers, new)
-                for k, (address, value) in enumerate(writes):
-                    if k == len(writes) - 1 and before_last is not None:
-                        before_last()
-                    slave.written += 1
-                    retries += self._write(slave, address, value)
-                    written.append((_NAMES[address], value))
-                    slave.registers = _updated(slave.registers, address, value)
-                slave.registers = new
-                error = None
-            except Exception as exc:
-                done = ", ".join(name for name, _ in written) or "nothing"
-                error = f"{mode.value} gains not fully applied ({done} written): {exc}"
-        return tuple(written), retries, error
-
     def _restore_dropped(self) -> None:
         """Each slave back in OP after a drop: window, gate and the current mode's gains again, then the word
         that its drive may be released. A slave that fails keeps its drive held and is tried again."""
-        if self._dropped is None or self._closing or not self.armed:
+        if self._dropped is None or self._closing.is_set() or not self.armed:
             return
+        current = (self.mode, self.targets[self.mode]) if self.mode is not None else None
         for position, left_op in self._dropped.awaiting_restore():
             slave = self._by_position.get(position)
-            problem = self._restore_one(slave) if slave is not None else None
+            problem = None
+            if slave is not None:
+                problem = slave.restore((current[0], current[1][position]) if current is not None else None)
             self._set_flag(f"erob/impedance/ring{position}", problem)
-            if (problem is None or problem[1] is Level.WARN) and not self._closing:
+            if (problem is None or problem[1] is Level.WARN) and not self._closing.is_set():
                 if slave is not None:
                     self.restored.append((self.clock(), slave.joint))
                 self._dropped.settings_restored(position, left_op)
-
-    def _restore_one(self, slave: _Slave) -> tuple[str, Level] | None:
-        """Window and gate again, then the current mode's gains (all three: what the drive holds is read anew)."""
-        where = f"{slave.joint} (ring {slave.position})"
-        with slave.lock:
-            slave.gate_armed = False
-            slave.registers = None  # a drive that lost power holds its factory gains: read them again
-        problem = self._arm_one(slave, again=True)
-        if problem is not None and problem[1] is Level.ERROR:
-            return f"{problem[0]}; its drive stays held disabled", Level.ERROR
-        if not slave.gate_armed:  # closing
-            return None
-        if self.mode is None:
-            return problem
-        _written, _retries, error = self._write_gains(slave, self.mode, self.targets[self.mode][slave.position])
-        if error is not None:
-            return f"{where}: back from a drop, {error}; its drive stays held disabled", Level.ERROR
-        return None  # the registers are known again, whether or not they could be read back
 
     def wait_checked(self, timeout: float = 5.0) -> bool:
         """Block until every switch so far has been read back (for reports and tests); False on timeout."""
@@ -603,7 +353,7 @@ class ImpedanceManager(SafetyFlags):
 
     def close(self) -> list[str]:
         """Stop following modes and reset the gate to 0 on every reachable slave; returns failures."""
-        self._closing = True
+        self._closing.set()
         if self._worker is not None:
             self._queue.put(None)
             self._worker.join(timeout=5.0)
@@ -615,21 +365,7 @@ class ImpedanceManager(SafetyFlags):
             self._topics.unsubscribe(JOINT_STATES, self._on_joint_states)
         failures: list[str] = []
         if self.armed:
-            def reset(slave: _Slave) -> str | None:
-                problems = []
-                with slave.lock:
-                    try:
-                        self._write(slave, BUS_GAIN_GATE, 0)
-                    except Exception as exc:
-                        problems.append(f"gate not reset: {exc}")
-                    if slave.factory_window is not None:
-                        try:
-                            self._write(slave, WINDOW, slave.factory_window)
-                            slave.factory_window = None
-                        except Exception as exc:
-                            problems.append(f"following-error window not restored to {slave.factory_window}: {exc}")
-                return f"{slave.joint} (ring {slave.position}): " + "; ".join(problems) if problems else None
-            failures = [e for e in self._each(reset) if e]
+            failures = [e for e in self._each(DriveSettings.reset) if e]
             self.armed = False
         for pool in (self._pool, self._checks):
             if pool is not None:
@@ -637,14 +373,8 @@ class ImpedanceManager(SafetyFlags):
         self._pool = self._checks = None
         return failures
 
-    def _set_flag(self, key: str, problem: tuple[str, Level] | None) -> None:
+    def _set_flag(self, key: str, problem: Problem | None) -> None:
         if problem is None:
             self.clear_flag(key)
         else:
             self.set_flag(key, *problem)
-
-
-def _updated(regs: ErobRegisters | None, address: tuple[int, int], value: int) -> ErobRegisters | None:
-    if regs is None:
-        return None
-    return replace(regs, **{_NAMES[address]: value})

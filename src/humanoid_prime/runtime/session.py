@@ -13,7 +13,8 @@ impedance manager, put together in the order DESIGN §3 makes impossible to get 
 3. only then, with every slave in OP and joint states flowing, the impedance manager arms the gain gate
    and follows ``/control_mode``.
 
-Everything opened is registered on the caller's ExitStack; ``runtime.run`` runs the loop and tears down.
+Everything opened is registered on the caller's ExitStack; ``runtime.run`` runs the loop and tears down;
+``runtime.report`` is what the run says of itself.
 """
 
 from __future__ import annotations
@@ -25,9 +26,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, TypedDict, cast
-
-import numpy as np
+from typing import TYPE_CHECKING, cast
 
 from humanoid_prime.calibration.journal import OverrideJournal
 from humanoid_prime.calibration.limp import restore_left
@@ -52,6 +51,7 @@ from humanoid_prime.runtime.impedance import ImpedanceManager
 from humanoid_prime.runtime.readout import state_source
 from humanoid_prime.runtime.realtime import lock_memory, tighten_switch_interval
 from humanoid_prime.runtime.registry import ComponentSettings, build_components
+from humanoid_prime.runtime.report import FaultRecord, RunEnd, read_end, run_problems, run_summary
 from humanoid_prime.runtime.socket import ControlServer
 from humanoid_prime.runtime.switching import mode_switcher
 
@@ -187,34 +187,6 @@ def uncalibrated_refusal(options: BringupOptions, calibration: Calibration) -> s
 
 
 @dataclass
-class FaultRecord:
-    """One problem of the run: what, how bad, when it appeared and when it cleared (None: it held to the end),
-    in seconds since the run began."""
-
-    key: str
-    text: str
-    level: Level
-    since_s: float
-    until_s: float | None = None
-
-    def as_dict(self) -> dict[str, object]:
-        return {"key": self.key, "level": self.level.name, "text": self.text, "since_s": round(self.since_s, 3),
-                "until_s": None if self.until_s is None else round(self.until_s, 3)}
-
-
-class RunEnd(TypedDict, total=False):
-    """What held when the run ended (``Session.capture_end``); the EtherCAT and Sito parts where the run had them."""
-
-    position: dict[str, float | None]  # the last tick's joint angles, rad (None: unknown)
-    slaves: int
-    slaves_op: int
-    drives_enabled: int
-    drives_faulted: list[str]
-    sito: int
-    sito_online: int
-
-
-@dataclass
 class Session:
     """Everything a running bringup holds; ``summary()`` is the report of the run."""
 
@@ -282,82 +254,15 @@ class Session:
     def capture_end(self) -> None:
         """What holds as the run ends, read fresh from the buses before they close: slaves in OP, drives
         enabled or faulted, wrists heard from."""
-        end: RunEnd = {"position": self.final_position}
-        ethercat = self.ethercat
-        if ethercat is not None and ethercat.master is not None:
-            master = ethercat.master
-            try:
-                states = [s.al_state for s in master.read_states()]
-            except Exception as exc:  # a dead ring is an answer too
-                states = []
-                self.record_fault("ethercat/end", f"AL states not readable at the end of the run: {exc}")
-            end["slaves"] = len(master.slaves)
-            end["slaves_op"] = sum(1 for state in states if state == 0x08)
-            end["drives_enabled"] = int(np.count_nonzero(ethercat.enabled))
-            end["drives_faulted"] = [ethercat.joints[k] for k in np.flatnonzero(ethercat.faulted)]
-        if self.sito is not None:
-            silent = {key.rsplit("/", 1)[-1] for key in self.sito.flags if "/rx_timeout/" in key}
-            end["sito"] = len(self.robot.hardware.mit_joints)
-            end["sito_online"] = end["sito"] - len(silent)
-        self.end = end
+        self.end = read_end(self)
 
     @property
     def problems(self) -> list[str]:
         """Why this run is not a success, one line each (empty: every device did what it was asked)."""
-        lines = [f"{r.key} at {r.since_s:.2f} s: {r.text}" for r in self.faults if r.level is Level.ERROR]
-        end = self.end
-        if end.get("slaves_op", 0) < end.get("slaves", 0):
-            lines.append(f"{end['slaves'] - end['slaves_op']} of {end['slaves']} EtherCAT slaves not in OP at the end")
-        if end.get("drives_faulted"):
-            lines.append(f"drives in fault at the end: {', '.join(end['drives_faulted'])}")
-        if end.get("sito_online", 0) < end.get("sito", 0):
-            silent = end["sito"] - end["sito_online"]
-            lines.append(f"{silent} of {end['sito']} Sito wrists silent at the end")
-        for report in self.impedance.reports if self.impedance is not None else ():
-            failed = report.as_dict()["failed"]
-            if failed:
-                where = ", ".join(f"{joint} ({error})" for joint, error in failed.items())
-                lines.append(f"{report.mode} gains not applied on {where}")
-        lines += [f"gate not reset: {failure}" for failure in self.gate_reset_failures]
-        return lines
+        return run_problems(self)
 
     def summary(self) -> dict[str, object]:
-        stats = self.manager.stats.summary()
-        ec_bringup = None
-        if self.ethercat is not None and self.ethercat.bringup is not None:
-            ec_bringup = self.ethercat.bringup.as_dict()
-            master = self.ethercat.master
-            if master is not None:  # who worked the mailboxes, and what they dropped, by why
-                ec_bringup.update(mailbox=master.mailbox, mailbox_drops=master.mailbox_drops())
-            ec_bringup["rated_torque_nm"] = {  # 0x6076 of each drive; null: unread, nominal used
-                joint: (float(r) if math.isfinite(r) else None)
-                for joint, r in zip(self.ethercat.joints, self.ethercat.rated_torque_nm, strict=True)}
-        problems = self.problems
-        return {
-            "ok": not problems,
-            "problems": problems,
-            "backends": self.options.backends,
-            "emulate": self.options.emulated,
-            "config": self.manager.configuration,
-            "update_rate": self.manager.update_rate,
-            "bringup_seconds": self.bringup_seconds,
-            "stages": [{"name": name, "seconds": seconds} for name, seconds in self.stages],
-            "ethercat_bringup": ec_bringup,
-            "end": dict(self.end),
-            "mode_switches": [r.as_dict() for r in self.impedance.reports] if self.impedance is not None else [],
-            "modes_visited": list(self.manager.modes_visited),
-            "ticks": stats["ticks"],
-            "tick_us": stats["tick_us"],
-            "tick_cpu_us": stats["tick_cpu_us"],
-            "tick_io_us": stats["tick_io_us"],
-            "jitter_us": stats["jitter_us"],
-            "overruns": stats["overruns"],
-            "fallbacks": list(self.manager.fallbacks),
-            "refused": self.manager.gate.refused.as_dict(),
-            "faults": [r.as_dict() for r in self.faults],
-            "gate_reset_failures": list(self.gate_reset_failures),
-            **{key: value for key, value in self.reports.items()},
-        }
+        return run_summary(self)
 
 
 def assemble(settings: ComponentSettings, config: ControllersConfig, parts: Sequence[str | HardwareComponent], *,

@@ -11,7 +11,7 @@ from humanoid_prime.modes import Mode
 
 if TYPE_CHECKING:  # `prime switch` imports this module for ``describe``: nothing heavy at import
     from humanoid_prime.control.manager import ControllerManager
-    from humanoid_prime.runtime.impedance import SwitchReport, SwitchReportDict
+    from humanoid_prime.runtime.gain_switch import SwitchReport, SwitchReportDict
 
 GAINS_POLL_S = 0.01
 

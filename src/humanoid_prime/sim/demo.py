@@ -24,7 +24,8 @@ from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.description import MUJOCO_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import gain_rows, pose_array
-from humanoid_prime.control.manager import ControllerManager, Fallback
+from humanoid_prime.control.fallback import Fallback
+from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.topics import MitCommand, TopicBus
 from humanoid_prime.drivers.mujoco.system import MujocoSystem

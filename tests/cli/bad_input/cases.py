@@ -7,7 +7,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from humanoid_prime.cli import build_parser
-from humanoid_prime.cli._commands import COMMANDS
+from humanoid_prime.cli._commands import COMMANDS  # private to cli/: the suite walks every command of its table
 from humanoid_prime.files import bundled
 
 # A valid value for each positional argument, by command path and metavar (the cases replace one at a time).
@@ -24,13 +24,20 @@ PATH_TYPES = ("output_file", "output_dir", "mcap_file")
 
 
 Parsers = Iterator[tuple[tuple[str, ...], argparse.ArgumentParser]]
+# private to argparse, which has no public way to list a parser's arguments or tell subcommands apart: read here only
+SUBPARSERS = argparse._SubParsersAction
+
+
+def actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """Every argument of ``parser``, its subcommands' action included (argparse's own list, read only)."""
+    return list(parser._actions)  # private to argparse: see SUBPARSERS
 
 
 def walk(parser: argparse.ArgumentParser, path: tuple[str, ...]) -> Parsers:
     """Every parser under ``parser`` with the words that reach it."""
     yield path, parser
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
+    for action in actions(parser):
+        if isinstance(action, SUBPARSERS):
             for name, sub in action.choices.items():
                 if name not in COMMANDS or not path:  # the command's own parser, or its subcommands
                     yield from walk(sub, (*path, name))
@@ -41,16 +48,16 @@ def parsers() -> list[tuple[tuple[str, ...], argparse.ArgumentParser]]:
     found = []
     for command in sorted(COMMANDS):
         top = build_parser(command)
-        sub = next(a for a in top._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+        sub = next(a for a in actions(top) if isinstance(a, SUBPARSERS)).choices[command]
         for path, parser in walk(sub, (command,)):
             if parser.get_default("func") is not None and not any(
-                    isinstance(a, argparse._SubParsersAction) and a.required for a in parser._actions):
+                    isinstance(a, SUBPARSERS) and a.required for a in actions(parser)):
                 found.append((path, parser))
     return found
 
 
 def positionals(path: tuple[str, ...], parser: argparse.ArgumentParser) -> list[argparse.Action]:
-    return [a for a in parser._actions if not a.option_strings and not isinstance(a, argparse._SubParsersAction)
+    return [a for a in actions(parser) if not a.option_strings and not isinstance(a, SUBPARSERS)
             and a.nargs not in ("*", argparse.REMAINDER)]
 
 
@@ -62,13 +69,13 @@ def positional_values(path: tuple[str, ...], parser: argparse.ArgumentParser) ->
 
 def name(action: argparse.Action) -> str:
     """How argparse names ``action`` in its errors."""
-    return argparse._get_action_name(action) or action.dest
+    return argparse._get_action_name(action) or action.dest  # private to argparse: the name its errors use
 
 
 def typed(parser: argparse.ArgumentParser) -> list[argparse.Action]:
     """The visible arguments that convert their value (numbers, ids, words), not paths."""
-    return [a for a in parser._actions if a.type is not None and a.help != argparse.SUPPRESS
-            and getattr(a.type, "__name__", "") not in PATH_TYPES and not isinstance(a, argparse._SubParsersAction)]
+    return [a for a in actions(parser) if a.type is not None and a.help != argparse.SUPPRESS
+            and getattr(a.type, "__name__", "") not in PATH_TYPES and not isinstance(a, SUBPARSERS)]
 
 
 SENTINELS = {  # what every case's folder holds before the command runs; none of it may change

@@ -9,7 +9,7 @@ import argparse
 
 import pytest
 
-from cli.bad_input.cases import name, parsers, positional_values, positionals, typed
+from cli.bad_input.cases import actions, name, parsers, positional_values, positionals, typed
 from cli.bad_input.harness import check
 
 BAD_VALUES = {"nan": "nan", "inf": "inf", "-inf": "-inf", "-1": "-1", "1e308": "1e308", "empty": "", "word": "abc"}
@@ -36,7 +36,7 @@ def _choice_cases() -> list:
     cases = []
     for path, parser in parsers():
         given = positional_values(path, parser)
-        for action in parser._actions:
+        for action in actions(parser):
             if action.choices is None or not action.option_strings or action.help == "==SUPPRESS==":
                 continue
             for label, value in (("empty", ""), ("unknown", "bogus")):
@@ -82,7 +82,7 @@ def test_a_missing_argument_is_one_line_naming_it(folder, monkeypatch, argv, nam
 def _defaulted_options() -> list:
     cases = []
     for path, parser in parsers():
-        for action in parser._actions:
+        for action in actions(parser):
             if (action.option_strings and action.help not in (None, argparse.SUPPRESS) and action.default is not None
                     and action.default is not argparse.SUPPRESS and not isinstance(action.default, bool)
                     and action.nargs != 0):

@@ -14,7 +14,7 @@ from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
-from humanoid_prime.drivers.ethercat._tick import layouts
+from humanoid_prime.drivers.ethercat._tick import layouts  # private to the package: the compiled kernel's layouts
 from humanoid_prime.drivers.ethercat.errors import SdoRefused
 from humanoid_prime.drivers.ethercat.master import OP_REQUEST_REPEAT_S, RX_DTYPE, TX_DTYPE, next_op_requests
 from humanoid_prime.drivers.ethercat.system import EthercatSystem

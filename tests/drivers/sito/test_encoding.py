@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from humanoid_prime.drivers.sito._tick import INVALID, SitoTick
+from humanoid_prime.drivers.sito._tick import INVALID, SitoTick  # private to the package: the compiled kernel
 from humanoid_prime.drivers.sito.protocol import (
     HOST_PAYLOADS,
     INT16_MAX,

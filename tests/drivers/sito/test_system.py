@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from doubles.sito import PERIOD, SITO_IDS, wait_until
+from doubles.sito import PERIOD, SITO_IDS
 from humanoid_prime.config.calibration import JointCalibration, identity_calibration
 from humanoid_prime.config.hardware import CommandLimits
 from humanoid_prime.control.hardware import Lifecycle
@@ -278,18 +278,14 @@ def test_frames_not_yet_stored_at_the_first_read_after_a_slow_start_are_no_timeo
     is flagged once the timeout has run from that first read."""
     rig = make_rig()
     rig.activate()
-    held: list = []
-    receiver = rig.system._rx
-    receiver.on_message_received = held.append  # the receive thread gets no chance to store anything
-    sent = rig.emulator.frames_sent
+    rig.host_bus.hold()  # the receive thread gets no chance to store anything
+    received = rig.system.frames_received
     for _ in range(15):
         rig.emulator.step(PERIOD)
-    wait_until(lambda: len(held) == rig.emulator.frames_sent - sent, "the held frames to arrive")
     rig.system.read(rig.emulator.time, rig.state)  # the first tick, 300 ms after the last stored feedback
-    assert rig.system.flags == {}
-    del receiver.on_message_received  # the thread runs again and stores what waited
-    for msg in held:
-        receiver.on_message_received(msg)
+    assert rig.system.flags == {} and rig.system.frames_received == received
+    rig.host_bus.release()  # the thread runs again and stores what waited
+    rig.settle()
     rig.motor(39).silent = True
     rig.tick(9)  # 180 ms after the first read
     assert rig.system.flags == {}

@@ -170,7 +170,8 @@ def test_frames_that_arrive_during_a_step_are_answered_between_its_parts():
     ring.advance(master.now_ns + MS)  # one physics step
     # before the plant, after it, and before the timed checks
     assert [(d.wkc, d.data) for d in answered] == [(1, struct.pack("<H", 0x08))] * 3
-    assert ring._pending_frame is None  # the slaves' reaction to it ran there too, not at the next step
+    # private to the ring: no frame left for the next step to react to (the slaves' reaction ran there too)
+    assert ring._pending_frame is None
     assert checked == [master.now_ns]  # the timed checks never run at a time before a frame already answered
 
 
@@ -431,7 +432,7 @@ def test_reply_appears_after_the_mailbox_latency():
 
 def test_write_mailbox_refuses_a_second_request_while_full():
     ring, master = in_safeop(1, sync0_ns=None)
-    ring.slaves[0].esc._set_mailbox_full(0, True)
+    ring.slaves[0].esc._set_mailbox_full(0, True)  # private to the ESC: a request its firmware has not yet taken
     assert master.mailbox_write(0x1001, b"\x00" * 10).wkc == 0
 
 

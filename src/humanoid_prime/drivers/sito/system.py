@@ -1,9 +1,9 @@
 """``SitoSystem``: the four Sito wrists on CAN as one hardware component.
 
-A python-can Notifier thread keeps the latest feedback per motor; ``read`` and ``write`` only copy
-preallocated arrays and hand ready frames to the bus without waiting. Activation sends zero gains
+A python-can Notifier thread keeps the latest feedback per motor (``FeedbackReceiver``); ``read`` and ``write``
+only copy preallocated arrays and hand ready frames to the bus without waiting. Activation sends zero gains
 (limp), then enable with feedback at the bus cycle, and waits for the first feedback from every motor.
-Deactivation, interpreter exit and SIGINT/SIGTERM disable every motor.
+Deactivation, interpreter exit and SIGINT/SIGTERM (``EXIT_GUARD``) disable every motor.
 
 The bus cycle (``bus.bus_cycle``) is the control period while the wrists' frames fit it, up to about 300 Hz:
 a command to each wrist and its two feedback frames take 1.6 to 1.9 ms of a 1 Mbit/s bus. At faster control
@@ -24,14 +24,8 @@ again. Judged from activation, every wrist would time out at the first tick and 
 
 from __future__ import annotations
 
-import atexit
-import contextlib
 import math
-import os
-import signal
-import threading
 import time
-import types
 from collections.abc import Callable
 
 import can
@@ -45,123 +39,28 @@ from humanoid_prime.control.flags import Level
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import COMMAND_NAMES, CommandArrays, StateArrays
 from humanoid_prime.drivers.sito._tick import INVALID, SitoTick
-from humanoid_prime.drivers.sito.bus import CAN_ERR_BUSOFF, bus_cycle, is_interface_down, open_bus
+from humanoid_prime.drivers.sito.bus import bus_cycle, is_interface_down, open_bus
+from humanoid_prime.drivers.sito.exit_guard import EXIT_GUARD
 from humanoid_prime.drivers.sito.protocol import (
     DATA_LENGTH,
     DISABLE_PAYLOAD,
     ENABLE,
-    FEEDBACK1,
-    FEEDBACK2,
-    HOST_FRAME_TYPES,
     HOST_PAYLOADS,
-    ID_PREFIX,
-    ID_PREFIX_MASK,
     MIT_FIELDS,
     MODE_MIT,
-    UNDECODED_FEEDBACK_TYPES,
     FrameType,
     SitoModel,
     arbitration_id,
     field_range,
-    framing_problem,
     sito_model,
     wire_scales,
 )
+from humanoid_prime.drivers.sito.receiver import FeedbackReceiver
 from humanoid_prime.errors import ConfigError, PrimeError
 
-_HOST_TYPES = frozenset(int(t) for t in HOST_FRAME_TYPES)
-_FEEDBACK1 = int(FrameType.FEEDBACK1)
-_FEEDBACK2 = int(FrameType.FEEDBACK2)
-_UNDECODED = frozenset(int(t) for t in UNDECODED_FEEDBACK_TYPES)
 _LIFECYCLE_SEND_TIMEOUT_S = 0.02  # gains, enable, disable may wait for queue space; per-tick frames never do
 _NOTIFIER_POLL_S = 0.05  # how long stop() can wait for the receive thread
 _UNITS = ("rad", "rad/s", "Nm", "Nm/rad", "Nm*s/rad")  # of each command interface
-
-
-class _FeedbackReceiver(can.Listener):
-    """Runs in the Notifier thread: keeps the latest valid feedback of each motor and notes bus trouble."""
-
-    def __init__(self, can_ids: tuple[int, ...], clock: Callable[[], float]) -> None:
-        self._slot = [-1] * 256
-        for slot, can_id in enumerate(can_ids):
-            self._slot[can_id] = slot
-        self._clock = clock
-        self.lock = threading.Lock()
-        n = len(can_ids)
-        self.raw = np.zeros((3, n))  # output position counts, velocity counts/s, phase current mA
-        self.stamp = np.full((2, n), -np.inf)  # clock() of the last 0xB1 and 0xB2 per motor
-        self.frames = 0  # every frame seen, ever
-        self.reset()
-
-    def reset(self) -> None:
-        with self.lock:
-            self.raw[:] = 0.0
-            self.stamp[:] = -np.inf
-        self.invalid_frames = 0
-        self.undecoded_frames = 0  # 0xB0/0xB3 feedback: a Sito may send it; counted and ignored
-        self.last_invalid_stamp = -np.inf
-        self.last_invalid = ""
-        self.bus_off = False
-        self.down_error = ""
-
-    def on_message_received(self, msg: can.Message) -> None:
-        try:
-            self._take(msg)
-        finally:
-            self.frames += 1  # counted once stored, so frames seen by a waiter are visible to read()
-
-    def _take(self, msg: can.Message) -> None:
-        ident = msg.arbitration_id
-        if msg.is_error_frame:
-            if ident & CAN_ERR_BUSOFF:
-                self.bus_off = True
-            return
-        if not msg.is_extended_id or ident & ID_PREFIX_MASK != ID_PREFIX:
-            return  # foreign traffic
-        frame_type = ident & 0xFF
-        data = msg.data
-        problem = framing_problem(min(msg.dlc, len(data)), remote=msg.is_remote_frame, fd=msg.is_fd)
-        if problem is not None:
-            self._invalid(msg, problem)
-            return
-        if frame_type in _HOST_TYPES:
-            return  # a host frame: our own echo or another tool on the bus
-        if frame_type != _FEEDBACK1 and frame_type != _FEEDBACK2:
-            if frame_type in _UNDECODED:
-                self.undecoded_frames += 1
-            else:
-                self._invalid(msg, "unknown frame type")
-            return
-        slot = self._slot[(ident >> 8) & 0xFF]
-        if slot < 0:
-            return  # a Sito that is not ours
-        now = self._clock()
-        if frame_type == _FEEDBACK1:
-            _, _, current, velocity = FEEDBACK1.unpack_from(data)
-            with self.lock:
-                self.raw[1, slot] = velocity
-                self.raw[2, slot] = current
-                self.stamp[0, slot] = now
-        else:
-            _, output = FEEDBACK2.unpack_from(data)
-            with self.lock:
-                self.raw[0, slot] = output
-                self.stamp[1, slot] = now
-
-
-    def _invalid(self, msg: can.Message, why: str) -> None:
-        self.invalid_frames += 1
-        self.last_invalid_stamp = self._clock()
-        self.last_invalid = f"id 0x{msg.arbitration_id:08X} dlc {msg.dlc}: {why}"
-
-    def on_error(self, exc: Exception) -> None:
-        if is_interface_down(exc):
-            self.down_error = str(exc) or type(exc).__name__
-            time.sleep(_NOTIFIER_POLL_S)  # a dead interface fails every recv at once; do not spin
-        else:
-            self.invalid_frames += 1
-            self.last_invalid_stamp = self._clock()
-            self.last_invalid = f"undecodable frame: {exc}"
 
 
 class SitoSystem(HardwareComponent):
@@ -193,7 +92,7 @@ class SitoSystem(HardwareComponent):
         self.gain_refresh_s = gain_refresh_s
         self._interface, self._bus, self._owns_bus, self._clock = interface, bus, bus is None, clock
         self._notifier: can.Notifier | None = None
-        self._rx = _FeedbackReceiver(self.can_ids, clock)
+        self._rx = FeedbackReceiver(self.can_ids, clock)
         self.frames_sent = self.send_failures = 0
         self._ticks_to_send = 0  # ticks until the next bus cycle's commands (0: this one)
         self._listening_since: float | None = None  # clock() of the first read since activation
@@ -261,7 +160,7 @@ class SitoSystem(HardwareComponent):
         self._ticks_to_send = 0
         self._rx.reset()
         self._notifier = can.Notifier(self._open_bus, [self._rx], timeout=_NOTIFIER_POLL_S)
-        _EXIT_GUARD.add(self)
+        EXIT_GUARD.add(self)
         try:
             now = self._clock()
             self._tick.payloads["gains"] = 0  # activation gains are zero: the wrists start limp
@@ -288,7 +187,7 @@ class SitoSystem(HardwareComponent):
         try:
             self.disable_motors()
         finally:
-            _EXIT_GUARD.remove(self)
+            EXIT_GUARD.remove(self)
             if self._notifier is not None:
                 self._notifier.stop(timeout=2 * _NOTIFIER_POLL_S + 1.0)
                 self._notifier = None
@@ -469,59 +368,3 @@ def check_wire_limits(robot: Robot, model: str | SitoModel = "TA40-50", calibrat
             raise ConfigError(robot.hardware.path, f"command_limits.sito.{name}",
                               f"{getattr(limits, name):g} {_UNITS[row]} is beyond what the Sito wire carries "
                               f"({reach:.6g} {_UNITS[row]})", f"use at most {math.floor(reach * 100) / 100:g}")
-
-
-# what signal.getsignal returns
-_Handler = Callable[[int, types.FrameType | None], object] | int | None
-
-
-class _ExitGuard:
-    """Disables every active SitoSystem's motors at interpreter exit and on SIGINT/SIGTERM.
-
-    A signal handler sends from a helper thread so it can never deadlock on a lock the interrupted
-    main thread holds; then the previous handler runs as it would have.
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self._systems: set[SitoSystem] = set()  # strong: an active system must outlive its last user
-        self._previous: dict[int, _Handler] = {}
-        self._lock = threading.Lock()
-        atexit.register(self.disable_all)
-
-    def add(self, system: SitoSystem) -> None:
-        with self._lock:
-            self._systems.add(system)
-            if threading.current_thread() is threading.main_thread() and not self._previous:
-                for signum in self.SIGNALS:
-                    self._previous[signum] = signal.getsignal(signum)
-                    signal.signal(signum, self._on_signal)
-
-    def remove(self, system: SitoSystem) -> None:
-        with self._lock:
-            self._systems.discard(system)
-            if not self._systems and self._previous and threading.current_thread() is threading.main_thread():
-                for signum, previous in self._previous.items():
-                    if signal.getsignal(signum) == self._on_signal:
-                        signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
-                self._previous.clear()
-
-    def disable_all(self) -> None:
-        for system in list(self._systems):
-            system.disable_motors()
-
-    def _on_signal(self, signum: int, frame: types.FrameType | None) -> None:
-        worker = threading.Thread(target=self.disable_all, name="sito-disable", daemon=True)
-        worker.start()
-        worker.join(1.0)
-        previous = self._previous.get(signum, signal.SIG_DFL)
-        if callable(previous):
-            previous(signum, frame)
-        elif previous != signal.SIG_IGN:
-            signal.signal(signum, signal.SIG_DFL)
-            with contextlib.suppress(OSError):
-                os.kill(os.getpid(), signum)
-
-
-_EXIT_GUARD = _ExitGuard()

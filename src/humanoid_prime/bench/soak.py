@@ -25,7 +25,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import TypedDict
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from humanoid_prime.runtime.session import (
     plan_session,
 )
 from humanoid_prime.virtual.ring.control import RingControl
+
+if TYPE_CHECKING:
+    from humanoid_prime.virtual.harness import EmulatorRecord
 
 # the demonstration's order: every mode is entered from one whose pose is near its own
 MODE_CYCLE = (Mode.ZERO_TORQUE, Mode.DAMPING, Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE, Mode.STANDBY, Mode.DAMPING)
@@ -240,7 +243,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
     options = BringupOptions(emulated=True, duration=minutes * 60.0, update_rate=rate, realtime=True, cpu=cpu,
                              hardware_file=hardware_file, control_socket=None)
     stop = threading.Event()
-    emulator: dict[str, object] = {}
+    emulator: EmulatorRecord = {}
     load_process = None
     with contextlib.ExitStack() as stack:
         plan = plan_session(options)
@@ -299,7 +302,6 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
     late = np.flatnonzero((stats.costs[:k] > 2 * stats.period) | (periods > 2 * stats.period))
     since_start = np.nancumsum(periods)  # seconds from the first tick (ring not wrapped at 50 Hz for 20 min)
     slaves = emulator.get("slaves", [])  # as the drives had it at the end (``attach_virtual_prime``)
-    assert isinstance(slaves, list)
     tick_us = stats.tick_us()
     return {
         "minutes": minutes,

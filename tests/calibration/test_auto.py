@@ -151,11 +151,15 @@ def setup(robot):
     return load_controllers(robot.names), load_calibration(robot.hardware), truth
 
 
+def _moving(auto_run, joint: str):
+    return next((run for run in auto_run.moving if run.name == joint), None)
+
+
 def _approaching(auto_run, joint: str, past_rad: float = 0.2) -> bool:
-    moving = auto_run.moving
+    moving = _moving(auto_run, joint)
     segment = moving.segment if moving is not None else None
-    return (moving is not None and moving.name == joint and isinstance(segment, approach.Approach)
-            and segment.phase == "moving" and abs(segment.target - segment.start_target) > past_rad)
+    return (isinstance(segment, approach.Approach) and segment.phase == "moving"
+            and segment.search.along(segment.target) > past_rad)
 
 
 def test_a_drive_fault_mid_approach_stops_the_run_with_its_gains_restored(robot, setup):
@@ -246,7 +250,7 @@ def test_the_calibration_is_the_controller_that_owns_the_commands_while_it_runs(
     owners = set()
 
     def watch(rig, auto_run) -> None:
-        if auto_run.moving is not None:
+        if auto_run.moving:
             owners.add(auto_run.manager.command_owner)
 
     result, _ = calibrate_in_lockstep(robot, config, prior, truth, ["left_elbow_pitch"], each_tick=watch)
@@ -302,7 +306,7 @@ def test_a_joint_the_gate_refuses_backs_off_to_where_it_started_and_the_run_goes
 
     def refuse(rig, auto_run) -> None:
         i = robot.index("left_elbow_pitch")
-        if not started and auto_run.moving is not None and auto_run.moving.name == "left_elbow_pitch":
+        if not started and _moving(auto_run, "left_elbow_pitch") is not None:
             started.append(rig.true_state.position[i])
         if not refused and _approaching(auto_run, "left_elbow_pitch", 0.3):
             held = np.array([name.startswith("left_") for name in robot.names])

@@ -15,7 +15,7 @@ once per tick and sets the target and velocity:
   press and push with a velocity command while the effort is logged (realised stiffness and damping).
 
 The target's speed rises at most at the joint's acceleration (``accel_for``: what a share of its cap gives its
-inertia, no more than ``ACCEL_RAD_S2``) and falls so that it is at the contact speed before a window. Each tick's
+inertia, no more than ``TRAVEL``'s) and falls so that it is at the contact speed before a window. Each tick's
 time is counted by what the joint did (``KINDS``): for the report and the plot.
 """
 
@@ -28,9 +28,11 @@ from humanoid_prime.calibration.contact import ContactDetector, Still, Tick
 from humanoid_prime.calibration.plan import Search
 
 MAX_SPEED_RAD_S = 0.2  # the contact speed: its default and its ceiling (DESIGN §5)
-TRAVEL_SPEED_RAD_S = 0.6  # where no stop can be
-ACCEL_RAD_S2 = 1.0  # the most the target's speed changes per second
+# Where no stop can be: the travel speed and the most the target's speed changes per second, (where the joint's
+# frame is known from a robot's prior calibration, so the model's gravity and inertia hold, where it is not).
+TRAVEL = {True: (1.5, 4.0), False: (0.6, 1.0)}
 ACCEL_SHARE = 0.5  # of the cap: the most accelerating the joint's inertia may ask (it is fed forward)
+GOVERN_SHARE = 0.85  # within a window, a joint faster than this share of the contact speed holds its target back
 SLOW_LEAD_RAD = 0.1  # the target is at the contact speed this far before a window (the joint settles meanwhile)
 CAP_SHARE = 0.7  # the leash spends this share of the cap; the rest is margin (friction, the baseline's lag)
 DAMPING_SHARE = 0.2  # of the cap, what stopping a joint moving at the contact speed may cost (kd * speed)
@@ -54,9 +56,9 @@ def approach_gains(cap: float) -> tuple[float, float]:
     return kp, kd
 
 
-def accel_for(cap: float, inertia: float) -> float:
-    """The acceleration (rad/s^2) a joint of ``inertia`` (kg m^2, about its axis) moves with."""
-    return min(ACCEL_RAD_S2, ACCEL_SHARE * cap / inertia) if inertia > 0 else ACCEL_RAD_S2
+def accel_for(cap: float, inertia: float, most: float) -> float:
+    """The acceleration (rad/s^2) a joint of ``inertia`` (kg m^2, about its axis) moves with, at most ``most``."""
+    return min(most, ACCEL_SHARE * cap / inertia) if inertia > 0 else most
 
 
 @dataclass
@@ -251,7 +253,8 @@ class Approach(Segment):
 
     def limit(self, along: float) -> float:
         """The target's speed limit where it is (``along`` the search): the travel speed, braking to the contact
-        speed before the next window, the contact speed within one, and none beyond the last."""
+        speed before the next window, the contact speed within one, and none beyond the last. (Where the joint runs
+        ahead of its target, ``_move`` holds the target back so that the joint meets a stop at the contact speed.)"""
         run = self.run
         for near, far in self._spans:
             if along < near - SLOW_LEAD_RAD:
@@ -303,7 +306,12 @@ class Approach(Segment):
     def _move(self, tick: Tick) -> None:
         run, s, search = self.run, self.side, self.search
         along = search.along(self.target)
-        speed = self.ramp.step(tick.dt, self.limit(along))
+        limit = self.limit(along)
+        most = GOVERN_SHARE * run.speed
+        if limit <= run.speed and s * tick.qd > most:  # the joint runs ahead of its target: hold the target back
+            limit *= most / (s * tick.qd)
+        was = self.ramp.speed
+        speed = self.ramp.step(tick.dt, limit)
         wanted = self.target + s * speed * tick.dt
         limited = self.detector.leash(tick, wanted)
         free = limited == wanted
@@ -315,7 +323,8 @@ class Approach(Segment):
         steady = free and self.ramp.accel == 0.0 and abs(s * tick.qd - speed) < 0.2 * speed
         if steady and speed > 1.5 * run.speed:  # one speed, one friction: the gravity fit's constant
             self.free.append((tick.q, tick.effort))
-        if self.detector.update(tick, self.target, free=free, speed=self.ramp.speed, accel=self.ramp.accel):
+        slowing = self.ramp.accel < 0.0 and was > 1.05 * run.speed  # from the travel speed
+        if self.detector.update(tick, self.target, free=free, speed=self.ramp.speed, accel=-1.0 if slowing else 0.0):
             if not search.takes(tick.q):
                 self.failure = (f"touched something at {tick.q:+.3f} rad, where no stop can be (moving toward its "
                                 f"{self._words()} stop)")
@@ -361,20 +370,20 @@ class JointRun:
 
     def __init__(self, index: int, name: str, *, cap: float, gains: tuple[float, float],
                  leash_gains: tuple[float, float], speed: float, rate: float, effort_limit: float,
-                 inertia: float = 0.0, travel_speed: float = TRAVEL_SPEED_RAD_S) -> None:
+                 inertia: float = 0.0, known: bool = False) -> None:
         self.index = index
         self.name = name
         self.cap = cap
         self.kp, self.kd = gains
         kp_leash, kd_leash = leash_gains
         self.speed = speed
-        self.travel_speed = max(travel_speed, speed)
+        self.travel_speed = max(TRAVEL[known][0], speed)
         self.rate = rate
         self.effort_limit = effort_limit
         self.kp_leash = kp_leash
         self.leash = (CAP_SHARE * cap - kd_leash * speed) / kp_leash
         self.inertia = inertia
-        self.accel_limit = accel_for(cap, inertia)
+        self.accel_limit = accel_for(cap, inertia, TRAVEL[known][1])
         self.trace = Trace()
         self.segment: Segment | None = None
         self.anchor = 0.0  # holding effort measured before moving

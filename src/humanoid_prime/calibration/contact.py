@@ -73,8 +73,9 @@ class ContactDetector:
         return wanted if s * wanted <= most else s * most
 
     def update(self, tick: Tick, target: float, *, free: bool, speed: float = 0.0, accel: float = 0.0) -> bool:
-        """Take this tick's measurements (``speed``, ``accel``: the target's, along the motion); True once contact
-        has held for the debounce time. While the target slows down, and for ``TRANSIENT_S`` after, nothing counts
+        """Take this tick's measurements (``speed``, ``accel``: the target's, along the motion; ``accel`` negative only
+        where it slows down from the travel speed); True once contact has held for the debounce time. While the
+        target slows down, and for ``TRANSIENT_S`` after, nothing counts
         and the baselines follow: the joint overshoots its target by what the model's gravity and inertia got wrong
         (the plan slows down where no stop can be, ``approach.SLOW_LEAD_RAD`` before a window)."""
         run, s = self.run, self.side

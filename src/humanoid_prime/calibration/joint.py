@@ -33,9 +33,8 @@ from humanoid_prime.errors import PrimeError
 if TYPE_CHECKING:
     from humanoid_prime.calibration.auto import AutoCalibration
 
-BACKOFF_RAD = 0.05
+BACKOFF_RAD = 0.15  # a joint goes this far off a stop before it goes on: its weight may need the leash's whole lead
 RESTING_RAD = 0.02  # a stop found this close to where the joint started: it rested on it
-RESTING_BACKOFF_RAD = 0.15  # then it moves this far off before it approaches again
 TRAVEL_MARGIN_RAD = 0.1  # beyond the joint's range (plus its tolerance), the most the target travels from its start
 
 Floats = npt.NDArray[np.float64]
@@ -70,7 +69,8 @@ def new_run(auto: AutoCalibration, joint: str) -> JointRun:
     state = auto.manager.resources.state
     run = JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=auto.speed,
                    rate=auto.manager.update_rate, effort_limit=spec.effort_limit,
-                   inertia=auto.model.inertia(auto.description_angles(state.position))[i])
+                   inertia=auto.model.inertia(auto.description_angles(state.position))[i],
+                   known=auto.robots_prior[joint])
     if run.leash <= 0:
         raise JointFailed(f"the speed {auto.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
     run.trace = auto.traces.setdefault(joint, run.trace)  # the question's motion goes on the same trace
@@ -183,8 +183,8 @@ def find_stops(auto: AutoCalibration, run: JointRun) -> Steps:
     if abs(a.stop - start) < plan.STOP_MARGIN_RAD + RESTING_RAD:
         # It rested on that stop: its weight there was the stop's, not in its feed-forward. Off the stop (where free
         # motion teaches the feed-forward what gravity asks) and onto it again.
-        auto.report(f"{joint}: it rested on that stop; again, from {RESTING_BACKOFF_RAD:g} rad off it")
-        off = Move(run, a.stop - first * RESTING_BACKOFF_RAD, a.unloaded(float(position[i])), leaving=True)
+        auto.report(f"{joint}: it rested on that stop; again, from {BACKOFF_RAD:g} rad off it")
+        off = Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(float(position[i])), leaving=True)
         yield off
         near = (a.stop - RESTING_RAD, a.stop + RESTING_RAD)
         a = Approach(run, plan.Search(first, off.target, ((near[0], near[1]) if first > 0 else (near[1], near[0]),),

@@ -145,16 +145,21 @@ def search(spec: JointSpec, side: int, start: float, slow: Sequence[Hypothesis],
            fallback: Sequence[Hypothesis] = ()) -> Search:
     """The search for the stop on ``side`` from ``start``: the windows of ``slow`` first, then those of
     ``fallback`` beyond them (a recalibration's prior, then any offset allowed); a stop is plausible in any."""
-    first = _ahead([h.window(spec, side) for h in slow], side, start)
-    others = _ahead([h.window(spec, side) for h in fallback], side, start)
-    return Search(side, start, _oriented(first + _beyond(others, first, side), side), tuple(_merged(first + others)))
+    windows = [h.window(spec, side) for h in slow], [h.window(spec, side) for h in fallback]
+    first, others = _ahead(windows[0], side, start), _ahead(windows[1], side, start)
+    # A stop is plausible anywhere a window puts it, behind the start too (a joint resting on it).
+    return Search(side, start, _oriented(first + _beyond(others, first, side), side),
+                  tuple(_merged(windows[0] + windows[1])))
 
 
 def first_side(spec: JointSpec, start: float, slow: Sequence[Hypothesis], fallback: Sequence[Hypothesis],
                travel_speed: float, contact_speed: float) -> Search:
-    """The search for the first stop: the side whose windows take the least time in the worst case; on a tie, the
-    side whose first window is nearer."""
+    """The search for the first stop: the side whose stop the joint may rest on where it is, else the side whose
+    windows take the least time in the worst case; on a tie, the side whose first window is nearer."""
     candidates = [search(spec, side, start, slow, fallback) for side in (-1, 1)]
+    resting = [c for c in candidates if c.takes(start)]
+    if len(resting) == 1:  # it may rest on that stop: there first (the weight is the stop's until it lifts off)
+        return resting[0]
     candidates = [c for c in candidates if c.windows] or candidates
 
     def cost(candidate: Search) -> tuple[float, float]:

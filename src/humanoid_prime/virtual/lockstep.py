@@ -32,6 +32,7 @@ import mujoco
 import numpy as np
 
 from humanoid_prime.calibration.auto import AutoCalibration
+from humanoid_prime.calibration.journal import OverrideJournal
 from humanoid_prime.calibration.plan import OFFSET_RANGE_RAD
 from humanoid_prime.calibration.report import AutoResult
 from humanoid_prime.calibration.sequence import SteppedTicks
@@ -364,12 +365,14 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
                           joints: Sequence[str], *, physics_rate: float = 250.0,
                           initial_pose: Mapping[str, float] | None = None, assume_direction: bool = False,
                           measure: bool = False, offset_range: float = OFFSET_RANGE_RAD,
+                          journal: OverrideJournal | None = None,
                           each_tick: Callable[[LockstepPrime, AutoCalibration], None] | None = None,
                           ) -> tuple[AutoResult, LockstepPrime]:
     """``prime calibrate --auto`` of ``joints`` on a ``LockstepPrime`` with the virtual robot's ``truth``, in
     virtual time: the host frame is ``prior``'s (its directions, offsets 0), the operator watches the virtual
     robot, ``each_tick`` runs after every tick (a test injecting a fault); ``measure``: the realised impedance
-    too. Returns the result and the rig, shut down (drives disabled, wrists off)."""
+    too; ``journal``: where the eRob overrides are recorded. Returns the result and the rig, shut down (drives
+    disabled, wrists off)."""
     host = identity_from(prior)
     rig = LockstepPrime(robot, host, truth, update_rate=config.update_rate, physics_rate=physics_rate,
                         initial_pose=START_POSE if initial_pose is None else initial_pose)
@@ -389,7 +392,7 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
         rings = {j: (rig, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints}
         auto = AutoCalibration(manager, prior, joints, rings=rings, ticks=SteppedTicks(step),
                                operator=WatchingOperator(robot, rig.true_positions), assume_direction=assume_direction,
-                               measure=measure, offset_range=offset_range)
+                               measure=measure, offset_range=offset_range, journal=journal)
         auto.attach()
         return auto.run(), rig
     finally:

@@ -28,9 +28,11 @@ from humanoid_prime.calibration.contact import ContactDetector, Still, Tick
 from humanoid_prime.calibration.plan import Search
 
 MAX_SPEED_RAD_S = 0.2  # the contact speed: its default and its ceiling (DESIGN §5)
-# Where no stop can be: the travel speed and the most the target's speed changes per second, (where the joint's
-# frame is known from a robot's prior calibration, so the model's gravity and inertia hold, where it is not).
-TRAVEL = {True: (1.5, 4.0), False: (0.6, 1.0)}
+# Where no stop can be: the travel speed and the most the target's speed changes per second, where the joint's
+# frame is known from a robot's prior calibration (the model's gravity and inertia hold) and where it is not (the
+# feed-forward is what free motion teaches, at the contact speed: faster, a joint overshoots its target by what the
+# model got wrong, and meets a stop faster than the contact speed, or stalls short of it).
+TRAVEL = {True: (1.5, 4.0), False: (MAX_SPEED_RAD_S, 1.0)}
 ACCEL_SHARE = 0.5  # of the cap: the most accelerating the joint's inertia may ask (it is fed forward)
 GOVERN_SHARE = 0.85  # within a window, a joint faster than this share of the contact speed holds its target back
 SLOW_LEAD_RAD = 0.1  # the target is at the contact speed this far before a window (the joint settles meanwhile)
@@ -42,7 +44,7 @@ SETTLE_TIMEOUT_S = 1.0  # pressing a stop, the joint is still within this, or it
 DEPTH_RAMP = (1.0, 0.1)  # the press eases from and to these shares of the leash while the stiffness is measured,
 DEPTH_RAMP_S = 0.6
 SPEED_RAMP_S = 0.4  # then, at the lighter press, a velocity command into the stop rises to the contact speed
-YIELD_RAD = 0.01  # pressed after a contact, a joint that goes on this far met no stop (it had run ahead of its target)
+YIELD_RAD = 0.005  # pressed after a contact, a joint that goes on this far met no stop (it had run ahead of its target)
 LIFT_RAD = 0.003  # a joint moving away from a stop has left it once it moved this far
 TIME_MARGIN_S = 10.0  # a motion's time budget beyond its travel
 KINDS = ("travel", "search", "settle", "push", "question")  # what each tick of a joint's time went to

@@ -20,11 +20,12 @@ import select
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TextIO
 
 import numpy as np
+import numpy.typing as npt
 from rich.console import Console
 from rich.text import Text
 
@@ -32,6 +33,7 @@ from humanoid_prime.calibration.approach import MAX_SPEED_RAD_S
 from humanoid_prime.calibration.auto import AutoCalibration
 from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.journal import OverrideJournal
+from humanoid_prime.calibration.operator import Operator
 from humanoid_prime.calibration.report import AutoResult
 from humanoid_prime.calibration.sequence import LoopTicks, SteppedTicks
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
@@ -110,7 +112,7 @@ def next_after_auto(args: argparse.Namespace, result: AutoResult, target: Path) 
     return f"prime calibration check{where}, then prime bringup{where}"
 
 
-def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: dict[str, Any]) -> int:
+def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: Mapping[str, object]) -> int:
     """The whole --auto run, writing the calibration to ``output``; the exit status."""
     console = make_console()
     result = _in_simulation(args, prior, console) if args.sim else _on_buses(args, prior, ring, console)
@@ -184,7 +186,7 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
         manager.shutdown()
 
 
-def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any], console: Console) -> AutoResult:
+def _on_buses(args: argparse.Namespace, prior: Calibration, ring: Mapping[str, object], console: Console) -> AutoResult:
     """One broadcaster-only session on ``--backends`` with the prior's directions and offsets 0; the procedure in
     the loop and its sequence in a thread beside it."""
     finish = threading.Event()
@@ -227,7 +229,7 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         if virtual is not None:
             from humanoid_prime.virtual.operator import WatchingOperator
 
-            operator: Any = WatchingOperator(robot, lambda: virtual.control.call("joints"), model)
+            operator: Operator = WatchingOperator(robot, lambda: virtual.control.call("joints"), model)
         else:
             operator = stack.enter_context(TerminalOperator(console))
         # What an eRob's override found is recorded first, so that the next run on this robot restores a drive a
@@ -281,14 +283,14 @@ class TerminalOperator:
 
     answered_by = "the operator's answer"
 
-    def __init__(self, console: Console, stream: Any = None) -> None:
+    def __init__(self, console: Console, stream: TextIO | None = None) -> None:
         self.console = console
         self.stream = stream if stream is not None else sys.stdin
         self.on_key: Callable[[str], None] | None = None
         self._keys: queue.Queue[str] = queue.Queue()
         self._asking = threading.Event()
         self._stop = threading.Event()
-        self._saved: Any = None
+        self._saved: list[int | list[bytes | int]] | None = None
         self._thread: threading.Thread | None = None
 
     def __enter__(self) -> TerminalOperator:
@@ -308,8 +310,9 @@ class TerminalOperator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(1.0)
-        with contextlib.suppress(termios.error, OSError):
-            termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self._saved)
+        if self._saved is not None:
+            with contextlib.suppress(termios.error, OSError):
+                termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self._saved)
 
     def _read(self, fd: int) -> None:
         while not self._stop.is_set():
@@ -352,7 +355,7 @@ class TerminalOperator:
     def watch(self, joint: str) -> None:
         self.console.print(f"Watch {joint}: it turns a little now.")
 
-    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
+    def turned_counter_clockwise(self, joint: str, view: npt.NDArray[np.float64], where: str) -> bool | None:
         key = self._ask(f"Looking at {joint} from {where}, did it just turn counter-clockwise? [y/n]").lower()
         return True if key == "y" else False if key == "n" else None
 

@@ -205,7 +205,7 @@ class Move(Segment):
         self.target = limited
         if self._leaving:
             if s * (self.target - tick.q) > 0.0:  # still on the stop: its weight is not in the feed-forward yet
-                run.adapt(tick, self.target, most=run.weight + run.cap)
+                run.adapt(tick, self.target, most=2.0 * run.weight + run.cap)  # the model's gravity may be mirrored
             return
         if self._reached is None and s * (self.goal - self.target) <= 1e-9:
             self._reached = tick.t
@@ -323,7 +323,7 @@ class Approach(Segment):
         self.accel = s * self.ramp.accel if free else 0.0
         self.target = limited
         steady = free and self.ramp.accel == 0.0 and abs(s * tick.qd - speed) < 0.2 * speed
-        if steady and speed > 1.5 * run.speed:  # one speed, one friction: the gravity fit's constant
+        if steady and speed >= 0.95 * run.travel_speed:  # one speed, one friction: the gravity fit's constant
             self.free.append((tick.q, tick.effort))
         slowing = self.ramp.accel < 0.0 and was > 1.05 * run.speed  # from the travel speed
         if self.detector.update(tick, self.target, free=free, speed=self.ramp.speed, accel=-1.0 if slowing else 0.0):

@@ -61,7 +61,7 @@ def approach_drive(robot: Robot, joint: str, run: JointRun, registers: ErobRegis
     hardware = robot.hardware
     kp_nominal, _ = registers_to_gains(registers, kt=hardware.erob_kt[joint], gear=hardware.erob_gear[joint])
     # The most effort the approach asks: the gravity along the travel, the anchor's offset from it, the cap.
-    most = run.weight + abs(run.anchor - run.gravity0) + run.cap
+    most = 2.0 * run.weight + abs(run.anchor - run.gravity0) + run.cap  # (a mirrored model: twice the weight)
     window = math.ceil(2.0 * most / kp_nominal * COUNTS_PER_RAD)
     try:
         rated = SizedSdo(sdo).read(position, (RATED_TORQUE, 0)) / 1000.0 or RATED_TORQUE_NM

@@ -67,14 +67,14 @@ def new_run(auto: AutoCalibration, joint: str) -> JointRun:
         # The leash assumes the most stiffness the registers can give (a drive realises at most its nominal).
         leash_gains = registers_to_gains(registers, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint])
     state = auto.manager.resources.state
-    # It travels fast where its frame is known and the eRob joints that carry it hold on their drives' own gains (a
-    # shoulder held per tick, on the standby gains, gives way to what a fast motion of the arm it carries asks).
+    # It travels fast where its frame is known and its arm's other eRob joints hold on their drives' own gains (an
+    # arm held per tick, on the standby gains, gives way to what a fast motion of one of its joints asks).
     arm = joint.split("_", 1)[0] + "_"
-    carriers = [j for j in robot.names[:i] if j.startswith(arm) and j in robot.hardware.erob_joints]
+    holding = [j for j in robot.names if j.startswith(arm) and j in robot.hardware.erob_joints and j != joint]
     run = JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=auto.speed,
                    rate=auto.manager.update_rate, effort_limit=spec.effort_limit,
                    inertia=auto.model.inertia(auto.description_angles(state.position))[i],
-                   known=auto.robots_prior[joint] and all(j in auto.rings for j in carriers))
+                   known=auto.robots_prior[joint] and all(j in auto.rings for j in holding))
     if run.leash <= 0:
         raise JointFailed(f"the speed {auto.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
     run.trace = auto.traces.setdefault(joint, run.trace)  # the question's motion goes on the same trace

@@ -4,6 +4,7 @@ limits and from gravity, the plain question's view, and the stops, faults and ke
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -13,6 +14,7 @@ from humanoid_prime.calibration import approach
 from humanoid_prime.calibration.approach import CAP_SHARE, MAX_SPEED_RAD_S, approach_gains
 from humanoid_prime.calibration.auto import CONTACT_FRACTION, contact_cap, distal_first
 from humanoid_prime.calibration.direction import direction_from_gravity, direction_from_limits, view_of
+from humanoid_prime.calibration.journal import OverrideJournal
 from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.hardware import load_hardware
@@ -151,11 +153,15 @@ def setup(robot):
     return load_controllers(robot.names), load_calibration(robot.hardware), truth
 
 
+def _moving(auto_run, joint: str):
+    return next((run for run in auto_run.moving if run.name == joint), None)
+
+
 def _approaching(auto_run, joint: str, past_rad: float = 0.2) -> bool:
-    moving = auto_run.moving
+    moving = _moving(auto_run, joint)
     segment = moving.segment if moving is not None else None
-    return (moving is not None and moving.name == joint and isinstance(segment, approach.Approach)
-            and segment.phase == "moving" and abs(segment.target - segment.start_target) > past_rad)
+    return (isinstance(segment, approach.Approach) and segment.phase == "moving"
+            and segment.search.along(segment.target) > past_rad)
 
 
 def test_a_drive_fault_mid_approach_stops_the_run_with_its_gains_restored(robot, setup):
@@ -180,6 +186,26 @@ def test_a_drive_fault_mid_approach_stops_the_run_with_its_gains_restored(robot,
         (FACTORY_POS_REG, FACTORY_VEL_REG, FACTORY_INTEGRAL)
     assert int(elbow.max_torque.value) == 1500 and int(elbow.following_window.value) == round(0.5 * 524288 / math.tau)
     assert result.calibration == prior  # nothing was written over
+
+
+def test_an_erob_override_is_recorded_before_it_is_made_and_cleared_once_restored(robot, setup, tmp_path):
+    """A run killed outright leaves its record, from which the next run on the ring restores the drive."""
+    config, prior, truth = setup
+    journal = OverrideJournal(tmp_path, "master", "prime calibrate --auto")
+    seen = []
+
+    def look(rig, auto_run) -> None:
+        if _approaching(auto_run, "left_elbow_pitch") and not seen:
+            seen.extend(json.loads(path.read_text()) for path in tmp_path.glob("erob-ring*-gains-*.json"))
+
+    result, rig = calibrate_in_lockstep(robot, config, prior, truth, ["left_elbow_pitch"], each_tick=look,
+                                        journal=journal)
+    assert result.outcomes["left_elbow_pitch"].status == "done"
+    position = robot.hardware.erob_slaves["left_elbow_pitch"]
+    assert [(record["position"], record["joint"], record["via"]) for record in seen] == \
+        [(position, "left_elbow_pitch", "master")]
+    assert seen[0]["found"]["pos_reg"] == FACTORY_POS_REG  # what the drive held, to restore
+    assert not list(tmp_path.glob("erob-ring*")) and journal.left() == []  # restored: the record is gone
 
 
 def test_a_key_press_stops_the_joint_where_it_is(robot, setup):
@@ -246,7 +272,7 @@ def test_the_calibration_is_the_controller_that_owns_the_commands_while_it_runs(
     owners = set()
 
     def watch(rig, auto_run) -> None:
-        if auto_run.moving is not None:
+        if auto_run.moving:
             owners.add(auto_run.manager.command_owner)
 
     result, _ = calibrate_in_lockstep(robot, config, prior, truth, ["left_elbow_pitch"], each_tick=watch)
@@ -302,7 +328,7 @@ def test_a_joint_the_gate_refuses_backs_off_to_where_it_started_and_the_run_goes
 
     def refuse(rig, auto_run) -> None:
         i = robot.index("left_elbow_pitch")
-        if not started and auto_run.moving is not None and auto_run.moving.name == "left_elbow_pitch":
+        if not started and _moving(auto_run, "left_elbow_pitch") is not None:
             started.append(rig.true_state.position[i])
         if not refused and _approaching(auto_run, "left_elbow_pitch", 0.3):
             held = np.array([name.startswith("left_") for name in robot.names])

@@ -29,6 +29,7 @@ def prime(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize(("args", "says"), [
     (["--apply"], "--apply: only with --auto"),
     (["--sim"], "--sim: only with --auto"),
+    (["--measure-impedance"], "--measure-impedance: only with --auto"),
     (["--auto", "--verify"], "--auto does not go with --verify"),
     (["--auto", "--emulate", "--scripted"], "--auto does not go with --scripted"),
     (["--auto", "--apply"], "--apply writes the measured efficiencies into the robot's hardware file"),
@@ -69,6 +70,9 @@ def test_in_mujoco_alone_every_joint_is_found_where_the_model_has_it(robot, tmp_
         assert abs(written.joints[joint].homing_offset) <= 1e-3, joint
         assert report["joints"][joint]["peak_contact_nm"] <= contact_cap(robot, joint)
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert report["robot_seconds"] > 0 and report["wall_seconds"] > 0  # the time, and where it went
+    assert report["joint_seconds_by_kind"]["travel"] > 0 and report["joint_seconds_by_kind"]["push"] == 0
+    assert all(report["joints"][j]["stiffness"] is None for j in arm)  # no pushes unless asked for
 
 
 def test_in_mujoco_alone_a_direction_asked_for_says_the_simulated_operator_answered(tmp_path):
@@ -99,6 +103,7 @@ def test_end_to_end_on_the_virtual_prime_through_the_real_drivers_then_apply(rob
     hardware.write_text(bundled("prime_hardware.yaml").read_text())
     proc = prime("calibrate", "--emulate", "--truth", str(truth_file), "--auto", *joints, "--output", str(output),
                  "--hardware", str(hardware), "--apply", "--socket", str(tmp_path / "control.sock"), "--json")
+    # (--apply measures the impedance: the pushes run)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
     report = json.loads(proc.stdout)
     written = load_calibration(robot.hardware, output)

@@ -1,14 +1,29 @@
 """``prime calibrate --auto --plot``: one row per joint that moved, position and commanded position (left axis) and
-effort (right axis) against the robot's time, the contacts and the stops found marked."""
+effort (right axis) against the robot's time, the contacts and the stops found marked, the time shaded by what it
+went to (travel, contact search, settle, pushes, the direction question); the run's robot and wall time on top."""
 
 from __future__ import annotations
 
 import io
 from pathlib import Path
 
+from humanoid_prime.calibration.approach import KINDS
 from humanoid_prime.calibration.report import AutoResult
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_bytes
+
+COLOURS = {"travel": "white", "search": "yellow", "settle": "green", "push": "red", "question": "purple"}
+
+
+def _shade(ax: object, t: list[float], kinds: list[str]) -> None:
+    """Shade each stretch of the joint's time by what it went to (``approach.KINDS``)."""
+    start = 0
+    for k in range(1, len(t) + 1):
+        if k == len(t) or kinds[k] != kinds[start]:
+            colour = COLOURS.get(kinds[start], "white")
+            if colour != "white":
+                ax.axvspan(t[start], t[k - 1], color=colour, alpha=0.12, linewidth=0)  # type: ignore[attr-defined]
+            start = k
 
 
 def plot_auto(path: str | Path, result: AutoResult) -> None:
@@ -34,12 +49,14 @@ def plot_auto(path: str | Path, result: AutoResult) -> None:
         effort = ax.twinx()
         effort.plot(t, trace.effort, color="tab:orange", linewidth=0.8, label="effort")
         effort.set_ylabel("Nm")
+        _shade(ax, t, trace.kind)
         for when, _ in trace.contacts:
             ax.axvline(when - t0, color="tab:red", linewidth=0.8, alpha=0.6)
         for when, q in trace.stops:
             ax.plot([when - t0], [q], marker="o", color="tab:red", markersize=6)
             ax.annotate(f"stop {q:+.4f}", (when - t0, q), textcoords="offset points", xytext=(4, 4), fontsize="x-small")
-        title = f"{joint}: {outcome.status}"
+        title = f"{joint}: {outcome.status} in {outcome.seconds:.1f} s (" + ", ".join(
+            f"{kind} {seconds:.1f}" for kind, seconds in outcome.times.items() if seconds > 0) + ")"
         if outcome.calibration is not None:
             title += (f", direction {outcome.calibration.direction:+d}, offset "
                       f"{outcome.calibration.homing_offset:+.4f} rad")
@@ -49,7 +66,11 @@ def plot_auto(path: str | Path, result: AutoResult) -> None:
             lines = ax.get_legend_handles_labels()[0] + effort.get_legend_handles_labels()[0]
             ax.legend(lines, [line.get_label() for line in lines], loc="upper right", fontsize="x-small",
                       ncol=3, frameon=False)
-    axes[-1][0].set_xlabel("s since the joint began (robot time); red: contacts, dots: stops recorded")
+    axes[-1][0].set_xlabel("s since the joint began (robot time); red: contacts, dots: stops recorded; shaded: "
+                           + ", ".join(f"{kind} ({COLOURS[kind]})" for kind in KINDS))
+    where = ", ".join(f"{kind} {seconds:.1f} s" for kind, seconds in result.time_by_kind().items() if seconds > 0)
+    fig.suptitle(f"robot time {result.robot_seconds:.1f} s, wall time {result.wall_seconds:.1f} s; the joints' time: "
+                 f"{where}", fontsize="small")
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=100)

@@ -1,6 +1,8 @@
 """The moving eRob's drive during a hands-free approach (``calibration.auto``): the approach gains in its loop-gain
 registers (gate, changed-only writes in the never-stiffer order), a following-error window wide enough for them,
 and its own torque limit (0x6072) lowered to what the approach needs where it has one; all restored as found.
+Given the run's journal, what the drive held is recorded before the first write (``calibration.journal``), so a
+run killed outright leaves the next one that opens the ring what to restore.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ import math
 from collections.abc import Iterator
 
 from humanoid_prime.calibration.approach import JointRun
+from humanoid_prime.calibration.journal import OverrideJournal
 from humanoid_prime.calibration.limp import GainOverride
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
@@ -27,9 +30,12 @@ class ApproachOverride(GainOverride):
     """The approach ``registers`` with a following-error window of at least ``window`` counts and the drive's own
     torque limit at most ``torque_limit`` per mille (never raised, never narrowed from what the drive holds)."""
 
+    left_as = "with its hands-free calibration's approach gains, following-error window and torque limit"
+
     def __init__(self, sdo: SdoClient, position: int, registers: ErobRegisters, window: int,
-                 torque_limit: int) -> None:
-        super().__init__(sdo, position, registers, objects={WINDOW: window}, optional={TORQUE_LIMIT: torque_limit})
+                 torque_limit: int, journal: tuple[OverrideJournal, str] | None = None) -> None:
+        super().__init__(sdo, position, registers, objects={WINDOW: window}, optional={TORQUE_LIMIT: torque_limit},
+                         journal=journal)
         self.window = window
         self.torque_limit = torque_limit
 
@@ -48,19 +54,21 @@ class ApproachOverride(GainOverride):
 
 @contextlib.contextmanager
 def approach_drive(robot: Robot, joint: str, run: JointRun, registers: ErobRegisters,
-                   ring: tuple[SdoClient, int]) -> Iterator[str]:
-    """``joint``'s drive set for ``run`` for the block; yields what became of its own torque limit, in words."""
+                   ring: tuple[SdoClient, int], journal: OverrideJournal | None = None) -> Iterator[str]:
+    """``joint``'s drive set for ``run`` for the block (recorded in ``journal`` first); yields what became of its
+    own torque limit, in words."""
     sdo, position = ring
     hardware = robot.hardware
     kp_nominal, _ = registers_to_gains(registers, kt=hardware.erob_kt[joint], gear=hardware.erob_gear[joint])
     # The most effort the approach asks: the gravity along the travel, the anchor's offset from it, the cap.
-    most = run.weight + abs(run.anchor - run.gravity0) + run.cap
+    most = 2.0 * run.weight + abs(run.anchor - run.gravity0) + run.cap  # (a mirrored model: twice the weight)
     window = math.ceil(2.0 * most / kp_nominal * COUNTS_PER_RAD)
     try:
         rated = SizedSdo(sdo).read(position, (RATED_TORQUE, 0)) / 1000.0 or RATED_TORQUE_NM
     except PrimeError:
         rated = RATED_TORQUE_NM
-    override = ApproachOverride(sdo, position, registers, window, math.ceil(DRIVE_LIMIT_MARGIN * most / rated * 1000.0))
+    override = ApproachOverride(sdo, position, registers, window, math.ceil(DRIVE_LIMIT_MARGIN * most / rated * 1000.0),
+                                journal=None if journal is None else (journal, joint))
     with override:
         if TORQUE_LIMIT in override.missing:
             yield f"none: the drive has no 0x6072 ({override.missing[TORQUE_LIMIT]})"

@@ -1,8 +1,10 @@
-"""What gravity asks of each joint, and where each joint's axis points, from the package's MuJoCo model.
+"""What gravity asks of each joint, how heavy each joint is to turn, and where its axis points, from the package's
+MuJoCo model.
 
 ``torques(q)`` is the torque every joint must apply to hold the arms still at ``q`` (description joint
-frame, Nm): MuJoCo's bias force at zero velocity. ``axis(joint, q)`` is the joint's axis in the world
-(x forward, y to the robot's left, z up) at ``q``: a positive rotation turns counter-clockwise seen from its tip.
+frame, Nm): MuJoCo's bias force at zero velocity. ``inertia(q)``: each joint's inertia about its axis at ``q``.
+``axis(joint, q)`` is the joint's axis in the world (x forward, y to the robot's left, z up) at ``q``: a positive
+rotation turns counter-clockwise seen from its tip.
 """
 
 from __future__ import annotations
@@ -44,3 +46,13 @@ class GravityModel:
         data.qpos[self.qpos] = q
         mujoco.mj_kinematics(self.model, data)
         return np.array(data.xaxis[self.joint_ids[self.robot.index(joint)]], dtype=np.float64)
+
+    def inertia(self, q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """Each joint's inertia about its own axis at ``q`` (kg m^2, the mass matrix's diagonal, armature
+        included): what accelerating that joint alone asks."""
+        data = self.data
+        data.qpos[self.qpos] = q
+        mujoco.mj_forward(self.model, data)
+        full = np.zeros((self.model.nv, self.model.nv))
+        mujoco.mj_fullM(self.model, data, full)
+        return np.array(full[self.dof, self.dof], dtype=np.float64)

@@ -26,7 +26,8 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from humanoid_prime.calibration.approach import Hold, JointRun, Tick
+from humanoid_prime.calibration.approach import Hold, JointRun
+from humanoid_prime.calibration.contact import Tick
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.flags import Level
@@ -35,7 +36,7 @@ from humanoid_prime.control.topics import SafetyStatus, TopicBus
 
 CALIBRATION_CONTROLLER = "calibration_controller"
 HOLD_TOLERANCE_RAD = 0.05  # a held joint that moves further has been pushed: stop
-HOLD_INTEGRAL_S = 0.5  # time constant with which a per-tick hold takes up a changing load
+HOLD_INTEGRAL_S = 0.15  # time constant with which a per-tick hold takes up a changing load
 GRAVITY_STEP_RAD = 0.005  # the model's gravity is evaluated again once a joint has moved this far
 
 Floats = npt.NDArray[np.float64]
@@ -204,13 +205,14 @@ class CalibrationController(Controller):
         if segment is not None and not segment.finished and segment.failure is None:
             segment.update(Tick(now, dt, float(state.position[i]), float(state.velocity[i]), float(state.effort[i]),
                                 run.feed_forward(gravity)))
+        run.count(dt)
         wanted = segment.command() if segment is not None else None
         if not active or wanted is None:
             return
         target, velocity = wanted
         low, high = run.bounds
         command.position[i] = min(max(target, low), high)
-        command.velocity[i] = min(max(velocity, -run.speed), run.speed)
+        command.velocity[i] = min(max(velocity, -run.travel_speed), run.travel_speed)
         command.effort[i] = run.feed_forward(gravity)  # with what this tick's step taught it
         command.stiffness[i] = run.kp
         command.damping[i] = run.kd
@@ -219,3 +221,4 @@ class CalibrationController(Controller):
         trace.q.append(float(state.position[i]))
         trace.target.append(float(command.position[i]))
         trace.effort.append(float(state.effort[i]))
+        trace.kind.append(run.kind)

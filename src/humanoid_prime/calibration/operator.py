@@ -18,8 +18,8 @@ class Operator(Protocol):
     def begin(self, joints: Sequence[str]) -> None:
         """Before anything moves (on the robot: the e-stop reminder)."""
 
-    def confirm(self, joint: str) -> bool:
-        """May ``joint`` move now? (On the robot: Enter moves it, anything else skips it.)"""
+    def confirm(self, joints: Sequence[str]) -> bool:
+        """May ``joints`` (one per arm) move now? (On the robot: Enter moves them, anything else skips them.)"""
 
     def watch(self, joint: str) -> None:
         """``joint`` is about to make the prompted motion."""
@@ -37,7 +37,7 @@ class Unattended:
     def begin(self, joints: Sequence[str]) -> None:
         pass
 
-    def confirm(self, joint: str) -> bool:
+    def confirm(self, joints: Sequence[str]) -> bool:
         return True
 
     def watch(self, joint: str) -> None:

@@ -1,7 +1,8 @@
 """What a hands-free calibration found (``calibration.auto``), as the report and the summary give it: per joint its
-outcome (the calibration written or why not, the stops, the contact effort against the cap, the time, the drive's
-own torque limit) and the impedance it realised against its stops; for the run, the calibration file's content and
-the mirror check of the two arms."""
+outcome (the calibration written or why not, the stops, the contact effort against the cap and the speed it met
+them at, its robot time and what it went to, the drive's own torque limit) and, when measured, the impedance it
+realised against its stops; for the run, the calibration file's content, the mirror check of the two arms, its
+robot time and wall time and where the robot time went."""
 
 from __future__ import annotations
 
@@ -78,7 +79,9 @@ class JointOutcome:
     stiffness: Stiffness | None = None
     peak_contact_nm: float = 0.0
     cap_nm: float = 0.0
+    impact_rad_s: float = 0.0  # the fastest it met a stop at
     seconds: float = 0.0  # robot time the joint took
+    times: dict[str, float] = field(default_factory=dict)  # robot time by what it went to (approach.KINDS)
     drive_torque_limit: str = ""  # what became of the drive's own torque limit
 
     @property
@@ -97,8 +100,8 @@ class JointOutcome:
                 "prior_direction": self.prior.direction, "prior_offset": self.prior.homing_offset,
                 "flipped": self.flipped, "direction_source": self.direction_source,
                 "stops": list(self.stops) if self.stops else None, "cap_nm": self.cap_nm,
-                "peak_contact_nm": self.peak_contact_nm, "seconds": self.seconds,
-                "drive_torque_limit": self.drive_torque_limit,
+                "peak_contact_nm": self.peak_contact_nm, "impact_rad_s": self.impact_rad_s,
+                "seconds": self.seconds, "times": dict(self.times), "drive_torque_limit": self.drive_torque_limit,
                 "stiffness": self.stiffness.as_dict() if self.stiffness else None}
 
 
@@ -110,15 +113,29 @@ class AutoResult:
     asked: tuple[str, ...]
     aborted: str | None
     robot: Robot
+    robot_seconds: float = 0.0  # the run's robot time
+    wall_seconds: float = 0.0
+    timeline: list[tuple[str, float, float]] = field(default_factory=list)  # (what, from, to): robot time
 
     @property
     def complete(self) -> bool:
         """Every joint asked for was calibrated and nothing stopped the run."""
         return self.aborted is None and all(self.outcomes[j].done for j in self.asked)
 
+    def time_by_kind(self) -> dict[str, float]:
+        """Every joint's robot time added up by what it went to (joints that moved together both count)."""
+        total: dict[str, float] = {}
+        for joint in self.asked:
+            for kind, seconds in self.outcomes[joint].times.items():
+                total[kind] = total.get(kind, 0.0) + seconds
+        return total
+
     def as_dict(self) -> dict[str, object]:
         mirror = mirror_check(self.calibration, self.robot)
-        return {"complete": self.complete, "aborted": self.aborted,
+        return {"complete": self.complete, "aborted": self.aborted, "robot_seconds": self.robot_seconds,
+                "wall_seconds": self.wall_seconds,
+                "timeline": [{"what": what, "from_s": start, "to_s": end} for what, start, end in self.timeline],
+                "joint_seconds_by_kind": self.time_by_kind(),
                 "joints": {j: self.outcomes[j].as_dict() for j in self.asked},
                 "mirror": [{"left": m.left, "right": m.right, "left_offset": m.left_offset,
                             "right_offset": m.right_offset, "relation": m.relation, "residual": m.residual,

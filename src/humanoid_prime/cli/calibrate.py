@@ -10,7 +10,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -67,10 +67,14 @@ from humanoid_prime.runtime.session import (
 from humanoid_prime.runtime.signals import stop_on_signals
 from humanoid_prime.runtime.socket import ControlServer
 
+if TYPE_CHECKING:
+    from humanoid_prime.virtual.harness import VirtualPrime
+    from humanoid_prime.virtual.ring.options import RingSettings
+
 READOUT_HZ = 5.0
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "calibrate", help=summary("calibrate"),
         description="Bring up the chosen buses with identity calibration (the prior's directions, offset 0) and "
@@ -159,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     if args.auto is not None:
         return run_auto(args, prior, target, emulator)
     if args.verify:
+        assert checked is not None  # --verify reads a calibration (checked above)
         return _verify(args, checked, emulator)
     asked = tuple(_joint_list(args.joints)) or (
         tuple(_joint_list(args.scripted)) if args.scripted and args.scripted != "all" else run_joints)
@@ -183,7 +188,7 @@ def _run_joints(robot: Robot, backends: str) -> tuple[str, ...]:
     return tuple(joint for joint in robot.names if joint in tracked)
 
 
-def _virtual(args: argparse.Namespace, ring: dict[str, Any], stack: contextlib.ExitStack) -> Any:
+def _virtual(args: argparse.Namespace, ring: RingSettings, stack: contextlib.ExitStack) -> VirtualPrime | None:
     """The virtual Prime for the whole run with --emulate (None on the robot)."""
     if not args.emulate:
         return None
@@ -212,9 +217,9 @@ class _Recording:
 class _Web:
     """``--web``: one page for the whole run, showing each phase's joints and the ranges swept so far."""
 
-    def __init__(self, port: int | None, hardware_file: Any, stack: contextlib.ExitStack) -> None:
+    def __init__(self, port: int | None, hardware_file: str | None, stack: contextlib.ExitStack) -> None:
         self.view = None
-        self.phase: tuple[Callable[[], dict[str, Any]], SweepTracker] | None = None  # its state, its sweeps
+        self.phase: tuple[Callable[[], dict[str, object]], SweepTracker] | None = None  # its state, its sweeps
         self.swept: dict[str, tuple[float, float]] = {}  # the phases before this one
         if port is None:
             return
@@ -241,7 +246,7 @@ class _Web:
 
         stack.callback(detach)
 
-    def _state(self) -> dict[str, Any]:
+    def _state(self) -> dict[str, object]:
         phase = self.phase
         if phase is None:
             raise ConnectionError("between phases")
@@ -251,7 +256,8 @@ class _Web:
         return {**state(), "sweeps": [swept.get(name, nothing) for name in self.robot.names]}
 
 
-def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: Any, server: ControlServer,
+def _open(args: argparse.Namespace, backends: str, calibration: Calibration, virtual: VirtualPrime | None,
+          server: ControlServer,
           stack: contextlib.ExitStack) -> Session:
     """A broadcaster-only session on ``backends`` with ``calibration``, answering on ``server``."""
     # The loop keeps every drive's output watchdog fed while the arm is swept: on a busy computer it needs the
@@ -293,8 +299,13 @@ class _Readout:
         return Group(*flag_lines(self.session.manager), table)
 
 
+def _set(*events: threading.Event) -> None:
+    for event in events:
+        event.set()
+
+
 def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked: tuple[str, ...],
-               ring: dict[str, Any]) -> int:
+               ring: RingSettings) -> int:
     """Every phase of the procedure in turn, each on its own bus with the previous phase's result as its
     prior; the file is written after each phase that swept something. Enter or n ends a phase and goes on;
     q, Ctrl-C or SIGTERM ends the run (after writing what the phase swept). Exit 0 only when every joint
@@ -303,7 +314,7 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked
     phases = PHASES[args.backends]
     finish = threading.Event()
     results: list[CalibrationResult] = []
-    faults: list[dict[str, Any]] = []
+    faults: list[dict[str, object]] = []
     calibration = prior
     with stop_on_signals(finish), contextlib.ExitStack() as run_stack:
         server = run_stack.enter_context(ControlServer(path=args.socket))  # a second instance stops here
@@ -394,9 +405,10 @@ def _next_command(args: argparse.Namespace, result: CalibrationResult, missing: 
     return f"prime calibration check{where}, then prime bringup{where}"
 
 
-def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: Any, server: ControlServer,
+def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: VirtualPrime | None,
+           server: ControlServer,
            finish: threading.Event, console: Console, title: str, recording: _Recording,
-           web: _Web) -> tuple[CalibrationResult, list[dict[str, Any]]]:
+           web: _Web) -> tuple[CalibrationResult, list[dict[str, object]]]:
     """One phase: bring its bus up with identity calibration, track its joints until it ends, compute."""
     stop = threading.Event()  # this phase ends (the whole run ends too when ``finish`` is set)
     with contextlib.ExitStack() as stack:
@@ -418,12 +430,13 @@ def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual:
         if not args.json:
             console.print(f"{title}: up in {session.bringup_seconds:.2f} s with identity calibration; tracking "
                           f"{len(joints)} joints. Sweep each to its LOWER stop first, then the upper. {keys}.")
-        worker = _start_scripted(session, virtual, scripted, stop) if scripted is not None else None
+        worker = _start_scripted(session, virtual, scripted, stop) if scripted is not None and virtual is not None \
+            else None
         if console.is_terminal and not args.no_live and not args.json:
             stack.enter_context(Live(_Readout(tracker, console, session, f"prime calibrate, {title}"),
                                      console=console, refresh_per_second=READOUT_HZ))
             if sys.stdin.isatty():
-                stack.enter_context(ModeKeys(lambda mode: None, lambda: (finish.set(), stop.set()),
+                stack.enter_context(ModeKeys(lambda mode: None, lambda: _set(finish, stop),
                                              on_reset=session.manager.request_reset,
                                              extra={"n": stop.set, "\n": stop.set}))
         run_loop(session, stop, on_tick=lambda manager: stop.set() if finish.is_set() else None)
@@ -433,7 +446,8 @@ def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual:
     return result, [f.as_dict() for f in session.faults]
 
 
-def _start_scripted(session: Session, virtual: Any, joints: tuple[str, ...], stop: threading.Event) -> threading.Thread:
+def _start_scripted(session: Session, virtual: VirtualPrime, joints: tuple[str, ...],
+                    stop: threading.Event) -> threading.Thread:
     from humanoid_prime.virtual.operator import ScriptedOperator
 
     def work() -> None:
@@ -464,7 +478,7 @@ def _report(console: Console, result: CalibrationResult, output: str) -> None:
                       f"{m.relation:<8} residual {m.residual:+.4f}  {mark}")
 
 
-def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) -> int:
+def _verify(args: argparse.Namespace, calibration: Calibration, ring: RingSettings) -> int:
     stop = threading.Event()
     rows: list[VerifyRow] = []
     errors: list[str] = []
@@ -507,8 +521,8 @@ def _verify(args: argparse.Namespace, calibration: Any, ring: dict[str, Any]) ->
     return 0 if ok else 1
 
 
-def _verify_joints(session: Session, virtual: Any, joints: tuple[str, ...], rows: list[VerifyRow],
-                   errors: list[str], stop: threading.Event) -> None:
+def _verify_joints(session: Session, virtual: VirtualPrime | None, joints: tuple[str, ...],
+                   rows: list[VerifyRow], errors: list[str], stop: threading.Event) -> None:
     robot: Robot = session.robot
     try:
         if virtual is not None:

@@ -22,15 +22,20 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
+import numpy.typing as npt
 from rich.console import Console
 from rich.text import Text
 
 from humanoid_prime.calibration.approach import MAX_SPEED_RAD_S
-from humanoid_prime.calibration.auto import AutoCalibration, AutoResult, LoopTicks, SteppedTicks
+from humanoid_prime.calibration.auto import AutoCalibration
 from humanoid_prime.calibration.gravity import GravityModel
+from humanoid_prime.calibration.journal import OverrideJournal
+from humanoid_prime.calibration.operator import Operator
+from humanoid_prime.calibration.report import AutoResult
+from humanoid_prime.calibration.sequence import LoopTicks, SteppedTicks
 from humanoid_prime.calibration.workflow import check_joint_names, identity_from, tracked_joints
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._common import print_json, real, write_summary
@@ -43,6 +48,10 @@ from humanoid_prime.runtime.session import BringupOptions, open_session, plan_se
 from humanoid_prime.runtime.signals import stop_on_signals
 from humanoid_prime.runtime.socket import ControlServer
 
+if TYPE_CHECKING:
+    from humanoid_prime.virtual.ring.options import RingSettings
+
+OVERRIDE_WAY = "master"  # the journal's way for the run's own EtherCAT master (session.restore_left_overrides)
 EFFICIENCY_PLAUSIBLE = (0.3, 1.05)  # a measured realised/nominal outside this is not written by --apply
 JOIN_TIMEOUT_S = 60.0  # the sequence's restore after the loop was told to stop
 SETTLE_S = 1.0  # MuJoCo alone: the arms held this long before the first joint moves
@@ -51,10 +60,14 @@ SETTLE_S = 1.0  # MuJoCo alone: the arms held this long before the first joint m
 def add_auto_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--auto", nargs="*", metavar="JOINT",
                         help="hands-free: drive each joint (default: every joint of the run, distal to proximal) "
-                             "gently into both of its mechanical stops under a capped effort, find its offset and "
-                             "direction, and measure its realised stiffness; on the robot each joint waits for Enter")
+                             "gently into both of its mechanical stops under a capped effort, one joint of each arm at "
+                             "a time, and find its offset and direction; on the robot each pair waits for Enter")
     parser.add_argument("--speed", type=real(above=0.0, at_most=MAX_SPEED_RAD_S), metavar="RAD_S",
-                        help=f"(with --auto) how fast a joint moves (default and most: {MAX_SPEED_RAD_S:g} rad/s)")
+                        help=f"(with --auto) how fast a joint moves where its stop may be (default and most: "
+                             f"{MAX_SPEED_RAD_S:g} rad/s)")
+    parser.add_argument("--measure-impedance", action="store_true",
+                        help="(with --auto) push each joint against its stops to measure its realised stiffness and "
+                             "damping (--apply does too)")
     parser.add_argument("--assume-direction", action="store_true",
                         help="(with --auto) where the physics cannot tell a joint's direction (a symmetric wrist), "
                              "keep the prior's instead of asking after one small motion")
@@ -69,7 +82,8 @@ def check_auto_options(args: argparse.Namespace) -> None:
     """Options that only go with --auto, and those that do not go with it; one line each."""
     if args.auto is None:
         used = [name for name, value in (("--speed", args.speed), ("--assume-direction", args.assume_direction),
-                                         ("--apply", args.apply), ("--sim", args.sim)) if value]
+                                         ("--apply", args.apply), ("--measure-impedance", args.measure_impedance),
+                                         ("--sim", args.sim)) if value]
         if used:
             raise PrimeError(f"{', '.join(used)}: only with --auto")
         return
@@ -101,7 +115,7 @@ def next_after_auto(args: argparse.Namespace, result: AutoResult, target: Path) 
     return f"prime calibration check{where}, then prime bringup{where}"
 
 
-def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: dict[str, Any]) -> int:
+def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: RingSettings) -> int:
     """The whole --auto run, writing the calibration to ``output``; the exit status."""
     console = make_console()
     result = _in_simulation(args, prior, console) if args.sim else _on_buses(args, prior, ring, console)
@@ -125,6 +139,11 @@ def run_auto(args: argparse.Namespace, prior: Calibration, output: Path, ring: d
         _report(console, result, output, written, applied, args.hardware)
         console.print(f"Next: {next_after_auto(args, result, output)}")
     return 0 if result.complete else 1
+
+
+def _measure(args: argparse.Namespace) -> bool:
+    """The stiffness pushes: only where they were asked for."""
+    return bool(args.apply or args.measure_impedance)
 
 
 def _joints(args: argparse.Namespace, robot: Robot, on_run: Sequence[str]) -> tuple[str, ...]:
@@ -160,7 +179,7 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
         auto = AutoCalibration(manager, identity, joints, ticks=SteppedTicks(lambda: manager.tick(now=system.sim_time)),
                                operator=WatchingOperator(robot, angles, model), speed=args.speed or MAX_SPEED_RAD_S,
                                assume_direction=args.assume_direction, report=None if args.json else console.print,
-                               model=model, frame_known=True, settle_s=SETTLE_S)
+                               model=model, frame_known=True, settle_s=SETTLE_S, measure=_measure(args))
         auto.attach()
         try:
             return auto.run()
@@ -170,7 +189,7 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
         manager.shutdown()
 
 
-def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any], console: Console) -> AutoResult:
+def _on_buses(args: argparse.Namespace, prior: Calibration, ring: RingSettings, console: Console) -> AutoResult:
     """One broadcaster-only session on ``--backends`` with the prior's directions and offsets 0; the procedure in
     the loop and its sequence in a thread beside it."""
     finish = threading.Event()
@@ -213,12 +232,16 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         if virtual is not None:
             from humanoid_prime.virtual.operator import WatchingOperator
 
-            operator: Any = WatchingOperator(robot, lambda: virtual.control.call("joints"), model)
+            operator: Operator = WatchingOperator(robot, virtual.control.joints, model)
         else:
             operator = stack.enter_context(TerminalOperator(console))
+        # What an eRob's override found is recorded first, so that the next run on this robot restores a drive a
+        # killed run left on its approach gains (an emulated ring is new each time: nothing to record).
+        journal = None if virtual is not None else OverrideJournal(args.config.folder.state, OVERRIDE_WAY,
+                                                                     "prime calibrate --auto")
         auto = AutoCalibration(manager, prior, joints, rings=rings, operator=operator, ticks=ticks,
                                speed=args.speed or MAX_SPEED_RAD_S, assume_direction=args.assume_direction,
-                               report=report, model=model)
+                               report=report, model=model, measure=_measure(args), journal=journal)
         if isinstance(operator, TerminalOperator):
             operator.on_key = auto.abort
         auto.attach()
@@ -263,14 +286,14 @@ class TerminalOperator:
 
     answered_by = "the operator's answer"
 
-    def __init__(self, console: Console, stream: Any = None) -> None:
+    def __init__(self, console: Console, stream: TextIO | None = None) -> None:
         self.console = console
         self.stream = stream if stream is not None else sys.stdin
         self.on_key: Callable[[str], None] | None = None
         self._keys: queue.Queue[str] = queue.Queue()
         self._asking = threading.Event()
         self._stop = threading.Event()
-        self._saved: Any = None
+        self._saved: list[int | list[bytes | int]] | None = None
         self._thread: threading.Thread | None = None
 
     def __enter__(self) -> TerminalOperator:
@@ -290,8 +313,9 @@ class TerminalOperator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(1.0)
-        with contextlib.suppress(termios.error, OSError):
-            termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self._saved)
+        if self._saved is not None:
+            with contextlib.suppress(termios.error, OSError):
+                termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self._saved)
 
     def _read(self, fd: int) -> None:
         while not self._stop.is_set():
@@ -319,19 +343,22 @@ class TerminalOperator:
         return key
 
     def begin(self, joints: Sequence[str]) -> None:
-        self.console.print(Text("Hands-free calibration: each joint below moves by itself, slowly, into both of its "
-                                "mechanical stops. Keep the e-stop in your hand and the space around the arms clear. "
-                                "Enter moves a joint, any other key skips it; a key pressed while a joint moves "
-                                "stops the run at once.", style="bold yellow"))
+        self.console.print(Text("Hands-free calibration: each joint below moves by itself into both of its mechanical "
+                                "stops, slowly where a stop may be, one joint of each arm at a time. Keep the e-stop "
+                                "in your hand and the space around both arms clear. Enter moves a pair, any other key "
+                                "skips it; a key pressed while a joint moves stops the run at once.",
+                                style="bold yellow"))
         self.console.print("Joints, in order: " + ", ".join(joints))
 
-    def confirm(self, joint: str) -> bool:
-        return self._ask(f"{joint}: Enter to move it, any other key to skip:") in "\r\n"
+    def confirm(self, joints: Sequence[str]) -> bool:
+        them = " and ".join(joints)
+        return self._ask(f"{them}: Enter to move {'them' if len(joints) > 1 else 'it'}, any other key to skip:") \
+            in "\r\n"
 
     def watch(self, joint: str) -> None:
         self.console.print(f"Watch {joint}: it turns a little now.")
 
-    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
+    def turned_counter_clockwise(self, joint: str, view: npt.NDArray[np.float64], where: str) -> bool | None:
         key = self._ask(f"Looking at {joint} from {where}, did it just turn counter-clockwise? [y/n]").lower()
         return True if key == "y" else False if key == "n" else None
 
@@ -366,7 +393,7 @@ def _report(console: Console, result: AutoResult, output: Path, written: bool, a
             line += f" direction {cal.direction:+d} offset {cal.homing_offset:+.4f} rad"
             if o.flipped:
                 line += " (FLIPPED from the prior)"
-        line += f"  peak {o.peak_contact_nm:.2f}/{o.cap_nm:.2f} Nm  {o.seconds:.0f} s"
+        line += f"  peak {o.peak_contact_nm:.2f}/{o.cap_nm:.2f} Nm at {o.impact_rad_s:.2f} rad/s  {o.seconds:.1f} s"
         console.print(Text(line, style=styles.get(o.status, "")))
         if o.message:
             console.print(f"      {o.message}")
@@ -382,5 +409,8 @@ def _report(console: Console, result: AutoResult, output: Path, written: bool, a
                               f"Nm*s/rad (divisor {s['kd_divisor']:.3f})")
         if o.drive_torque_limit:
             console.print(f"      drive torque limit: {o.drive_torque_limit}")
+    where = ", ".join(f"{kind} {seconds:.1f} s" for kind, seconds in result.time_by_kind().items() if seconds > 0)
+    console.print(f"robot time {result.robot_seconds:.1f} s, wall time {result.wall_seconds:.1f} s; the joints' time "
+                  f"went to: {where}")
     if applied:
         console.print(f"wrote the measured torque efficiency of {len(applied)} eRob joints into {hardware_file}")

@@ -207,6 +207,37 @@ class BodyCheck:
         finally:
             self.kernel.frame(*self._identity)
 
+    def sweep_pair(self, measured: npt.NDArray[np.float64], a: tuple[int, npt.NDArray[np.float64]],
+                   b: tuple[int, npt.NDArray[np.float64]], frame: Frame) -> tuple[Contact | None, float, float] | None:
+        """Two joints moving at once (``(joint, angles)`` each, model frame), every other joint where it is: the
+        first pair of angles at which a pair that both motions move (one arm's body against the other's) comes
+        closer than the margin, and that pair, or (None, nan, nan). Each joint's range against the rest is
+        ``sweep``'s. None: the place of either cannot be known."""
+        (ja, angles_a), (jb, angles_b) = a, b
+        scale, shift, known = frame.scale.copy(), frame.shift.copy(), frame.known.copy()
+        known[ja] = known[jb] = 1
+        carriers = (int(self.carriers[ja]) | int(self.carriers[jb])) & ~(1 << ja) & ~(1 << jb)
+        if any(not (known[j] and np.isfinite(measured[j])) for j in range(self.robot.n) if carriers >> j & 1):
+            return None
+        scale[ja] = scale[jb] = 0.0
+        no_targets = np.zeros((5, self.robot.n))
+        both = np.uint64((1 << ja) | (1 << jb))
+        self.kernel.frame(scale, shift, known)
+        try:
+            for angle_a in angles_a:
+                shift[ja] = angle_a
+                for angle_b in angles_b:
+                    shift[jb] = angle_b
+                    if not self.check(no_targets, measured):
+                        continue
+                    for pair, distance in zip(self.kernel.found.tolist(), self.kernel.found_distance.tolist(),
+                                              strict=True):
+                        if self._chains[pair] & both == both:
+                            return self.contact(pair, distance), float(angle_a), float(angle_b)
+            return None, math.nan, math.nan
+        finally:
+            self.kernel.frame(*self._identity)
+
 
 def _collided_pairs(m: mujoco.MjModel) -> list[tuple[int, int]]:
     """The geom pairs MuJoCo collides in ``m``: compatible contype/conaffinity, not on one body or two welded

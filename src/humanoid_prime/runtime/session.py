@@ -331,12 +331,13 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
 
 
 def _restore_left_overrides(session: Session, folder: Path) -> None:
-    """Drives an override left as it made them (``calibration.journal``: a `prime limp` killed outright) on this
-    robot's ring, through this run's control socket or an IgH master, are restored from their records before
+    """Drives an override left as it made them (``calibration.journal``: a `prime limp` or a hands-free calibration
+    killed outright) on this robot's ring, through this run's control socket, an IgH master or the run's own master,
+    are restored from their records before
     anything else writes a drive, and each is said on stderr and among the run's faults. An emulated ring is new
     and is never restored from records (the robot's records stay for the robot)."""
     control = session.plan.control
-    ways = ["igh", *([f"socket {control.path.absolute()}"] if control is not None else [])]
+    ways = ["igh", "master", *([f"socket {control.path.absolute()}"] if control is not None else [])]
     journals = [journal for journal in (OverrideJournal(folder, way) for way in ways) if journal.left()]
     ethercat = session.ethercat
     if not journals or ethercat is None:

@@ -18,9 +18,9 @@ Sito's MIT law), so MuJoCo applies it at every physics step as ``MujocoSystem`` 
 device's gains, targets and torque limit of that tick, moved into the true joint frame by the truth calibration
 (``raw = direction * joint + offset``). A disabled or faulted eRob brakes: a stiff hold where the joint is.
 
-While a joint is within ``NEAR_STOP_RAD`` of a mechanical stop the world is stepped one physics step at a time
-and the effort its actuator puts into the stop beyond gravity is recorded (``contact_peak``): the truth a
-contact-effort cap is checked against.
+While a joint is within ``NEAR_STOP_RAD`` of a mechanical stop the world is stepped one physics step at a time;
+the effort its actuator puts into the stop beyond gravity is recorded (``contact_peak``), and the speed it met the
+stop at (``touch_speed``): the truths a contact-effort cap and a contact speed are checked against.
 """
 
 from __future__ import annotations
@@ -31,8 +31,11 @@ from collections.abc import Callable, Mapping, Sequence
 import mujoco
 import numpy as np
 
-from humanoid_prime.calibration.auto import AutoCalibration, SteppedTicks
+from humanoid_prime.calibration.auto import AutoCalibration
+from humanoid_prime.calibration.journal import OverrideJournal
+from humanoid_prime.calibration.plan import OFFSET_RANGE_RAD
 from humanoid_prime.calibration.report import AutoResult
+from humanoid_prime.calibration.sequence import SteppedTicks
 from humanoid_prime.calibration.workflow import identity_from
 from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.controllers import ControllersConfig
@@ -136,6 +139,8 @@ class LockstepPrime(HardwareComponent):
         self.raw_torque = np.zeros(n)
         self.limit = np.array([j.effort_limit for j in robot.joints])
         self.contact_peak = np.zeros(n)  # per joint: the most effort beyond gravity its actuator put into a stop
+        self.touch_speed = np.zeros(n)  # per joint: the fastest it met a stop at (rad/s)
+        self._touching = np.zeros(n, dtype=bool)
         self._dof = self.physics.dof_adr
         self._lower, self._upper = robot.lower, robot.upper
         self.sim_time = 0.0
@@ -315,9 +320,11 @@ class LockstepPrime(HardwareComponent):
         return True
 
     def _step(self, now: float) -> None:
-        """One control period of physics; one step at a time near a stop, recording the contact effort."""
+        """One control period of physics; one step at a time near a stop (or one it can reach within the period),
+        recording the contact effort and speed."""
         q = self.true_state.position
-        near = (q - self._lower < NEAR_STOP_RAD) | (self._upper - q < NEAR_STOP_RAD)
+        reach = NEAR_STOP_RAD + 2.0 * np.abs(self.true_state.velocity) * self.period
+        near = (q - self._lower < reach) | (self._upper - q < reach)
         self.physics.advance = self._step_watching if near.any() else None
         self.physics.write(now, self.law)
         self.sim_time = self.physics.sim_time
@@ -327,11 +334,17 @@ class LockstepPrime(HardwareComponent):
         mujoco.mj_step(model, data)
         q = data.qpos[self.physics.qpos_adr]
         beyond = (self._lower - q, q - self._upper)
+        touching_any = np.zeros(self.robot.n, dtype=bool)
         for side, depth in ((-1.0, beyond[0]), (1.0, beyond[1])):
             touching = depth > -1e-4
             if touching.any():
                 push = side * (data.actuator_force - data.qfrc_bias[self._dof])
                 np.maximum(self.contact_peak, np.where(touching, push, 0.0), out=self.contact_peak)
+                touching_any |= touching
+        met = touching_any & ~self._touching
+        if met.any():  # the speed it came in at, the step it met the stop
+            np.maximum(self.touch_speed, np.where(met, np.abs(data.qvel[self._dof]), 0.0), out=self.touch_speed)
+        self._touching = touching_any
 
     def _sense(self) -> None:
         """The world's true state, and each joint's in its device's raw frame."""
@@ -351,12 +364,15 @@ class LockstepPrime(HardwareComponent):
 def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibration, truth: Calibration,
                           joints: Sequence[str], *, physics_rate: float = 250.0,
                           initial_pose: Mapping[str, float] | None = None, assume_direction: bool = False,
+                          measure: bool = False, offset_range: float = OFFSET_RANGE_RAD,
+                          journal: OverrideJournal | None = None,
                           each_tick: Callable[[LockstepPrime, AutoCalibration], None] | None = None,
                           ) -> tuple[AutoResult, LockstepPrime]:
     """``prime calibrate --auto`` of ``joints`` on a ``LockstepPrime`` with the virtual robot's ``truth``, in
     virtual time: the host frame is ``prior``'s (its directions, offsets 0), the operator watches the virtual
-    robot, ``each_tick`` runs after every tick (a test injecting a fault). Returns the result and the rig, shut
-    down (drives disabled, wrists off)."""
+    robot, ``each_tick`` runs after every tick (a test injecting a fault); ``measure``: the realised impedance
+    too; ``journal``: where the eRob overrides are recorded. Returns the result and the rig, shut down (drives
+    disabled, wrists off)."""
     host = identity_from(prior)
     rig = LockstepPrime(robot, host, truth, update_rate=config.update_rate, physics_rate=physics_rate,
                         initial_pose=START_POSE if initial_pose is None else initial_pose)
@@ -375,7 +391,8 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
             manager.tick(now=rig.sim_time)
         rings = {j: (rig, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints}
         auto = AutoCalibration(manager, prior, joints, rings=rings, ticks=SteppedTicks(step),
-                               operator=WatchingOperator(robot, rig.true_positions), assume_direction=assume_direction)
+                               operator=WatchingOperator(robot, rig.true_positions), assume_direction=assume_direction,
+                               measure=measure, offset_range=offset_range, journal=journal)
         auto.attach()
         return auto.run(), rig
     finally:

@@ -190,7 +190,7 @@ class WatchingOperator:
     def begin(self, joints: Sequence[str]) -> None:
         pass
 
-    def confirm(self, joint: str) -> bool:
+    def confirm(self, joints: Sequence[str]) -> bool:
         return True
 
     def watch(self, joint: str) -> None:

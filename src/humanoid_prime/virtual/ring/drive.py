@@ -208,7 +208,7 @@ class ErobDrive:
                                           FOLLOWING_ERROR_WINDOW_COUNTS, minimum=0))
         self.following_timeout = add(Entry(0x6066, 0, "following error time out (ms)", "H",
                                            FOLLOWING_ERROR_TIMEOUT_MS))
-        self.max_torque = add(Entry(0x6072, 0, "max torque (per mille)", "H", MAX_TORQUE_PER_MILLE))
+        self.max_torque = add(Entry(obj.MAX_TORQUE, 0, "max torque (per mille)", "H", MAX_TORQUE_PER_MILLE))
         self.target_position = add(Entry(obj.TARGET_POSITION, 0, "target position", "i", 0, pdo=PDO_RX))
         self.following_error = add(Entry(0x60F4, 0, "following error actual value", "i", 0, READ_ONLY,
                                          pdo=PDO_TX))

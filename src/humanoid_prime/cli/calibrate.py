@@ -8,7 +8,6 @@ import json
 import sys
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -20,9 +19,7 @@ from rich.text import Text
 from humanoid_prime.calibration.math import MIN_SWEEP_RAD, Status
 from humanoid_prime.calibration.tracker import SweepTracker
 from humanoid_prime.calibration.workflow import (
-    VERIFY_TOLERANCE_RAD,
     CalibrationResult,
-    VerifyRow,
     check_joint_names,
     compute,
     identity_from,
@@ -48,12 +45,13 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.cli._common import console as make_console
 from humanoid_prime.cli._live import ModeKeys, flag_lines
-from humanoid_prime.cli.addons import Addons, Run
+from humanoid_prime.cli.addons.web import CalibrationView
 from humanoid_prime.cli.calibrate_auto import add_auto_options, check_auto_options, config_option, run_auto
+from humanoid_prime.cli.calibrate_session import PHASES, Recording, joint_list, open_phase, run_joints, virtual_prime
+from humanoid_prime.cli.calibrate_verify import verify
 from humanoid_prime.config.calibration import VIRTUAL_MARK, Calibration, load_calibration, virtual_may_replace
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.location import write_target
-from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.run import run_loop
@@ -61,7 +59,6 @@ from humanoid_prime.runtime.session import (
     BACKENDS,
     BringupOptions,
     Session,
-    open_session,
     plan_session,
 )
 from humanoid_prime.runtime.signals import stop_on_signals
@@ -118,13 +115,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.set_defaults(func=run, may_overwrite={("output", "calibration"), ("output", "prior")})
 
 
-def _joint_list(text: str | None) -> list[str]:
-    return [j.strip() for j in (text or "").split(",") if j.strip()]
 
-
-# The documented procedure (DESIGN §5): the eRob arms on EtherCAT first, then the wrists on CAN alone, since
-# limp wrists flop while an arm is swept. --backends ec or can runs one of the two phases.
-PHASES = {"all": ("ec", "can"), "ec": ("ec",), "can": ("can",)}
 PHASE_NAMES = {"ec": "the eRob arms on EtherCAT", "can": "the Sito wrists on CAN"}
 
 
@@ -152,10 +143,10 @@ def run(args: argparse.Namespace) -> int:
     checked = load_calibration(hardware, args.calibration) if args.verify else None
     robot = plan_session(BringupOptions(hardware_file=args.hardware, controllers_file=args.controllers,
                                         calibration=checked or prior)).robot  # everything checked before a bus
-    run_joints = _run_joints(robot, args.backends)
+    joints = run_joints(robot, args.backends)
     if args.scripted and args.scripted != "all":
-        check_joint_names(robot, _joint_list(args.scripted), run_joints, "--scripted")
-    check_joint_names(robot, _joint_list(args.joints), run_joints, "--joints")
+        check_joint_names(robot, joint_list(args.scripted), joints, "--scripted")
+    check_joint_names(robot, joint_list(args.joints), joints, "--joints")
     if args.emulate:
         from humanoid_prime.virtual.harness import enter_private_netns
 
@@ -164,9 +155,9 @@ def run(args: argparse.Namespace) -> int:
         return run_auto(args, prior, target, emulator)
     if args.verify:
         assert checked is not None  # --verify reads a calibration (checked above)
-        return _verify(args, checked, emulator)
-    asked = tuple(_joint_list(args.joints)) or (
-        tuple(_joint_list(args.scripted)) if args.scripted and args.scripted != "all" else run_joints)
+        return verify(args, checked, emulator)
+    asked = tuple(joint_list(args.joints)) or (
+        tuple(joint_list(args.scripted)) if args.scripted and args.scripted != "all" else joints)
     return _calibrate(args, prior, target, asked, emulator)
 
 
@@ -181,98 +172,6 @@ def _check_results_writable(args: argparse.Namespace, target: Path) -> None:
         if problem is not None:
             raise PrimeError(f"{what} could not be written at the end of this run: {problem}; {fix} where it can")
 
-
-def _run_joints(robot: Robot, backends: str) -> tuple[str, ...]:
-    """The joints every phase of a run on ``backends`` tracks, in canonical order."""
-    tracked = {joint for phase in PHASES[backends] for joint in tracked_joints(robot, phase)}
-    return tuple(joint for joint in robot.names if joint in tracked)
-
-
-def _virtual(args: argparse.Namespace, ring: RingSettings, stack: contextlib.ExitStack) -> VirtualPrime | None:
-    """The virtual Prime for the whole run with --emulate (None on the robot)."""
-    if not args.emulate:
-        return None
-    from humanoid_prime.virtual.harness import attach_virtual_prime
-
-    return attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth, ring_options=ring,
-                                avoid_cpu=args.cpu)
-
-
-class _Recording:
-    """``--record``: one file for the whole run, each phase's session attached in turn."""
-
-    def __init__(self, args: argparse.Namespace, stack: contextlib.ExitStack) -> None:
-        self.args = args
-        self.stack = stack
-        self.run: Run | None = None
-
-    def attach(self, session: Session, stack: contextlib.ExitStack) -> None:
-        if self.run is None:
-            # Stamps in the system clock, as on the robot; the file is finished when the run ends.
-            self.run = Run(session.manager, report=print, epoch_offset=time.time() - time.monotonic())
-            Addons().attach(self.run, self.args, self.stack, names=("record",))
-        self.run.follow(session.manager, stack)
-
-
-class _Web:
-    """``--web``: one page for the whole run, showing each phase's joints and the ranges swept so far."""
-
-    def __init__(self, port: int | None, hardware_file: str | None, stack: contextlib.ExitStack) -> None:
-        self.view = None
-        self.phase: tuple[Callable[[], dict[str, object]], SweepTracker] | None = None  # its state, its sweeps
-        self.swept: dict[str, tuple[float, float]] = {}  # the phases before this one
-        if port is None:
-            return
-        from humanoid_prime.config.robot import load_robot
-        from humanoid_prime.view.page import PrimeView
-
-        self.robot = load_robot(hardware_file)
-        self.view = PrimeView(self.robot, port=port, source=self._state, sweeps=True, title="Prime calibration")
-        stack.callback(self.view.close)
-        print(f"view: {self.view.url}", flush=True)
-
-    def attach(self, session: Session, tracker: SweepTracker, stack: contextlib.ExitStack) -> None:
-        if self.view is None:
-            return
-        from humanoid_prime.view.feeds import manager_source
-
-        state, detach_state = manager_source(session.manager)
-        self.phase = (state, tracker)
-
-        def detach() -> None:
-            self.swept.update(tracker.sweeps())
-            detach_state()
-            self.phase = None
-
-        stack.callback(detach)
-
-    def _state(self) -> dict[str, object]:
-        phase = self.phase
-        if phase is None:
-            raise ConnectionError("between phases")
-        state, tracker = phase
-        swept = {**self.swept, **tracker.sweeps()}
-        nothing = (float("inf"), float("-inf"))
-        return {**state(), "sweeps": [swept.get(name, nothing) for name in self.robot.names]}
-
-
-def _open(args: argparse.Namespace, backends: str, calibration: Calibration, virtual: VirtualPrime | None,
-          server: ControlServer,
-          stack: contextlib.ExitStack) -> Session:
-    """A broadcaster-only session on ``backends`` with ``calibration``, answering on ``server``."""
-    # The loop keeps every drive's output watchdog fed while the arm is swept: on a busy computer it needs the
-    # same real-time scheduling as a bring-up (a 100 ms stall faults every drive with 0xA000).
-    options = BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True,
-                             emulated=virtual is not None, hardware_file=args.hardware,
-                             controllers_file=args.controllers, control_socket=args.socket,
-                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict(),
-                             state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
-    if virtual is not None:
-        options.interface = virtual.master_interface
-        options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
-    plan = plan_session(options)
-    plan.control = server
-    return open_session(plan, stack)
 
 
 class _Readout:
@@ -318,9 +217,9 @@ def _calibrate(args: argparse.Namespace, prior: Calibration, target: Path, asked
     calibration = prior
     with stop_on_signals(finish), contextlib.ExitStack() as run_stack:
         server = run_stack.enter_context(ControlServer(path=args.socket))  # a second instance stops here
-        virtual = _virtual(args, ring, run_stack)
-        recording = _Recording(args, run_stack)
-        web = _Web(args.web, args.hardware, run_stack)
+        virtual = virtual_prime(args, ring, run_stack)
+        recording = Recording(args, run_stack)
+        web = CalibrationView(args.web, args.hardware, run_stack)
         for number, backends in enumerate(phases, start=1):
             if finish.is_set():
                 break
@@ -407,18 +306,18 @@ def _next_command(args: argparse.Namespace, result: CalibrationResult, missing: 
 
 def _phase(args: argparse.Namespace, backends: str, prior: Calibration, virtual: VirtualPrime | None,
            server: ControlServer,
-           finish: threading.Event, console: Console, title: str, recording: _Recording,
-           web: _Web) -> tuple[CalibrationResult, list[dict[str, object]]]:
+           finish: threading.Event, console: Console, title: str, recording: Recording,
+           web: CalibrationView) -> tuple[CalibrationResult, list[dict[str, object]]]:
     """One phase: bring its bus up with identity calibration, track its joints until it ends, compute."""
     stop = threading.Event()  # this phase ends (the whole run ends too when ``finish`` is set)
     with contextlib.ExitStack() as stack:
-        session = _open(args, backends, identity_from(prior), virtual, server, stack)
+        session = open_phase(args, backends, identity_from(prior), virtual, server, stack)
         recording.attach(session, stack)
         robot = session.robot
         joints = tracked_joints(robot, backends)
         scripted = None
         if args.scripted:
-            named = _run_joints(robot, args.backends) if args.scripted == "all" else _joint_list(args.scripted)
+            named = run_joints(robot, args.backends) if args.scripted == "all" else joint_list(args.scripted)
             scripted = tuple(j for j in named if j in joints)
         tracker = SweepTracker(robot, joints)
         tracker.attach(session.manager.topics)
@@ -476,82 +375,3 @@ def _report(console: Console, result: CalibrationResult, output: str) -> None:
         mark = "ok" if m.ok else "CHECK"
         console.print(f"  {m.left:<22} {m.left_offset:+.4f}  {m.right:<22} {m.right_offset:+.4f}  "
                       f"{m.relation:<8} residual {m.residual:+.4f}  {mark}")
-
-
-def _verify(args: argparse.Namespace, calibration: Calibration, ring: RingSettings) -> int:
-    stop = threading.Event()
-    rows: list[VerifyRow] = []
-    errors: list[str] = []
-    with stop_on_signals(stop), contextlib.ExitStack() as stack:
-        server = stack.enter_context(ControlServer(path=args.socket))
-        virtual = _virtual(args, ring, stack)
-        session = _open(args, args.backends, calibration, virtual, server, stack)
-        _Recording(args, stack).attach(session, stack)
-        robot = session.robot
-        joints = tracked_joints(robot, args.backends)
-        chosen = tuple(_joint_list(args.joints)) or joints
-        check_joint_names(robot, chosen, joints, "--joints")
-        worker = threading.Thread(target=_verify_joints, args=(session, virtual, chosen, rows, errors, stop),
-                                  name="verify", daemon=True)
-        worker.start()
-        if not args.json and virtual is not None:  # the scripted check runs on its own: show how far it is
-            from humanoid_prime.cli._live import Working
-
-            working = stack.enter_context(Working(make_console(), "verifying the stops", total=2 * len(chosen)))
-            run_loop(session, stop, on_tick=lambda manager: working.update(
-                f"verifying the stops: {rows[-1].joint if rows else chosen[0]}", completed=len(rows)))
-        else:
-            run_loop(session, stop)
-        worker.join(timeout=30.0)
-    if errors:
-        raise PrimeError(errors[0])
-    ok = len(rows) == 2 * len(chosen) and all(r.ok for r in rows)  # every stop of every joint, each within tolerance
-    report = {"tolerance_rad": VERIFY_TOLERANCE_RAD, "ok": ok, "rows": [r.as_dict() for r in rows]}
-    write_summary(args, report)
-    if args.json:
-        print(json.dumps(report, indent=2))
-    else:
-        for r in rows:
-            print(f"{r.joint:<22} {r.stop:<5} limit {r.limit:+.4f}  reads {r.reading:+.4f}  "
-                  f"error {1e3 * r.error:+7.2f} mrad  {'ok' if r.ok else 'FAIL'}")
-        if len(rows) < 2 * len(chosen):
-            print(f"NOT verified: {len(rows)} of {2 * len(chosen)} stops were checked")
-        print(("verified: every joint reads its limit within " if ok else "NOT verified: readings off by more than ")
-              + f"{1e3 * VERIFY_TOLERANCE_RAD:g} mrad")
-    return 0 if ok else 1
-
-
-def _verify_joints(session: Session, virtual: VirtualPrime | None, joints: tuple[str, ...],
-                   rows: list[VerifyRow], errors: list[str], stop: threading.Event) -> None:
-    robot: Robot = session.robot
-    try:
-        if virtual is not None:
-            from humanoid_prime.virtual.operator import ScriptedOperator
-
-            operator = ScriptedOperator(session, virtual.control, stop=stop)
-
-            def check(joint: str) -> None:
-                spec = robot.joints[robot.index(joint)]
-                lower, upper = operator.stops(joint)
-                rows.extend((VerifyRow(joint, "lower", spec.lower, lower),
-                             VerifyRow(joint, "upper", spec.upper, upper)))
-
-            try:
-                operator.by_hand(joints, check)
-            finally:  # both hands' rows in the order of the joints asked for, each lower stop first
-                rows.sort(key=lambda row: (joints.index(row.joint), row.stop != "lower"))
-        else:
-            position = session.manager.resources.state.position
-            for joint in joints:
-                spec = robot.joints[robot.index(joint)]
-                for name, limit in (("lower", spec.lower), ("upper", spec.upper)):
-                    hint = (f" (limp it first: prime limp {spec.ring_position})" if spec.family == "erob" else "")
-                    print(f"Hold {joint} against its {name} stop{hint}, then press Enter", flush=True)
-                    if not sys.stdin.readline():
-                        raise PrimeError("stdin closed before every stop was checked")
-                    time.sleep(0.1)
-                    rows.append(VerifyRow(joint, name, limit, float(position[spec.index])))
-    except Exception as exc:
-        errors.append(f"verify: {exc}")
-    finally:
-        stop.set()

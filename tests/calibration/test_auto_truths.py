@@ -53,7 +53,7 @@ def chosen_joints(robot, k: int) -> list[str]:
     return [robot.names[(k + step * 5) % robot.n] for step in range(PER_TRUTH)]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture  # per test, so that parallel workers can take the truths one by one
 def setup(robot):
     return load_controllers(robot.names), load_calibration(robot.hardware)
 

@@ -2,8 +2,8 @@
 
 Two groups. Tests marked ``realtime`` (every ``netns`` test is one: it starts the emulated robot on the wall clock)
 run in the real-time lanes: the first ``PRIME_SUITE_REALTIME_LANES`` workers of a parallel run (pytest-xdist,
-``-n N``; default 1), each running one test at a time, and nothing else until no real-time test is left. The other
-tests run on the other workers, niced (``PARALLEL_NICE``), and on the lanes once they are done.
+``-n N``; default 1, ``make test`` 2), each running one test at a time, and nothing else until no real-time test is
+left. The other tests run on the other workers, niced (``PARALLEL_NICE``), and on the lanes once they are done.
 
 A worker is handed a unit of work at a time (``_unit``): a test alone, or every test of its module where they share
 a module fixture, so that it is set up once. pytest-xdist's own ``loadgroup`` marks its groups by renaming tests,

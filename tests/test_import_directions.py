@@ -16,9 +16,10 @@ LAYERS = ("foundation", "config", "control", "drivers", "calibration", "dds", "r
 APPS = {  # rooms above the layers, and which of their peers each may import
     "sim": set(),
     "virtual": {"sim"},
-    "bench": {"sim", "virtual"},
+    "bench": {"sim", "virtual", "doctor"},
     "view": set(),
-    "cli": {"sim", "virtual", "bench", "view"},
+    "doctor": set(),
+    "cli": {"sim", "virtual", "bench", "view", "doctor"},
     "__main__": {"cli"},
 }
 

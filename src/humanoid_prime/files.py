@@ -91,6 +91,12 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
             data = yaml.load(text, Loader=_FastUniqueKeyLoader)  # noqa: S506 (a SafeLoader)
         except yaml.YAMLError:
             data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow: no mark, a position in the text
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - text.rfind("\n", 0, exc.position)
+        what = "a NUL byte (0x00)" if exc.character == 0 else f"the character U+{exc.character:04X}"
+        raise ConfigError(path, f"line {line}, column {column}", f"{what}, which YAML does not allow (a binary file, "
+                          "or one a crash left unfinished?)", "remove it, or restore the file from a copy") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -129,13 +135,30 @@ def output_problem(path: str | Path, *, directory: bool = False) -> str | None:
         return f"{path} is a folder; give a file name"
     elif path.exists() and not os.access(path, os.W_OK):
         return f"{path} is read-only"
-    folder = (path if directory else path.parent).absolute()
+    target = (path if directory else path.parent).absolute()
+    folder = target
     while not folder.exists():  # missing folders are created on write, under the first one that exists
         folder = folder.parent
     if not folder.is_dir():
         return f"{folder} is a file, so {path} cannot be created"
     if not os.access(folder, os.W_OK | os.X_OK):
         return f"cannot write in {folder}"
+    return _creation_problem(folder, path.name, missing=folder != target)
+
+
+def _creation_problem(folder: Path, name: str, *, missing: bool) -> str | None:
+    """Why nothing can be created in ``folder`` (None: it can): tried, as the write will, with a temporary file
+    named as ``atomic_write_bytes`` names it, or, where the write must first create folders under ``folder``,
+    with a folder. Permission bits do not tell: /proc is writable to root, and creating a file there fails."""
+    try:
+        if missing:
+            os.rmdir(tempfile.mkdtemp(prefix=".prime.", suffix=".tmp", dir=folder))
+        else:
+            fd, probe = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        return f"nothing can be created in {folder} ({exc.strerror or exc})"
     return None
 
 
@@ -148,11 +171,21 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see the old file or the complete new one, never a part.
 
     The data goes to a temporary file in the same folder, is flushed to disk, and is renamed over
-    the target; a failure or interruption at any point leaves the previous file untouched. The file
-    keeps the mode of the one it replaces; a new file gets the mode the umask gives.
+    the target; a failure or interruption at any point leaves the previous file untouched, and a failure is a
+    PrimeError that names ``path``. The file keeps the mode of the one it replaces; a new file gets the mode the
+    umask gives.
     """
     path = Path(path)
     check_not_package(path)
+    if path.is_dir():
+        raise PrimeError(f"cannot write {path}: it is a folder; give a file name")
+    try:
+        _replace(path, data)
+    except OSError as exc:  # named by the file the caller asked for, never by the temporary one
+        raise PrimeError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def _replace(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         mode = stat.S_IMODE(path.stat().st_mode)

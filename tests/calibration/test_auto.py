@@ -17,6 +17,7 @@ from humanoid_prime.config.calibration import Calibration, JointCalibration, loa
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.robot import load_robot
+from humanoid_prime.drivers.sito.protocol import counts_to_velocity
 from humanoid_prime.errors import ConfigError
 from humanoid_prime.files import bundled
 from humanoid_prime.virtual.lockstep import calibrate_in_lockstep
@@ -236,3 +237,84 @@ def test_hardware_file_cap_and_efficiency_keys_are_checked(tmp_path):
     hardware = load_hardware(path)
     assert hardware.erob_torque_efficiency["left_elbow_pitch"] == 0.7
     assert hardware.erob_torque_efficiency["left_shoulder_pitch"] == hardware.torque_efficiency == 1.0
+
+
+# ---- through the gate --------------------------------------------------------------------------------------
+
+def test_the_calibration_is_the_controller_that_owns_the_commands_while_it_runs(robot, setup):
+    config, prior, truth = setup
+    owners = set()
+
+    def watch(rig, auto_run) -> None:
+        if auto_run.moving is not None:
+            owners.add(auto_run.manager.command_owner)
+
+    result, _ = calibrate_in_lockstep(robot, config, prior, truth, ["left_elbow_pitch"], each_tick=watch)
+    assert owners == {"calibration_controller"}
+    assert result.outcomes["left_elbow_pitch"].status == "done"
+
+
+def test_a_calibration_command_beyond_the_hardware_files_limits_never_reaches_a_bus(tmp_path, setup):
+    """The approach moves a wrist at 0.2 rad/s; a hardware file that allows the wrists 0.1 rad/s makes the gate
+    refuse it: the wrist never gets the command, and the run stops with the gate's words."""
+    config, prior, truth = setup
+    path = tmp_path / "prime_hardware.yaml"
+    path.write_text(bundled("prime_hardware.yaml").read_text().replace("velocity: 3.14", "velocity: 0.1"))
+    robot = load_robot(path)
+    fastest = []
+
+    def watch(rig, auto_run) -> None:
+        motor = rig.sito["left_wrist_roll"]
+        fastest.append(abs(counts_to_velocity(motor.velocity_counts)))
+
+    result, _ = calibrate_in_lockstep(robot, config, prior, truth, ["left_wrist_roll"], each_tick=watch)
+    assert result.aborted is not None and result.aborted.startswith(
+        "the calibration lost the commands: calibration_controller: velocity of left_wrist_roll is 0.1")
+    assert "beyond its limit of 0.1 rad/s (the Sito maximum, command_limits.sito.velocity" in result.aborted
+    assert max(fastest) <= 0.1 + 1e-3  # what the motor was told: never the refused speed
+    assert result.outcomes["left_wrist_roll"].status == "aborted"
+
+
+def test_a_joint_whose_range_reaches_the_torso_is_not_driven(robot, setup):
+    """With the left arm hanging, shoulder_roll's inner stop is inside the torso: checked before it moves, the
+    joint is not driven, and nothing touches."""
+    config, prior, truth = setup
+    known = Calibration({j: truth.joints[j] if j != "left_shoulder_roll" else prior.joints[j] for j in robot.names})
+    touched = []
+
+    def watch(rig, auto_run) -> None:
+        touched.append(rig.physics.data.ncon)
+
+    result, rig = calibrate_in_lockstep(robot, config, known, truth, ["left_shoulder_roll"], each_tick=watch,
+                                        initial_pose={"left_elbow_pitch": -0.9})  # the left arm hangs
+    outcome = result.outcomes["left_shoulder_roll"]
+    assert outcome.status == "failed" and outcome.message.startswith("not driven: at ")
+    assert "torso_link and left_" in outcome.message
+    assert max(touched) == 0
+    assert abs(rig.true_state.position[robot.index("left_shoulder_roll")]) < 0.02  # it never moved
+
+
+def test_a_joint_the_gate_refuses_backs_off_to_where_it_started_and_the_run_goes_on(robot, setup):
+    config, prior, truth = setup
+    known = Calibration({j: truth.joints[j] if j not in ("left_elbow_pitch", "right_elbow_pitch") else prior.joints[j]
+                         for j in robot.names})
+    started, refused = [], []
+
+    def refuse(rig, auto_run) -> None:
+        i = robot.index("left_elbow_pitch")
+        if not started and auto_run.moving is not None and auto_run.moving.name == "left_elbow_pitch":
+            started.append(rig.true_state.position[i])
+        if not refused and _approaching(auto_run, "left_elbow_pitch", 0.3):
+            held = np.array([name.startswith("left_") for name in robot.names])
+            auto_run.controller.on_refused("left_hand_link and torso_link 0.029 m apart (margin 0.030 m)", held)
+            refused.append(rig.true_state.position[i])
+
+    result, rig = calibrate_in_lockstep(robot, config, known, truth, ["left_elbow_pitch", "right_elbow_pitch"],
+                                        each_tick=refuse)
+    assert refused and result.aborted is None
+    outcome = result.outcomes["left_elbow_pitch"]
+    assert outcome.status == "failed"
+    assert outcome.message == ("the gate refused its command: left_hand_link and torso_link 0.029 m apart "
+                               "(margin 0.030 m)")
+    assert abs(rig.true_state.position[robot.index("left_elbow_pitch")] - started[0]) < 0.05  # backed off
+    assert result.outcomes["right_elbow_pitch"].status == "done"  # the run went on with the next joint

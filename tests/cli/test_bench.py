@@ -28,4 +28,5 @@ def test_figures_are_found_by_dotted_path():
     results = {"bringup": {"tick_us": {"median": 87.0}}}
     assert figure(results, "bringup", "tick_us.median") == 87.0
     assert figure(results, "bringup", "jitter_us.p99") is None
-    assert {suite for suite, *_ in TARGETS} == {"startup", "sim", "sito", "bringup", "khz", "dds", "record"}
+    assert {suite for suite, *_ in TARGETS} == {"startup", "sim", "sito", "bringup", "khz", "dds", "record", "doctor",
+                                                "gate"}

@@ -255,6 +255,48 @@ def test_prime_limp_leaves_the_registers_as_it_found_them(tmp_path, how):
         proc.wait(timeout=60)
 
 
+GAINS = [(0x2383, 0), (0x2382, 1), (0x2381, 1), (0x2381, 2)]  # gate, pos_reg, vel_reg, integral
+
+
+def test_a_prime_limp_killed_outright_is_restored_by_the_next_one_which_says_so(tmp_path):
+    """SIGKILL runs no exit path: the drive stays limp (gate 1, pos_reg 0). The next `prime limp` through the same
+    run finds the record the killed one left, puts the drive back as that one found it, and says so; only then
+    does it take its own snapshot (which would otherwise be of the limp drive, and restore it limp)."""
+    proc, socket = _start(tmp_path, tmp_path / "out.yaml")
+    try:
+        sdo = SocketSdoClient(socket)
+
+        def gains() -> list[int]:
+            return [int.from_bytes(sdo.sdo_read(3, index, sub), "little") for index, sub in GAINS]
+
+        before = gains()
+        limp = popen([*PRIME, "limp", "3", "--socket", str(socket)], stdin=subprocess.PIPE,
+                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 30
+        while gains()[1] != 0:
+            assert time.monotonic() < deadline, "the joint never went limp"
+            time.sleep(0.05)
+        limp.kill()
+        limp.communicate(timeout=30)
+        assert gains()[:2] == [1, 0]  # left limp
+        again = subprocess.run([*PRIME, "limp", "3", "--seconds", "0", "--socket", str(socket)],
+                               capture_output=True, text=True, timeout=60)
+        assert again.returncode == 0, again.stderr
+        assert gains() == before
+        told = [line for line in again.stderr.splitlines() if line.strip()]
+        assert len(told) == 1 and told[0].startswith("ring 3 (left_elbow_pitch) was left limp by `prime limp 3` "
+                                                     f"(pid {limp.pid}, "), told
+        assert told[0].endswith("which ended without restoring it: restored its gains as found, "
+                                + " ".join(f"{name}={value}" for name, value in
+                                           zip(("gate", "pos_reg", "vel_reg", "integral"), before, strict=True)))
+        third = subprocess.run([*PRIME, "limp", "3", "--seconds", "0", "--socket", str(socket)],
+                               capture_output=True, text=True, timeout=60)
+        assert third.returncode == 0 and third.stderr == "", third.stderr  # restored once, the record gone
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+
+
 def test_on_a_busy_machine_the_run_calibrates_every_joint_asked_for_or_names_what_it_missed(robot, truth, tmp_path):
     from doubles.load import busy_cores
 

@@ -71,6 +71,16 @@ def test_in_mujoco_alone_every_joint_is_found_where_the_model_has_it(robot, tmp_
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_in_mujoco_alone_a_direction_asked_for_says_the_simulated_operator_answered(tmp_path):
+    # wrist_yaw's limits are symmetric and gravity cannot tell: the direction question is asked, and nobody is there
+    proc = prime("calibrate", "--sim", "--auto", "right_wrist_yaw", "--output", str(tmp_path / "cal.yaml"), "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    joint = json.loads(proc.stdout)["joints"]["right_wrist_yaw"]
+    assert joint["direction_source"] == "the simulated operator's answer (it saw the joint's true motion; no one " \
+                                       "was asked)"
+    assert joint["message"].startswith(f"direction from {joint['direction_source']}")
+
+
 @pytest.mark.netns
 @pytest.mark.skipif(netns_unavailable_reason() is not None, reason=str(netns_unavailable_reason()))
 def test_end_to_end_on_the_virtual_prime_through_the_real_drivers_then_apply(robot, tmp_path):

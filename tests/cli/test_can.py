@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -143,6 +145,37 @@ def test_discover_probe_fails_when_a_probed_id_is_silent(emulated, capsys):
     assert "not heard: 23 (left_wrist_pitch)" in capsys.readouterr().out
 
 
+def test_discover_counts_only_frames_the_protocol_accepts_as_a_wrist_s_feedback(capsys):
+    # 0xB2 on wrist 22 in 3 bytes and in a 64-byte CAN FD frame (monitor calls both INVALID); wrist 23 is healthy
+    channel = f"sito-cli-{uuid.uuid4().hex}"
+    ident = 0x050616B2
+    frames = [can.Message(arbitration_id=ident, is_extended_id=True, data=bytes(3)),
+              can.Message(arbitration_id=ident, is_extended_id=True, is_fd=True, data=bytes(64)),
+              message(23, Feedback2(0, 10430))]
+    assert all("INVALID" in describe(f, TA40_50, JOINTS) for f in frames[:2])
+    stop = threading.Event()
+
+    def stream() -> None:
+        with can.Bus(interface="virtual", channel=channel) as bus:
+            while not stop.wait(0.005):
+                for frame in frames:
+                    bus.send(frame)
+
+    sender = threading.Thread(target=stream)
+    sender.start()
+    try:
+        code = main(["can", "discover", "--interface", "virtual", "--channel", channel, "--seconds", "1",
+                     "--json"])
+    finally:
+        stop.set()
+        sender.join()
+    result = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert [entry["can_id"] for entry in result["heard"]] == [23]
+    assert [(e["can_id"], e["joint"]) for e in result["invalid"]] == [(22, "left_wrist_roll")]
+    assert {"can_id": 22, "joint": "left_wrist_roll"} in result["not_heard"]
+
+
 def test_bad_ids_exit_with_one_line(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["can", "discover", "--probe", "--ids", "22,abc"])
@@ -154,6 +187,16 @@ def test_missing_interface_is_one_line_and_exit_1(capsys):
     assert main(["can", "monitor", "--channel", "can_missing0", "--seconds", "0.1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "ip link set can_missing0 up" in err[0]
+
+
+@pytest.mark.parametrize("action", ["monitor", "discover", "emulate"])
+def test_a_channel_that_cannot_be_opened_is_one_line_and_nothing_after_it(action):
+    # python-can's "UdpMulticastBus was not properly shut down" used to follow, from the half-opened bus
+    proc = subprocess.run([sys.executable, "-m", "humanoid_prime", "can", action, "--interface", "udp_multicast",
+                           "--channel", "notanip", "--seconds", "0.1"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert proc.stderr.startswith("prime can: cannot open CAN channel 'notanip' (udp_multicast)")
+    assert proc.stderr.count("\n") == 1, proc.stderr
 
 
 def test_emulate_answers_as_the_wrists(channel, tmp_path):

@@ -40,6 +40,12 @@ def test_the_robots_ethercat_nic_is_refused(capsys):
     assert "refusing to emulate on eth0" in err
 
 
+def test_a_nic_that_does_not_exist_is_one_line(capsys):
+    assert main(["emulate", "ec", "--interface", "nonexistent0"]) == 1
+    assert capsys.readouterr().err == ("prime emulate: no network interface 'nonexistent0' to serve (--interface); "
+                                       "list them with `ip link`, or use --veth\n")
+
+
 def test_an_option_out_of_range_is_one_line(capsys):
     assert main(["emulate", "ec", "--veth", "--mailbox-size", "8"]) == 1
     assert capsys.readouterr().err.strip() == "prime emulate: mailbox_size must be 32..1024 bytes, got 8"

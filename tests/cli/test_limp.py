@@ -1,4 +1,5 @@
-"""`prime limp` through the control socket: limp while waiting, restored on Enter, SIGTERM and Ctrl-C."""
+"""`prime limp` through the control socket: limp while waiting, restored on Enter, SIGTERM and Ctrl-C, and after
+SIGKILL by the next command that reaches the drive."""
 
 import json
 import signal
@@ -11,7 +12,9 @@ import pytest
 from doubles.mailboxes import DriveMailboxes
 from doubles.process import popen
 from humanoid_prime.cli import main
-from humanoid_prime.runtime.socket import ControlServer
+from humanoid_prime.errors import PrimeError
+from humanoid_prime.runtime.socket import ControlServer, request
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 
 @pytest.fixture
@@ -94,3 +97,60 @@ def test_enter_restores_the_snapshot(served):
     assert proc.returncode == 0, proc.stderr
     assert "damped-limp: read back gate=1 Kp(pos_reg)=0" in proc.stdout
     assert drives.values[0] == before
+
+
+REASON = netns_unavailable_reason()
+GAINS = ("gate", "pos_reg", "vel_reg", "integral")
+
+
+@pytest.mark.netns
+@pytest.mark.skipif(REASON is not None, reason=f"no emulated ring: {REASON}")
+def test_a_drive_a_killed_limp_left_limp_is_restored_by_the_next_run_that_opens_the_ring(tmp_path):
+    """`prime limp` and the single-bus run it went through both killed outright (SIGKILL: no exit path runs), so the
+    drive stays limp in its own memory, as a real one does. The next run that opens the ring restores it from the
+    record the limp left, before anything else writes a drive, and says so; the record is then gone."""
+    socket = tmp_path / "control.sock"
+    bringup = [sys.executable, "-m", "humanoid_prime", "bringup", "--backends", "ec", "--socket", str(socket),
+               "--no-live"]
+    with EmulatedRing(slaves=10) as ring:
+        def gains() -> dict[str, int]:
+            drive = ring.control.slave(3)["drive"]
+            return {name: drive[name] for name in GAINS}
+
+        before = gains()
+        owner = popen([*bringup, "--interface", ring.master_interface], stdout=subprocess.DEVNULL,
+                      stderr=subprocess.PIPE, text=True)
+        limp = None
+        try:
+            deadline = time.monotonic() + 60
+            while not _answers(socket):
+                assert owner.poll() is None and time.monotonic() < deadline, owner.stderr.read()
+                time.sleep(0.1)
+            limp = popen([sys.executable, "-m", "humanoid_prime", "limp", "3", "--socket", str(socket)],
+                         stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            while gains()["pos_reg"] != 0:
+                assert limp.poll() is None and time.monotonic() < deadline, "the joint never went limp"
+                time.sleep(0.05)
+        finally:
+            for process in (limp, owner):
+                if process is not None:
+                    process.kill()
+                    process.wait(timeout=30)
+        assert gains() == {**before, "gate": 1, "pos_reg": 0}  # left limp
+        next_run = subprocess.run([*bringup, "--interface", ring.master_interface, "--duration", "0.5"],
+                                  capture_output=True, text=True, timeout=120)
+        assert next_run.returncode == 0, next_run.stderr
+        assert gains() == before
+        assert (f"ring 3 (left_elbow_pitch) was left limp by `prime limp 3` (pid {limp.pid}, " in next_run.stderr
+                and "which ended without restoring it: restored its gains as found, "
+                    + " ".join(f"{name}={value}" for name, value in before.items()) in next_run.stderr)
+        again = subprocess.run([*bringup, "--interface", ring.master_interface, "--duration", "0.5"],
+                               capture_output=True, text=True, timeout=120)
+        assert again.returncode == 0 and "was left limp" not in again.stderr, again.stderr
+
+
+def _answers(socket) -> bool:
+    try:
+        return bool(request(socket, {"op": "ping"}, timeout=0.5)["ready"])
+    except PrimeError:
+        return False

@@ -112,7 +112,21 @@ HARDWARE_CASES = [
      "command_limits.hydraulic", "unknown key"),
     ("negative stiffness maximum", lambda d: d["command_limits"]["erob"].update(stiffness=-1.0),
      "command_limits.erob.stiffness", "positive finite number"),
+    ("safety not a mapping", lambda d: d.update(safety=0.03), "safety", "expected a mapping"),
+    ("a collision margin of zero", lambda d: d["safety"].update(collision_margin=0), "safety.collision_margin",
+     "positive finite number"),
+    ("a collision margin in centimetres", lambda d: d["safety"].update(collision_margin=3), "safety.collision_margin",
+     "3 m is more than 0.2 m"),
+    ("a stopping time in milliseconds", lambda d: d["safety"].update(stopping_time=200), "safety.stopping_time",
+     "200 s is more than 1 s"),
+    ("an unknown safety key", lambda d: d["safety"].update(margin=0.03), "safety.margin", "unknown key"),
 ]
+
+
+def test_a_hardware_file_without_the_safety_section_has_the_templates(tmp_path):
+    path = broken(tmp_path, "prime_hardware.yaml", HARDWARE, lambda d: drop(d, "safety"))
+    hardware = load_hardware(path)
+    assert (hardware.collision_margin, hardware.stopping_time) == (0.03, 0.2)
 
 
 @pytest.mark.parametrize("edit, key, problem", [c[1:] for c in HARDWARE_CASES], ids=[c[0] for c in HARDWARE_CASES])

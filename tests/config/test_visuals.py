@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from humanoid_prime.config.description import render_urdf
-from humanoid_prime.drivers.mujoco.system import load_model
+from humanoid_prime.config.model import load_model
 
 FAMILY_RGBA = {"erob": (0.31, 0.43, 0.58, 1.0), "sito": (0.85, 0.51, 0.17, 1.0)}
 

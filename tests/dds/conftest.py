@@ -59,9 +59,9 @@ ROS_DISTROS = ("jazzy", "kilted")  # Fast DDS 2.14 and Fast DDS 3.2, the default
 @pytest.fixture(scope="session")
 def ros_clients() -> dict[str, dict[str, str]]:
     """Real ROS 2 client environments from PyPI's wheels, one per distribution (``tools/ros-venv``: built once
-    into the user's cache, prime_msgs and tf2_msgs built in them with cmake); each an env.json mapping."""
-    done = subprocess.run([sys.executable, str(REPO / "tools" / "ros-venv"), *ROS_DISTROS, "--package",
-                           str(REPO / "prime_msgs"), "--package", str(Path(__file__).parent / "ros" / "tf2_msgs")],
+    into the user's cache, with Prime and its extra installed, and prime_msgs and interfaces/ built in them with
+    cmake); each an env.json mapping."""
+    done = subprocess.run([sys.executable, str(REPO / "tools" / "ros-venv"), *ROS_DISTROS],
                           capture_output=True, text=True, timeout=900)
     if done.returncode != 0:
         pytest.fail(f"could not build the ROS 2 client environments:\n{done.stderr}")

@@ -15,7 +15,8 @@ from cyclonedds.topic import Topic
 from doubles.control import Clock, Plant
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.bridge import CONTROL_OFF, CONTROL_ON, MODE_REQUEST, bridge_manager
+from humanoid_prime.dds.bridge import DdsBridge, bridge_manager
+from humanoid_prime.dds.graph import CONTROL_OFF, CONTROL_ON, MODE_REQUEST
 from humanoid_prime.dds.node import DISCOVERY_TOPIC, DdsNode, ros_qos
 from humanoid_prime.dds.tf import frames_from_urdf
 from humanoid_prime.dds.typehash import type_hash
@@ -158,30 +159,36 @@ def test_a_mode_request_takes_the_switch_path_and_an_unknown_one_is_refused(mana
         manager.topics.latest("/safety_status").flags["dds/mode_request"]
 
 
-class StuckWriter:
-    """A DDS writer whose transport never returns (until released)."""
+class StuckBridge(DdsBridge):
+    """A bridge whose transport never returns from writing a joint state (until released)."""
 
-    def __init__(self) -> None:
+    def __init__(self, *args, **kwargs) -> None:
         self.release = threading.Event()
         self.entered = threading.Event()
+        super().__init__(*args, **kwargs)
 
-    def write(self, sample) -> None:
-        self.entered.set()
-        self.release.wait()
+    def write(self, topic, message) -> None:
+        if topic == "/prime/joint_states":
+            self.entered.set()
+            self.release.wait()
+        super().write(topic, message)
 
 
-def test_a_stuck_transport_never_holds_the_tick_it_drops_counts_and_flags(manager, bridged):
-    stuck = StuckWriter()
-    bridged._joint_states = stuck
-    manager.tick(0.0)
-    assert stuck.entered.wait(30)
-    ticks = 3 * bridged.tap.slots
-    for k in range(1, ticks):
-        manager.tick(k * 0.01)  # returns: nothing here waits on the stuck writer
-    counts = bridged.counts["/prime/joint_states"]
-    assert counts.dropped == ticks - bridged.tap.slots  # the stuck sample holds its slot too
-    assert "joint states dropped" in manager.topics.latest("/safety_status").flags["dds/dropped"]
-    stuck.release.set()
+def test_a_stuck_transport_never_holds_the_tick_it_drops_counts_and_flags(manager, domain):
+    bridge = StuckBridge(DdsNode(domain, name="prime"), manager, request_mode=None, control=False)
+    manager.add_flag_source(bridge)
+    try:
+        manager.tick(0.0)
+        assert bridge.entered.wait(30)
+        ticks = 3 * bridge.tap.slots
+        for k in range(1, ticks):
+            manager.tick(k * 0.01)  # returns: nothing here waits on the stuck writer
+        counts = bridge.summary()["topics"]["/prime/joint_states"]
+        assert counts["dropped"] == ticks - bridge.tap.slots  # the stuck sample holds its slot too
+        assert "joint states dropped" in manager.topics.latest("/safety_status").flags["dds/dropped"]
+    finally:
+        bridge.release.set()
+        bridge.close()
 
 
 def test_closing_leaves_the_domain(manager, domain, peer):
@@ -210,21 +217,48 @@ def test_the_node_is_announced_with_every_endpoint_and_its_type_hash(manager, br
     assert wait_for(lambda: infos and infos[-1].node_entities_info_seq[0].reader_gid_seq,
                     poll=lambda: take(reader, infos))
     info = infos[-1]
-    assert bytes(info.gid.data) == bridged.node.participant.guid.bytes
     (node,) = info.node_entities_info_seq
     assert (node.node_namespace, node.node_name) == ("/", "prime")
-    writers = {bytes(g.data) for g in node.writer_gid_seq}
-    assert writers == {w.guid.bytes for w in (bridged._joint_states, bridged._mode, bridged._safety,
-                                              bridged._diagnostics, bridged._description, bridged._tf_static,
-                                              bridged._tf, bridged._clock)}
-    assert {bytes(g.data) for g in node.reader_gid_seq} == {bridged._commands.guid.bytes,
-                                                            bridged._mode_requests.guid.bytes}
+    # The endpoints announced are the ones a peer matches on each of Prime's topics (their GUIDs as GIDs).
+    outgoing = {"/prime/joint_states": msg.JointState, "/control_mode": msg.String,
+                "/safety_status": msg.DiagnosticArray, "/diagnostics": msg.DiagnosticArray,
+                "/robot_description": msg.String, "/tf_static": msg.TFMessage, "/tf": msg.TFMessage,
+                "/clock": msg.Clock}
+    readers = [peer.reader(topic, kind, latched=topic in ("/control_mode", "/safety_status", "/robot_description",
+                                                          "/tf_static"), depth=1) for topic, kind in outgoing.items()]
+    writers = [peer.writer(MODE_REQUEST, msg.String), peer.writer("/remote_policy_controller/command", msg.MitCommand)]
+    assert wait_for(lambda: all(r.get_matched_publications() for r in readers)
+                    and all(w.get_matched_subscriptions() for w in writers))
+    matched_writers = {r.get_matched_publication_data(h).key.bytes for r in readers
+                       for h in r.get_matched_publications()}
+    matched_readers = {w.get_matched_subscription_data(h).key.bytes for w in writers
+                       for h in w.get_matched_subscriptions()}
+    assert {bytes(g.data) for g in node.writer_gid_seq} == matched_writers and len(matched_writers) == 8
+    assert {bytes(g.data) for g in node.reader_gid_seq} == matched_readers and len(matched_readers) == 2
+    assert bytes(info.gid.data)[:12] == next(iter(matched_writers))[:12]  # the participant's GUID prefix
     # What a peer discovers of the joint states' writer: ROS 2's type hash in its user data.
-    joint_states = peer.reader("/prime/joint_states", msg.JointState)
-    assert wait_for(lambda: bool(joint_states.get_matched_publications()))
-    (handle,) = joint_states.get_matched_publications()
-    data = joint_states.get_matched_publication_data(handle)
+    (handle,) = readers[0].get_matched_publications()
+    data = readers[0].get_matched_publication_data(handle)
     assert data.qos[Policy.Userdata].data == f"typehash={type_hash(msg.JointState)};".encode()
+
+
+def test_a_best_effort_publisher_of_mode_requests_is_a_qos_mismatch_flagged_and_counted(manager, bridged, domain):
+    with DdsNode(domain) as other:
+        other.writer(MODE_REQUEST, msg.String, reliable=False)
+        assert wait_for(lambda: bridged.summary()["qos_mismatches"] >= 1)
+        manager.tick(0.0)
+        flags = manager.topics.latest("/safety_status").flags
+        assert flags["dds/qos/prime/mode_request"].startswith("QoS mismatch on /prime/mode_request: a publisher "
+                                                             "with an incompatible reliability")
+        assert bridged.summary()["topics"][MODE_REQUEST]["qos_mismatches"] >= 1
+
+
+def test_a_transient_local_subscriber_of_the_joint_states_is_a_qos_mismatch(manager, bridged, peer):
+    peer.reader("/prime/joint_states", msg.JointState, latched=True)  # Prime offers them volatile
+    assert wait_for(lambda: bridged.summary()["topics"]["/prime/joint_states"]["qos_mismatches"] >= 1)
+    manager.tick(0.0)
+    flag = manager.topics.latest("/safety_status").flags["dds/qos/prime/joint_states"]
+    assert flag.startswith("QoS mismatch on /prime/joint_states: a subscription with an incompatible durability")
 
 
 def test_tf_clock_description_and_static_frames(manager, bridged, peer, sim_robot):

@@ -23,6 +23,9 @@ PRIME = [sys.executable, "-m", "humanoid_prime"]
     (["bringup", "--dds", "--domain", "-1"], {}, "--domain"),
     (["sim", "--dds"], {"ROS_DOMAIN_ID": "abc"}, "prime sim: ROS_DOMAIN_ID='abc' is not a domain id"),
     (["sim", "--dds"], {"ROS_DOMAIN_ID": "500"}, "prime sim: ROS_DOMAIN_ID 500 is outside the ROS 2 domain ids"),
+    (["sim", "--ros-backend", "dds"], {}, "prime sim: --ros-backend needs --dds"),
+    (["sim", "--dds", "--ros-backend", "rclpy"], {"PYTHONPATH": ""},  # Prime's own venv, no ROS 2 sourced
+     "--ros-backend rclpy: rclpy cannot be imported here; source a ROS 2 install"),
     (["remote", "--wave", "left_knee"], {}, "prime remote: --wave: 'left_knee' is not a joint of Prime"),
     (["remote", "--pose", "dab"], {}, "prime remote: --pose: no pose 'dab'"),
     (["remote", "--amplitude", "nan"], {}, "--amplitude"),

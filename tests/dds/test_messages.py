@@ -16,7 +16,7 @@ from humanoid_prime.config.robot import load_robot
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.topics import SafetyStatus
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.bridge import diagnostics
+from humanoid_prime.dds.graph import diagnostics
 
 PRIME_MSGS = Path(__file__).parents[2] / "prime_msgs"
 STORES = {"humble": Stores.ROS2_HUMBLE, "jazzy": Stores.ROS2_JAZZY}

@@ -124,6 +124,10 @@ class RingHub:
     def port(self, indices: Sequence[int]) -> HubPort:
         return HubPort(self, set(indices))
 
+    def watch(self) -> HubWatch:
+        """What a packet socket that only looks would see: the frames sent through the hub from now on."""
+        return HubWatch(self)
+
     def _take(self, indices: set[int], timeout_s: float) -> bytes | None:
         with self._lock:
             mine = [item for item in self._queue if frame_index(item[2]) in indices]
@@ -136,6 +140,19 @@ class RingHub:
             heapq.heapify(self._queue)
             self.clock.advance_to(item[0])
             return item[2]
+
+
+class HubWatch:
+    def __init__(self, hub: RingHub) -> None:
+        self.hub = hub
+        self._seen = len(hub.sent)
+
+    def indices(self) -> list[int]:
+        frames, self._seen = self.hub.sent[self._seen:], len(self.hub.sent)
+        return [index for index in map(frame_index, frames) if index is not None]
+
+    def close(self) -> None:
+        pass
 
 
 class HubPort:

@@ -13,16 +13,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.drivers.ethercat.master import (
-    AL_OP,
-    AL_PRE_OP,
-    AL_SAFE_OP,
-    RX_DTYPE,
-    TX_DTYPE,
-    EthercatMaster,
-    SdoError,
-    SlaveInfo,
-)
+from humanoid_prime.drivers.ethercat.errors import SdoError
+from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE, EthercatMaster
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo
+from humanoid_prime.drivers.ethercat.wire import AlState
 
 SWITCH_ON_DISABLED = 0x0250
 READY_TO_SWITCH_ON = 0x0231
@@ -32,17 +26,19 @@ FAULT = 0x1208  # 4616
 
 
 def erob_ring(n: int = 10) -> list[SlaveInfo]:
-    return [SlaveInfo(k, "eRob", VENDOR_ID, PRODUCT_CODE, 1, AL_PRE_OP) for k in range(n)]
+    return [SlaveInfo(k, "eRob", VENDOR_ID, PRODUCT_CODE, 1, AlState.PRE_OP) for k in range(n)]
 
 
 class FakeMaster(EthercatMaster):
     def __init__(self, slaves: Sequence[SlaveInfo] | None = None, *, update_rate: float = 50.0,
-                 bringup_rate: float = 1000.0, op_after_frames: int = 3, **options) -> None:
+                 bringup_rate: float = 1000.0, op_after_frames: int = 3, input_dtype: np.dtype = TX_DTYPE,
+                 **options) -> None:
         super().__init__("fake0", update_rate=update_rate, bringup_rate=bringup_rate, **options)
         self.found = list(slaves) if slaves is not None else erob_ring()
         n = len(self.found)
         self.op_after_frames = op_after_frames
-        self.states = [AL_PRE_OP] * n
+        self.input_dtype = input_dtype  # the process image's inputs as this master lays them out
+        self.states = [AlState.PRE_OP] * n
         self.frames = 0
         self._op_requested_at: int | None = None
         self.position_counts = np.zeros(n, dtype=np.int64)
@@ -52,6 +48,7 @@ class FakeMaster(EthercatMaster):
         self.error_code = np.zeros(n, dtype=np.int64)
         self.sent = np.zeros(n, RX_DTYPE)  # the outputs of the last frame, as the drives got them
         self.wkc_override: int | None = None
+        self.drives_follow = True  # False: the drives ignore every controlword (a drive that refuses to enable)
         self.rated_torque_mnm: list[int | None] = [23000] * n  # what each drive's 0x6076 answers (None: no reply)
         self.objects: dict[tuple[int, int, int], bytes] = {}
         self.sdo_log: list[tuple[str, int, int, int]] = []
@@ -64,9 +61,9 @@ class FakeMaster(EthercatMaster):
     def _configure(self) -> None:
         n = len(self.found)
         self.outputs = np.zeros(n, RX_DTYPE)
-        self.inputs = np.zeros(n, TX_DTYPE)
+        self.inputs = np.zeros(n, self.input_dtype)
         self.expected_wkc = 3 * n
-        self.states = [AL_SAFE_OP] * n
+        self.states = [AlState.SAFE_OP] * n
         for k, milli in enumerate(self.rated_torque_mnm):  # read in PRE-OP, as SoemMaster does
             if milli is None:
                 self.rated_torque_problems[k] = "no reply (working counter 0)"
@@ -86,8 +83,8 @@ class FakeMaster(EthercatMaster):
         np.copyto(self.sent, self.outputs)
         self.frames += 1
         if self._op_requested_at is not None and self.frames - self._op_requested_at >= self.op_after_frames:
-            self.states = [AL_OP if s == AL_SAFE_OP else s for s in self.states]
-        if all(s == AL_OP for s in self.states):
+            self.states = [AlState.OP if s == AlState.SAFE_OP else s for s in self.states]
+        if all(s == AlState.OP for s in self.states) and self.drives_follow:
             self._step_drives(self.sent["controlword"].astype(np.int64))
 
     def _step_drives(self, cw: np.ndarray) -> None:
@@ -165,7 +162,7 @@ class MirrorMaster(EthercatMaster):
         pass
 
     def _read_states(self) -> list[tuple[int, int]]:
-        return [(AL_OP, 0)] * len(self.feed)
+        return [(AlState.OP, 0)] * len(self.feed)
 
     def _advance(self, states) -> None:
         pass

@@ -25,17 +25,8 @@ from collections.abc import Callable, Sequence
 import pysoem
 
 from doubles.link import EmulatedClock, RingHub
-from humanoid_prime.drivers.ethercat.link import (
-    APRD,
-    APWR,
-    BRD,
-    BWR,
-    FPRD,
-    FPWR,
-    Request,
-    build_frame,
-    frame_index,
-)
+from humanoid_prime.drivers.ethercat.link import Request, build_frame, frame_index
+from humanoid_prime.drivers.ethercat.wire import SII_WORD_VENDOR, Command
 from humanoid_prime.virtual.ring.firmware import sii_content
 
 EC_MAXBUF = 16
@@ -47,8 +38,6 @@ EC_TIMEOUTRXM = 0.700
 EC_TIMEOUTSTATE = 2.0
 EC_LOCALDELAY = 0.0002
 STATION_BASE = 0x1001
-LRW = 0x0C
-FRMW = 0x0E
 _HEADER = struct.Struct("<BBHHHH")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
@@ -81,10 +70,11 @@ class SoemFrames:
 
     EMPTY, TX, RCVD = 0, 2, 3
 
-    def __init__(self, hub: RingHub, clock: EmulatedClock) -> None:
+    def __init__(self, hub: RingHub, clock: EmulatedClock, base: int = 0) -> None:
         self.hub = hub
         self.clock = clock
-        self.port = hub.port(range(EC_MAXBUF))
+        self.base = base  # the index its frames carry for buffer 0 (SOEM's: 0)
+        self.port = hub.port(range(base, base + EC_MAXBUF))
         self.state = [self.EMPTY] * EC_MAXBUF
         self.filed: list[bytes | None] = [None] * EC_MAXBUF
         self.last = 0
@@ -101,7 +91,7 @@ class SoemFrames:
             raise RuntimeError("no free SOEM frame buffer")
 
     def send(self, idx: int, requests: Sequence[Request]) -> None:
-        self.hub.send(build_frame(idx, requests))
+        self.hub.send(build_frame(self.base + idx, requests))
 
     def wait(self, idx: int, timeout_s: float) -> bytes | None:
         """ecx_waitinframe: this index's frame, or one filed for it meanwhile; others filed for their waiters."""
@@ -118,6 +108,7 @@ class SoemFrames:
             if frame is None:
                 continue
             got = frame_index(frame)
+            got = None if got is None else got - self.base
             with self.lock:
                 if got == idx:
                     return frame
@@ -160,7 +151,12 @@ class FakeSoemSlave:
         self.position = position
         self.station = STATION_BASE + position
         content = sii_content(master.hub.ring.options, 0)
-        self.name, self.man, self.id, self.rev = "eRob", content.vendor_id, content.product_code, content.revision
+        image = master.hub.ring.slaves[position].esc.eeprom.image  # the identity as this slave's SII holds it
+        self.name = "eRob"
+        self.man, self.id, self.rev = struct.unpack_from("<III", image, 2 * SII_WORD_VENDOR)
+        if FakeSoemMaster.misread.get(position, 0) > 0:  # an EEPROM read that failed in this scan
+            FakeSoemMaster.misread[position] -= 1
+            self.man = self.id = 0
         self.mailbox = (content.sync_managers[0].start, content.sync_managers[0].length,
                         content.sync_managers[1].start, content.sync_managers[1].length)
         self.state, self.al_status = pysoem.NONE_STATE, 0
@@ -175,23 +171,25 @@ class FakeSoemSlave:
 
     # ---- registers ------------------------------------------------------------------------------------------
     def _fprd(self, address: int, size: int, timeout_us: int = 2000) -> bytes:
-        replies = self._master.frames.srconfirm([Request(FPRD, self.station, address, size=size)], timeout_us / 1e6)
+        request = Request(Command.FPRD, self.station, address, size=size)
+        replies = self._master.frames.srconfirm([request], timeout_us / 1e6)
         if replies is None or replies[0].wkc != 1:
             raise pysoem.WkcError()
         return replies[0].data
 
     def _fpwr(self, address: int, data: bytes, timeout_us: int = 2000) -> None:
-        replies = self._master.frames.srconfirm([Request(FPWR, self.station, address, data=bytes(data))],
+        replies = self._master.frames.srconfirm([Request(Command.FPWR, self.station, address, data=bytes(data))],
                                                 timeout_us / 1e6)
         if replies is None or replies[0].wkc != 1:
             raise pysoem.WkcError()
 
     def _rd(self, address: int, size: int, timeout_s: float = EC_TIMEOUTRET) -> tuple[int, bytes]:
-        replies = self._master.frames.srconfirm([Request(FPRD, self.station, address, size=size)], timeout_s)
+        replies = self._master.frames.srconfirm([Request(Command.FPRD, self.station, address, size=size)], timeout_s)
         return (0, bytes(size)) if replies is None else (replies[0].wkc, replies[0].data)
 
     def _wr(self, address: int, data: bytes, timeout_s: float = EC_TIMEOUTRET) -> int:
-        replies = self._master.frames.srconfirm([Request(FPWR, self.station, address, data=bytes(data))], timeout_s)
+        request = Request(Command.FPWR, self.station, address, data=bytes(data))
+        replies = self._master.frames.srconfirm([request], timeout_s)
         return 0 if replies is None else replies[0].wkc
 
     def write_state(self) -> int:
@@ -221,14 +219,14 @@ class FakeSoemSlave:
     def recover(self, timeout: int = 500) -> int:
         """ecx_recover_slave: its station address read by position; a slave found without one gets it back."""
         frames = self._master.frames
-        replies = frames.srconfirm([Request(APRD, (-self.position) & 0xFFFF, 0x0010, size=2)], timeout / 1e6)
+        replies = frames.srconfirm([Request(Command.APRD, (-self.position) & 0xFFFF, 0x0010, size=2)], timeout / 1e6)
         if replies is None or replies[0].wkc <= 0:
             return 0
         address = _U16.unpack(replies[0].data)[0]
         if address == self.station:
             return 1
         if address == 0:
-            frames.srconfirm([Request(APWR, (-self.position) & 0xFFFF, 0x0010, data=_U16.pack(self.station))],
+            frames.srconfirm([Request(Command.APWR, (-self.position) & 0xFFFF, 0x0010, data=_U16.pack(self.station))],
                              timeout / 1e6)
             return 1
         return 0
@@ -366,6 +364,8 @@ class FakeSoemMaster:
 
     ring: dict[str, tuple[RingHub, EmulatedClock]] = {}
     last: FakeSoemMaster | None = None
+    index_base = 0  # the index of its first frame buffer: SOEM's is 0
+    misread: dict[int, int] = {}  # ring position -> scans in which its identity reads 0 (a failed EEPROM read)
 
     def __init__(self) -> None:
         self.hub: RingHub | None = None
@@ -385,7 +385,7 @@ class FakeSoemMaster:
 
     def open(self, ifname: str, ifname_red: str | None = None) -> None:
         self.hub, self.clock = FakeSoemMaster.ring[ifname]
-        self.frames = SoemFrames(self.hub, self.clock)
+        self.frames = SoemFrames(self.hub, self.clock, FakeSoemMaster.index_base)
 
     def close(self) -> None:
         self.closed = True
@@ -397,12 +397,13 @@ class FakeSoemMaster:
         """ecx_config_init: reset every slave, count them (a broadcast read, EC_TIMEOUTSAFE), address each,
         program its mailbox SyncManagers from the SII and ask for PRE-OP."""
         frames = self.frames
-        frames.srconfirm([Request(BWR, 0, 0x0120, data=_U16.pack(0x11))], EC_TIMEOUTRET3)
-        replies = frames.srconfirm([Request(BRD, 0, 0x0000, size=1)], EC_TIMEOUTSAFE)
+        frames.srconfirm([Request(Command.BWR, 0, 0x0120, data=_U16.pack(0x11))], EC_TIMEOUTRET3)
+        replies = frames.srconfirm([Request(Command.BRD, 0, 0x0000, size=1)], EC_TIMEOUTSAFE)
         count = 0 if replies is None else replies[0].wkc
         self.slaves = [FakeSoemSlave(self, k) for k in range(count)]
         for k, slave in enumerate(self.slaves):
-            frames.srconfirm([Request(APWR, (-k) & 0xFFFF, 0x0010, data=_U16.pack(slave.station))], EC_TIMEOUTRET3)
+            address = Request(Command.APWR, (-k) & 0xFFFF, 0x0010, data=_U16.pack(slave.station))
+            frames.srconfirm([address], EC_TIMEOUTRET3)
             out_start, out_size, in_start, in_size = slave.mailbox
             slave._wr(0x0800, struct.pack("<HHBBBB", out_start, out_size, 0x26, 0, 1, 0)
                       + struct.pack("<HHBBBB", in_start, in_size, 0x22, 0, 1, 0), EC_TIMEOUTRET3)
@@ -425,7 +426,7 @@ class FakeSoemMaster:
             self.clock.sleep(0.001)
 
     def write_state(self) -> int:
-        replies = self.frames.srconfirm([Request(BWR, 0, 0x0120, data=_U16.pack(self.state))], EC_TIMEOUTRET3)
+        replies = self.frames.srconfirm([Request(Command.BWR, 0, 0x0120, data=_U16.pack(self.state))], EC_TIMEOUTRET3)
         return 0 if replies is None else replies[0].wkc
 
     # ---- layout ---------------------------------------------------------------------------------------------
@@ -460,7 +461,7 @@ class FakeSoemMaster:
     def config_dc(self) -> bool:
         """ecx_configdc: latch the receive times, then set each slave's offset so its system time reads the
         reference clock's (the first slave's)."""
-        self.frames.srconfirm([Request(BWR, 0, 0x0900, data=bytes(4))], EC_TIMEOUTRET3)
+        self.frames.srconfirm([Request(Command.BWR, 0, 0x0900, data=bytes(4))], EC_TIMEOUTRET3)
         reference = None
         for slave in self.slaves:
             _wkc, data = slave._rd(0x0918, 8)
@@ -474,7 +475,7 @@ class FakeSoemMaster:
     # ---- the cycle ------------------------------------------------------------------------------------------
     def _cycle_requests(self) -> list[Request]:
         image = b"".join(s.output for s in self.slaves) + bytes(self._image_in)
-        return [Request(LRW, 0, 0, data=image), Request(FRMW, STATION_BASE, 0x0910, data=bytes(8))]
+        return [Request(Command.LRW, 0, 0, data=image), Request(Command.FRMW, STATION_BASE, 0x0910, data=bytes(8))]
 
     def send_processdata(self) -> int:
         if self._cycle_index is not None:
@@ -493,14 +494,14 @@ class FakeSoemMaster:
         if frame is None:
             return -1
         got = _datagrams(frame)
-        if not got or got[0][0] != LRW:
-            return -1  # another datagram's frame in this buffer: SOEM counts no LRW in it
+        if not got or got[0][0] != Command.LRW:
+            return -1  # another datagram's frame in this buffer: SOEM counts no Command.LRW in it
         _command, image, wkc = got[0]
         at = self._image_out
         for slave in self.slaves:
             slave.input = image[at:at + len(slave.input)]
             at += len(slave.input)
-        if len(got) > 1 and got[1][0] == FRMW:
+        if len(got) > 1 and got[1][0] == Command.FRMW:
             self.dc_time = _U64.unpack(got[1][1])[0]
         return wkc
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import struct
 
 from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RXPDO_STRUCT, TXPDO_STRUCT
-from humanoid_prime.virtual.ring.frames import Command, Datagram, build_frame, parse_frame
-from humanoid_prime.virtual.ring.mailbox import mailbox_message
+from humanoid_prime.drivers.ethercat.wire import Command, mailbox_message
+from humanoid_prime.virtual.ring.frames import Datagram, build_frame, parse_frame
 from humanoid_prime.virtual.ring.ring import Ring
 
 STATION_BASE = 0x1001

@@ -137,4 +137,39 @@ def test_a_simulation_as_fast_as_it_goes_records_every_tick(tmp_path):
     assert done.returncode == 0, done.stderr
     summary = json.loads(done.stdout)
     assert summary["record"]["dropped_ticks"] == 0
-    assert counts(path)["/prime/joint_states"] == summary["ticks"] == 2000
+    seen = counts(path)
+    assert seen["/prime/joint_states"] == summary["ticks"] == 2000
+    # What Foxglove's 3D panel and `ros2 bag play` need: /tf and /clock every tick, the description and the
+    # fixed frames once, /diagnostics on change and every simulated second.
+    assert seen["/tf"] == seen["/clock"] == 2000
+    assert seen["/robot_description"] == seen["/tf_static"] == 1
+    assert 10 <= seen["/diagnostics"] <= 10 + seen["/safety_status"]
+
+
+def test_a_recording_holds_the_robot_for_a_3d_view(tmp_path, sim_robot):
+    path = tmp_path / "small.mcap"
+    done = subprocess.run([*PRIME, "sim", "--fast", "--duration", "1", "--record", str(path), "--topics",
+                           "/tf,tf_static,/robot_description", "--json"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    with AnyReader([path]) as reader:
+        messages = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    assert {topic for topic, _ in messages} == {"/tf", "/tf_static", "/robot_description"}
+    description = next(m for topic, m in messages if topic == "/robot_description")
+    assert description.data == sim_robot.description.urdf
+    static = next(m for topic, m in messages if topic == "/tf_static")
+    frames = {(t.header.frame_id, t.child_frame_id) for _, m in messages if _ == "/tf" for t in m.transforms}
+    links = frames | {(t.header.frame_id, t.child_frame_id) for t in static.transforms}
+    assert {child for _, child in links} >= {"left_hand_link", "right_hand_link", "torso_link"}
+    stamps = [m.transforms[0].header.stamp for topic, m in messages if topic == "/tf"]
+    assert len(stamps) == json.loads(done.stdout)["ticks"] and stamps[-1].sec * 10**9 + stamps[-1].nanosec > 0
+
+
+@pytest.mark.parametrize(("args", "status", "says"), [
+    (["--topics", "/tf"], 1, "--topics needs --record"),
+    (["--record", "x.mcap", "--topics", "/tf,/odom"], 2, "/odom: a recording can hold /prime/joint_states"),
+])
+def test_topics_is_checked_before_anything_starts(tmp_path, args, status, says):
+    done = subprocess.run([*PRIME, "sim", "--fast", "--duration", "1", *args], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert done.returncode == status and says in done.stderr, done.stderr
+    assert not (tmp_path / "x.mcap").exists()

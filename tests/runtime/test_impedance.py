@@ -475,7 +475,7 @@ class Ring:
         self.states = states or {}
 
     def read_states(self):
-        from humanoid_prime.drivers.ethercat.master import SlaveInfo
+        from humanoid_prime.drivers.ethercat.ring import SlaveInfo
 
         return [SlaveInfo(p, "eRob", 0, 0, 0, self.states.get(p, 0x08)) for p in range(10)]
 

@@ -12,4 +12,6 @@ TARGET_KHZ_OVERRUNS = 0  # 1 kHz for 60 s on the emulated robot, idle machine
 TARGET_LOAD_PERCENT = 5.0  # Sito bus at 50 Hz
 TARGET_DDS_ADDED_TICK_US = 30.0  # what --dds adds to the median tick
 TARGET_RECORD_ADDED_TICK_US = 20.0  # what --record adds to the median tick
+TARGET_GATE_ADDED_TICK_US = 50.0  # what the command gate's body check adds to the median tick at 50 Hz
 TARGET_STARTUP_S = 0.3  # prime --help, info, switch, decode from the shell to their exit (median)
+TARGET_DOCTOR_S = 10.0  # prime doctor on the healthy virtual Prime: start-up plus checks

@@ -84,5 +84,4 @@ def bringup_figures(summary: dict[str, Any], *, sequential: bool = False) -> dic
         "overruns": summary["overruns"],
         "faults": summary["faults"],
         "parallel_sdo": not sequential,
-        "ethercat_frames_polled": summary.get("realtime", {}).get("ethercat_frames_polled", False),
     }

@@ -1,8 +1,9 @@
 """DDS and recording on the control loop (DESIGN §6): the simulated Prime in STANDBY, paced at 50 Hz and at 1 kHz, once
 without ``--dds`` and once with the whole node as ``prime sim --dds`` runs it (joint states, /tf, /clock every
 tick, /diagnostics every second), with a subscriber in another process measuring how late each joint state
-arrives; then twice more with the publishing attached and detached in turns of half a second, once the node's
-and once a tap that publishes nothing (the hand-off to another thread alone: the floor of any publishing).
+arrives; then with the publishing attached and detached in turns of half a second: the bare node's, the rclpy
+node's where rclpy can be imported (its executor spinning beside the loop), and a tap that publishes nothing (the
+hand-off to another thread alone: the floor of any publishing).
 
 Figures: the added tick cost (read + update + write, our CPU): the median tick with publishing attached minus
 the median with it detached, in the same run, so a machine whose load drifts weighs on both alike (target
@@ -43,24 +44,29 @@ class _Nothing:
 
 
 def _run(robot, config, rate: float, seconds: float, dds: bool, record: str | None = None,
-         tap_only: bool = False, paired: bool = False) -> dict[str, Any]:
+         tap_only: bool = False, paired: bool = False, backend: str = "dds") -> dict[str, Any]:
     from humanoid_prime.sim.demo import START_POSE, build_simulation
 
     _, manager = build_simulation(robot, config, initial_pose=START_POSE, update_rate=rate, clock=time.monotonic)
     listener = bridge = recorder = tap = None
     result: dict[str, Any] = {"rate_hz": rate, "dds": dds, "record": record is not None, "tap_only": tap_only,
-                              "paired": paired}
+                              "paired": paired, "backend": backend if dds else None}
     with manager:
         manager.start()
         manager.request_mode(Mode.STANDBY)
         if dds:
-            from humanoid_prime.dds.bridge import bridge_manager
-
             if not paired:  # the paired run measures the tick alone
                 listener = subprocess.Popen([sys.executable, "-m", "humanoid_prime.bench.dds", str(BENCH_DOMAIN)],
                                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             # Stamps in the loop clock (CLOCK_MONOTONIC); /clock on, as in simulation.
-            bridge = bridge_manager(manager, domain=BENCH_DOMAIN, sim_clock=True)
+            if backend == "rclpy":  # the whole rclpy node, as `prime sim --dds --ros-backend rclpy` has it
+                from humanoid_prime.dds.rclpy_node import rclpy_bridge
+
+                bridge = rclpy_bridge(manager, domain=BENCH_DOMAIN, sim_clock=True)
+            else:
+                from humanoid_prime.dds.bridge import bridge_manager
+
+                bridge = bridge_manager(manager, domain=BENCH_DOMAIN, sim_clock=True)
             deadline = time.monotonic() + 30.0
             while listener is not None and not bridge.joint_state_readers() and time.monotonic() < deadline:
                 time.sleep(0.01)
@@ -138,6 +144,9 @@ def bench_dds(seconds: float = 10.0) -> dict[str, Any]:
     robot = load_robot(use_sim=True)
     config = load_controllers(robot.names)
     results: dict[str, Any] = {"seconds": seconds, "target_added_tick_us": TARGET_DDS_ADDED_TICK_US}
+    import importlib.util
+
+    rclpy = importlib.util.find_spec("rclpy") is not None
     for rate in RATES_HZ:
         plain = _run(robot, config, rate, seconds, dds=False)
         bridged = _run(robot, config, rate, seconds, dds=True)
@@ -147,7 +156,18 @@ def bench_dds(seconds: float = 10.0) -> dict[str, Any]:
                                    "added_tick_us_median": paired["paired_us"]["added"],
                                    "tap_added_tick_us_median": tapped["paired_us"]["added"],
                                    "across_runs_added_tick_us_median": _added(plain, bridged)}
+        if rclpy:  # the rclpy node in the same run, beside the bare one and the floor: its hand-off paired, and
+            # the whole node (its executor threads too) against the run without it
+            rclpy_paired = _run(robot, config, rate, seconds, dds=True, paired=True, backend="rclpy")
+            rclpy_run = _run(robot, config, rate, seconds, dds=True, backend="rclpy")
+            results[f"{rate:g}_hz"].update(rclpy_paired=rclpy_paired, rclpy_with=rclpy_run,
+                                           rclpy_added_tick_us_median=rclpy_paired["paired_us"]["added"],
+                                           rclpy_across_runs_added_tick_us_median=_added(plain, rclpy_run))
     results["added_tick_us_median"] = max(results[f"{rate:g}_hz"]["added_tick_us_median"] for rate in RATES_HZ)
+    results["rclpy"] = "measured" if rclpy else "rclpy cannot be imported here: only the bare backend measured"
+    if rclpy:
+        results["rclpy_added_tick_us_median"] = max(results[f"{rate:g}_hz"]["rclpy_added_tick_us_median"]
+                                                    for rate in RATES_HZ)
     results["floors"] = {"tap_added_tick_us_median": max(results[f"{rate:g}_hz"]["tap_added_tick_us_median"]
                                                          for rate in RATES_HZ)}
     results["overruns_with_dds"] = sum(results[f"{rate:g}_hz"]["with"]["overruns"] for rate in RATES_HZ)

@@ -30,7 +30,7 @@ from humanoid_prime.config.robot import Robot, load_robot
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, POS_LOOP_GAIN, VEL_LOOP_GAIN
-from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.runtime.impedance import Rendezvous

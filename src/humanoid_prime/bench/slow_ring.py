@@ -10,7 +10,7 @@ frame (two of them scripted into each bring-up's PDO mapping), and the emulator 
 - ``failed``: the bring-up or a switch did not succeed; its message is kept, to be read for whether it says what
   really happened (a late reply is not a refused mapping, a slow slave is not a power cycle).
 
-``python -m humanoid_prime.bench.slow_ring --runs 50 [--output FILE]`` (root, or in ``unshare -rn``).
+``python -m humanoid_prime.bench.slow_ring --runs 50 [--quirks all] [--output FILE]`` (root, or in ``unshare -rn``).
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ HELD_REPLY_FRAMES = 2  # reply frames held back 8 ms during each bring-up's mapp
 HELD_S = 0.008
 
 
-def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
-    """One bring-up with the sequence against a slow virtual Prime; its verdict and what it saw."""
+def one_run(seed: int, *, dwell_s: float = 2.0, quirks: str = "") -> dict[str, Any]:
+    """One bring-up with the sequence against a slow virtual Prime (its slaves with ``quirks``, as
+    virtual/ring/quirks.py names them); its verdict and what it saw."""
     from humanoid_prime.runtime.run import run_loop
     from humanoid_prime.runtime.session import BringupOptions, open_session, plan_session
     from humanoid_prime.virtual.harness import attach_virtual_prime
@@ -47,7 +48,7 @@ def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
     result: dict[str, Any] = {"seed": seed}
     with contextlib.ExitStack() as stack:
         plan = plan_session(options)
-        virtual = attach_virtual_prime(stack, ring_options={**SLOW, "seed": seed})
+        virtual = attach_virtual_prime(stack, ring_options={**SLOW, "seed": seed, "quirks": quirks})
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
         virtual.control.call("hold_reply_frames", count=HELD_REPLY_FRAMES, seconds=HELD_S)
@@ -71,6 +72,14 @@ def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
         result["switches"] = [{"mode": s["mode"], "ok": s["ok"], "wall_ms": round(s["wall_seconds"] * 1e3, 1),
                                "retries": s["retries"], "failed": s["failed"]} for s in switches]
         result["late_replies"] = len(master.late_replies())
+        result["mailbox_drops"] = master.mailbox_drops()
+        # each reply counted late with the request it answered and how long after it was sent: never one that
+        # answered no earlier request (those are counted as for another object, unrecognised or malformed)
+        drops = getattr(master, "drops", None)
+        records = list(drops.records) if drops is not None else []
+        result["late_mailbox_replies"] = [
+            {"ring": r.position, "what": r.what, "late_ms": round((r.late_s or 0.0) * 1e3, 1)}
+            for r in records if r.reason == "late"]
         stats = virtual.control.call("stats")
         result["emulator"] = {k: stats[k] for k in ("stalls", "held_reply_frames", "slow_replies")}
         modes = [s["mode"] for s in switches]
@@ -86,19 +95,21 @@ def one_run(seed: int, *, dwell_s: float = 2.0) -> dict[str, Any]:
     return result
 
 
-def bench_slow_ring(runs: int = 50, *, report: Callable[[str], None] = print) -> dict[str, Any]:
+def bench_slow_ring(runs: int = 50, *, quirks: str = "", report: Callable[[str], None] = print) -> dict[str, Any]:
     results = []
     for k in range(runs):
-        result = one_run(seed=k)
+        result = one_run(seed=k, quirks=quirks)
         results.append(result)
         line = f"run {k + 1}/{runs}: {result['verdict']} in {result['seconds']:.1f} s"
         if result.get("configured_again"):
             line += f"; configured again: {result['configured_again']}"
+        if "mailbox_drops" in result:
+            line += f"; mailbox messages dropped {result['mailbox_drops']}, frames late {result['late_replies']}"
         if result["verdict"] != "up":
             line += f"; {result['stage']}: {result['message']}"
         report(line)
     up = sum(1 for r in results if r["verdict"] == "up")
-    return {"runs": runs, "up": up, "failed": runs - up, "slow": SLOW,
+    return {"runs": runs, "up": up, "failed": runs - up, "slow": SLOW, "quirks": quirks,
             "held_reply_frames_per_bringup": HELD_REPLY_FRAMES, "held_s": HELD_S,
             "knocked_out_of_op": sum(1 for r in results if any(r.get("left_op", ()))), "results": results}
 
@@ -108,11 +119,12 @@ def main(argv: list[str] | None = None) -> int:
                                      description=(__doc__ or "").split("\n")[0])
     parser.add_argument("--runs", type=int, default=50)
     parser.add_argument("--output", metavar="FILE")
+    parser.add_argument("--quirks", default="", help="quirk profiles of the slaves, comma-separated, or all")
     args = parser.parse_args(argv)
     from humanoid_prime.virtual.harness import enter_private_netns
 
     enter_private_netns()
-    figures = bench_slow_ring(args.runs)
+    figures = bench_slow_ring(args.runs, quirks=args.quirks)
     print(f"{figures['up']} of {figures['runs']} bring-ups fully up; slaves knocked out of OP in "
           f"{figures['knocked_out_of_op']} runs")
     if args.output:

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from humanoid_prime.drivers.erob.objects import RATED_TORQUE
-from humanoid_prime.drivers.ethercat.master import SdoError
+from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.run import run_loop

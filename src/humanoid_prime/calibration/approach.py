@@ -88,6 +88,10 @@ class Segment:
     def update(self, tick: Tick) -> None:
         raise NotImplementedError
 
+    def command(self) -> tuple[float, float] | None:
+        """(target, velocity) this tick; None: no target yet."""
+        raise NotImplementedError
+
 
 class Hold(Segment):
     """Stay for ``average_s`` while the effort is averaged: where the joint is (``target`` None), taking the effort
@@ -103,6 +107,9 @@ class Hold(Segment):
         self.passive = passive
         self.efforts: list[float] = []
         self._since: float | None = None
+
+    def command(self) -> tuple[float, float] | None:
+        return None if self.target is None else (self.target, self.velocity)
 
     def update(self, tick: Tick) -> None:
         if self._since is None:
@@ -135,9 +142,12 @@ class Move(Segment):
         self._t0: float | None = None
         self._reached: float | None = None
 
+    def command(self) -> tuple[float, float]:
+        return self.target, self.velocity
+
     def update(self, tick: Tick) -> None:
         run = self.run
-        if self._t0 is None:
+        if self._t0 is None or self._from is None:
             self._t0, self._from = tick.t, tick.q
             self.detector.start(tick, self.target)
         if tick.t - self._t0 > self.budget_s:
@@ -237,6 +247,9 @@ class Approach(Segment):
         self._last: tuple[float, float] | None = None
         self.free: list[tuple[float, float]] = []  # (q, effort) in free motion, for the gravity fit
 
+    def command(self) -> tuple[float, float]:
+        return self.target, self.velocity
+
     def update(self, tick: Tick) -> None:
         run, s = self.run, self.side
         if self._t0 is None:
@@ -331,7 +344,22 @@ class JointRun:
         self.gravity0 = 0.0  # the model's gravity torque there (host frame)
         self.correction = 0.0  # what free motion has taught the feed-forward (Nm)
         self.weight = 0.0  # the most gravity the model puts on the joint over its travel (Nm)
+        self.budget = math.inf  # the most the target travels from the start toward a stop (rad)
         self.bounds = (-math.inf, math.inf)  # where the target may go (the travel budget around the start)
+        self.refused: str | None = None  # why the gate refused its command (None: it never did)
+
+    @property
+    def active(self) -> bool:
+        """Commanded by its own segment: not held the way the other joints are (before and after it moves)."""
+        segment = self.segment
+        return not (isinstance(segment, Hold) and segment.passive)
+
+    def feed_forward(self, gravity: float) -> float:
+        """The effort feed-forward (Nm, host frame) where the model puts ``gravity`` on the joint: the holding effort
+        measured before it moved, the model's change of gravity since, what free motion taught it; within the
+        joint's effort limit."""
+        ff = self.anchor + gravity - self.gravity0 + self.correction
+        return min(max(ff, -self.effort_limit), self.effort_limit)
 
     def adapt(self, tick: Tick, target: float) -> None:
         """In free motion, move the steady lag into the feed-forward: the model's gravity is only as good as the

@@ -1,25 +1,36 @@
+# Over 450 lines: one procedure (each joint to its stops, then the directions settled at the end) over one run's
+# state; the parts that stand alone are beside it (hold, approach, drive, report, operator).
 """Hands-free calibration (DESIGN §5): Prime drives each joint into its mechanical stops itself, gently, finds its
-offset from both stops and measures what its impedance really is.
+offset from both stops and measures what its impedance really is. This module is the procedure; the per-tick law
+is a controller of the manager (``calibration.hold``), so every command it makes passes the manager's gate; what
+it found is ``calibration.report``.
 
-One joint moves at a time, arm by arm from the hand to the shoulder; the others hold where they are (an eRob on
-its drive's own gains, any other joint on the standby gains with the effort it applied when its hold began, plus
-a slow integral of its sag: no push where it rests, no model needed). For the joint that moves
-(``calibration.approach``):
+One joint moves at a time, arm by arm from the hand to the shoulder; the others hold where they are. For the joint
+that moves (``calibration.approach``):
 
 - impedance: approach gains that follow from its contact-effort cap; an eRob on a ring gets them in its loop-gain
-  registers (gate, changed-only writes in the never-stiffer order), with a following-error window wide enough for
-  them and its own torque limit (0x6072) lowered where it has one, all restored as found (``GainOverride``); every
-  other joint (a Sito wrist, a simulated joint) gets them in its per-tick MIT command;
+  registers with a wide enough following-error window and its own torque limit lowered (``calibration.drive``);
+  every other joint (a Sito wrist, a simulated joint) gets them in its per-tick MIT command;
 - effort feed-forward: the holding effort measured before it moves, plus the model's change of gravity since
-  (``calibration.gravity``), plus what free motion teaches (the model is only as good as the calibration it is
-  evaluated with), so the cap is the force at the stop, not the arm's weight;
-- motion: to the nearer stop, then the other, then back to where it started, at the speed cap, the target on a
-  leash and contact seen from three signs together; the stop's position is recorded while it is pressed with the
-  leash, and the effort is logged while the press eases and while it pushes with a velocity command (realised
-  stiffness and damping); a stop it rested on at the start is approached again once free motion has learnt its
+  (``calibration.gravity``), plus what free motion teaches, so the cap is the force at the stop, not the arm's
   weight;
+- motion: to the nearer stop, then the other, then back to where it started, at the speed cap, the target on a
+  leash and contact seen from three signs together; the stop's position is recorded while it is pressed, and the
+  effort is logged while the press eases and while it pushes with a velocity command (realised stiffness and
+  damping); a stop it rested on at the start is approached again once free motion has learnt its weight;
 - budgets: the target never leaves the joint's range plus a margin around where it started; a stop not found
-  within its travel or time budget fails the joint.
+  within its travel or time budget fails the joint;
+- the body: before it moves, its whole range is checked against the robot's collision geometry with the other
+  joints where they are (``BodyCheck.sweep``): a joint whose range would bring its arm within the margin of the
+  other arm or the body is not driven. While it moves, the gate checks every tick's command; a refusal (the
+  margin reached) fails the joint, which backs off to where it started.
+
+The gate can check only what it knows: the run's host frame is the prior's directions with offsets 0, moved into
+the model's by the best calibration known. A joint asked for is unknown to the gate (its bodies out of the body
+check, its limits not applied) until its stops and its limits have told its frame, and so is a joint whose prior
+offset is 0 (the template's); ``frame_known``: every joint known from the start, as in MuJoCo alone, where the prior
+is the model's own frame. A joint whose carrying joints are unknown is driven on its effort cap and speed alone, as
+before any collision model, and the report says so; a joint pressing its stop is never held to its limits.
 
 Offsets come from both stops with the sweep's formula (``calibration.math``). Directions are settled at the end,
 proximal first, once every joint's offset is known: from the limits (an asymmetric range) and the gravity measured
@@ -30,9 +41,9 @@ only on such evidence, and reported.
 Any fault or lost device (an ERROR on ``/safety_status``), a held joint that moves, or ``abort()`` (a key
 press) stops the moving joint where it is, restores its drive and ends the run.
 
-The per-tick part runs in the control loop (a ``/prime/joint_states`` subscriber, between read and write, in a
-broadcaster-only run that leaves the commands to it); the sequence (drive settings over SDO, the operator)
-runs in ``run`` and waits for ticks through ``Ticks``: the loop's, or in virtual time a stepper it drives itself.
+``attach`` hands the run's commands to the controller (``ControllerManager.claim``), ``detach`` hands them back;
+the sequence (drive settings over SDO, the operator) runs in ``run`` and waits for ticks through ``Ticks``: the
+loop's, or in virtual time a stepper it drives itself.
 """
 
 from __future__ import annotations
@@ -42,10 +53,11 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from dataclasses import dataclass
+from typing import Protocol, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.calibration.approach import (
     MAX_SPEED_RAD_S,
@@ -54,24 +66,24 @@ from humanoid_prime.calibration.approach import (
     JointRun,
     Move,
     Segment,
-    Tick,
     Trace,
     approach_gains,
 )
 from humanoid_prime.calibration.direction import direction_from_gravity, direction_from_limits, view_of
+from humanoid_prime.calibration.drive import approach_drive
 from humanoid_prime.calibration.gravity import GravityModel
-from humanoid_prime.calibration.limp import GainOverride, GainSnapshot
-from humanoid_prime.calibration.math import flip_direction, mirror_check
+from humanoid_prime.calibration.hold import CalibrationController
+from humanoid_prime.calibration.math import flip_direction
+from humanoid_prime.calibration.operator import Operator, Unattended
+from humanoid_prime.calibration.report import AutoResult, JointOutcome, fit_stiffness
 from humanoid_prime.config.calibration import Calibration, JointCalibration
-from humanoid_prime.config.robot import Robot
+from humanoid_prime.config.robot import JointSpec, Robot
+from humanoid_prime.control.body import BodyCheck
 from humanoid_prime.control.flags import Level
 from humanoid_prime.control.manager import ControllerManager
-from humanoid_prime.control.topics import JOINT_STATES, SAFETY_STATUS, JointState, SafetyStatus
-from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
-from humanoid_prime.drivers.erob.gains import ErobRegisters, gains_to_registers, registers_to_gains
-from humanoid_prime.drivers.erob.objects import FOLLOWING_ERROR_WINDOW, RATED_TORQUE
-from humanoid_prime.drivers.ethercat.sdo import SdoClient, SizedSdo
-from humanoid_prime.drivers.sito.protocol import sito_model
+from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
+from humanoid_prime.drivers.erob.gains import gains_to_registers, registers_to_gains
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
 
@@ -81,18 +93,14 @@ RESTING_RAD = 0.02  # a stop found this close to where the joint started: it res
 RESTING_BACKOFF_RAD = 0.15  # then it moves this far off before it approaches again
 TRAVEL_MARGIN_RAD = 0.1  # beyond the joint's range (plus 5 %), the most the target travels toward a stop
 SPAN_TOLERANCE = 0.05  # the stops' spacing must be the described range within this share
-HOLD_TOLERANCE_RAD = 0.05  # a held joint that moves further has been pushed: stop
-HOLD_INTEGRAL_S = 0.5  # time constant with which a per-tick hold takes up a changing load
 ANCHOR_S = 0.2  # the holding torque is averaged this long before a joint moves
 PROMPT_RAD = 0.15  # the prompted motion that asks the operator for a direction
 GRAVITY_SAMPLES = 60
-GRAVITY_STEP_RAD = 0.005  # the loop evaluates the model's gravity again once a joint has moved this far
 TICK_TIMEOUT_S = 5.0  # wall seconds without a control tick: the loop is gone
-DRIVE_LIMIT_MARGIN = 1.25  # the drive's own torque limit over the most the approach asks of it
+SWEEP_STEP_RAD = 0.02  # a joint's range is checked against the body at angles this far apart
 
-# CiA402 0x6072 max torque, UNSIGNED16 per mille of 0x6076. ZeroErr's EDS V1.5 does not list it, so it is probed.
-MAX_TORQUE = (0x6072, 0x00)
-WINDOW = (FOLLOWING_ERROR_WINDOW, 0x00)
+Floats = npt.NDArray[np.float64]
+S = TypeVar("S", bound=Segment)
 
 
 class Aborted(PrimeError):
@@ -117,47 +125,16 @@ def contact_cap(robot: Robot, joint: str) -> float:
     return cap
 
 
+def travel_budget(spec: JointSpec) -> float:
+    """How far (rad) a joint's target may travel from where it started toward a stop: its range and a margin."""
+    return (spec.upper - spec.lower) * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
+
+
 def distal_first(robot: Robot, joints: Sequence[str]) -> list[str]:
     """``joints`` in the order they are calibrated: arm by arm (left first), from the hand to the shoulder."""
     def key(joint: str) -> tuple[int, int]:
         return (0 if joint.startswith("left_") else 1, -robot.index(joint))
     return sorted(joints, key=key)
-
-
-# ---- the operator -------------------------------------------------------------------------------------------
-
-
-class Operator(Protocol):
-    """The person (or the virtual robot's scripted operator) at the robot."""
-
-    def begin(self, joints: Sequence[str]) -> None:
-        """Before anything moves (on the robot: the e-stop reminder)."""
-
-    def confirm(self, joint: str) -> bool:
-        """May ``joint`` move now? (On the robot: Enter moves it, anything else skips it.)"""
-
-    def watch(self, joint: str) -> None:
-        """``joint`` is about to make the prompted motion."""
-
-    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
-        """Seen from ``where`` (looking along -``view``), did ``joint`` just turn counter-clockwise? None: cannot
-        tell."""
-
-
-class Unattended:
-    """No one at the robot: every joint may move, no question can be answered."""
-
-    def begin(self, joints: Sequence[str]) -> None:
-        pass
-
-    def confirm(self, joint: str) -> bool:
-        return True
-
-    def watch(self, joint: str) -> None:
-        pass
-
-    def turned_counter_clockwise(self, joint: str, view: np.ndarray, where: str) -> bool | None:
-        return None
 
 
 # ---- waiting for ticks ----------------------------------------------------------------------------------------
@@ -205,100 +182,6 @@ class SteppedTicks:
             self.step()
 
 
-# ---- results ------------------------------------------------------------------------------------------------
-
-@dataclass
-class Stiffness:
-    """The impedance a joint realised against its stops: torque over position error, and over speed error."""
-
-    family: str
-    kp_asked: float  # what the host asked for (eRob: the registers' nominal stiffness)
-    kd_asked: float
-    kp: float
-    kd: float
-    points: int
-
-    @property
-    def kp_ratio(self) -> float:
-        return self.kp / self.kp_asked
-
-    @property
-    def kd_ratio(self) -> float:
-        return self.kd / self.kd_asked
-
-    def as_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"kp_asked": self.kp_asked, "kp_realised": self.kp, "kp_ratio": self.kp_ratio,
-                               "kd_asked": self.kd_asked, "kd_realised": self.kd, "kd_ratio": self.kd_ratio,
-                               "points": self.points}
-        if self.family == "erob":
-            out["torque_efficiency"] = self.kp_ratio  # realised/nominal: the hardware file's correction
-        else:
-            model = sito_model("TA40-50")
-            out["kp_divisor"] = model.kp_divisor * self.kp_ratio  # what the firmware divides by, measured
-            out["kd_divisor"] = model.kd_divisor * self.kd_ratio
-        return out
-
-
-@dataclass
-class JointOutcome:
-    joint: str
-    status: str  # done | skipped | failed | aborted | direction_unknown | not_reached
-    message: str = ""
-    prior: JointCalibration = field(default_factory=JointCalibration)
-    calibration: JointCalibration | None = None  # what is written (None: the prior is kept)
-    stops: tuple[float, float] | None = None  # identity frame (prior direction, offset 0), lower reading first
-    first_side: int = 0
-    direction_source: str = ""
-    stiffness: Stiffness | None = None
-    peak_contact_nm: float = 0.0
-    cap_nm: float = 0.0
-    seconds: float = 0.0  # robot time the joint took
-    drive_torque_limit: str = ""  # what became of the drive's own torque limit
-
-    @property
-    def done(self) -> bool:
-        return self.status == "done"
-
-    @property
-    def flipped(self) -> bool:
-        return self.calibration is not None and self.calibration.direction != self.prior.direction
-
-    def as_dict(self) -> dict[str, Any]:
-        cal = self.calibration
-        return {"status": self.status, "message": self.message,
-                "direction": cal.direction if cal else self.prior.direction,
-                "homing_offset": cal.homing_offset if cal else self.prior.homing_offset,
-                "prior_direction": self.prior.direction, "prior_offset": self.prior.homing_offset,
-                "flipped": self.flipped, "direction_source": self.direction_source,
-                "stops": list(self.stops) if self.stops else None, "cap_nm": self.cap_nm,
-                "peak_contact_nm": self.peak_contact_nm, "seconds": self.seconds,
-                "drive_torque_limit": self.drive_torque_limit,
-                "stiffness": self.stiffness.as_dict() if self.stiffness else None}
-
-
-@dataclass
-class AutoResult:
-    calibration: Calibration  # every joint: the new one where done, the prior elsewhere
-    outcomes: dict[str, JointOutcome]
-    traces: dict[str, Trace]
-    asked: tuple[str, ...]
-    aborted: str | None
-    robot: Robot
-
-    @property
-    def complete(self) -> bool:
-        """Every joint asked for was calibrated and nothing stopped the run."""
-        return self.aborted is None and all(self.outcomes[j].done for j in self.asked)
-
-    def as_dict(self) -> dict[str, Any]:
-        mirror = mirror_check(self.calibration, self.robot)
-        return {"complete": self.complete, "aborted": self.aborted,
-                "joints": {j: self.outcomes[j].as_dict() for j in self.asked},
-                "mirror": [{"left": m.left, "right": m.right, "left_offset": m.left_offset,
-                            "right_offset": m.right_offset, "relation": m.relation, "residual": m.residual,
-                            "ok": m.ok} for m in mirror]}
-
-
 @dataclass
 class _Sweep:
     """What a joint's stops and its sweep between them left for its direction: the calibration either way, the
@@ -307,8 +190,8 @@ class _Sweep:
     same: JointCalibration
     flipped: JointCalibration
     by_limits: int | None
-    config: np.ndarray
-    samples: np.ndarray
+    config: Floats
+    samples: Floats
 
 
 # ---- the procedure ------------------------------------------------------------------------------------------
@@ -319,15 +202,16 @@ class AutoCalibration:
     ``model``: the gravity model to use (its compiled model is shared; build it before the buses run).
     ``prior``: the calibration the run's host frame is built from (its directions, offsets 0) and the one kept
     for joints not done. ``rings``: joint -> (SDO client, ring position) for every joint whose impedance is its
-    drive's registers (eRob on a ring); every other joint takes gains per tick. ``config``: the controllers file
-    (the standby gains hold the per-tick joints).
+    drive's registers (eRob on a ring); every other joint takes gains per tick. ``settle_s``: before the first
+    joint moves, every joint is held this long, the per-tick ones with the model's gravity (a robot that begins
+    limp, as MuJoCo alone does).
     """
 
     def __init__(self, manager: ControllerManager, prior: Calibration, joints: Sequence[str], *,
                  rings: Mapping[str, tuple[SdoClient, int]] | None = None, operator: Operator | None = None,
                  ticks: Ticks, speed: float = MAX_SPEED_RAD_S, assume_direction: bool = False,
                  measure: bool = True, report: Callable[[str], None] | None = None,
-                 model: GravityModel | None = None) -> None:
+                 model: GravityModel | None = None, frame_known: bool = False, settle_s: float = 0.0) -> None:
         robot = manager.robot
         if not 0 < speed <= MAX_SPEED_RAD_S:
             raise PrimeError(f"speed {speed:g} rad/s: the hands-free calibration moves a joint at most "
@@ -346,160 +230,83 @@ class AutoCalibration:
         self.speed = speed
         self.assume_direction = assume_direction
         self.measure = measure
+        self.settle_s = settle_s
         self.report = report or (lambda text: None)
         self.caps = {j: contact_cap(robot, j) for j in self.joints}
         self.gravity = model or GravityModel(robot)  # the loop's
         self.model = GravityModel(robot, self.gravity.model)  # the sequence's (the threads never share data)
-        self.hold_gains = manager.config.mode_gains()[Mode.STANDBY]
-        n = robot.n
+        self.body = BodyCheck(robot, robot.hardware.collision_margin, model=self.gravity.model)  # the sequence's
         self.prior_direction = prior.direction_array(robot.names)
         self.prior_offset = prior.offset_array(robot.names)
         self.direction = self.prior_direction.copy()  # best knowledge: the prior, the new values where done
         self.offset = self.prior_offset.copy()
-        self.per_tick = np.array([j not in self.rings for j in robot.names])
-        self.hold = np.full(n, np.nan)  # where each joint is held (NaN until the run's first tick)
-        # A per-tick joint holds with the effort it applied when its hold began plus what a slow integral of its sag
-        # adds since (as the arm moves, gravity on it changes): no push where it rests, no model needed.
-        self.hold_effort = np.zeros(n)
-        self.effort_limit = robot.effort_limit
-        self._capture: set[int] = set()  # joints whose hold is taken afresh at the next tick
+        # A joint not asked for is known from the prior, unless the prior's offset is 0: the template's, not a
+        # robot's (no calibrated joint reads exactly 0).
+        known = np.array([frame_known or (j not in self.joints and prior.joints[j].homing_offset != 0.0)
+                          for j in robot.names])
+        self.controller = CalibrationController(
+            robot, np.array([j not in self.rings for j in robot.names]), manager.config.mode_gains()[Mode.STANDBY],
+            self.host_gravity, (self.prior_direction, self.direction, self.offset), known,
+            settle_effort=settle_s > 0)
         self.outcomes: dict[str, JointOutcome] = {
             j: JointOutcome(j, "not_reached", prior=prior.joints[j], cap_nm=self.caps[j]) for j in self.joints}
         self.traces: dict[str, Trace] = {}
         self._sweeps: dict[str, _Sweep] = {}
-        self.moving: JointRun | None = None
-        self.aborted: str | None = None
-        self._abort_request: str | None = None
-        self._status: SafetyStatus | None = None
-        self._running = False
-        self._last_t: float | None = None
-        self._gravity, self._gravity_at = np.zeros(n), None
+
+    @property
+    def moving(self) -> JointRun | None:
+        runs = self.controller.runs
+        return runs[0] if runs else None
+
+    @property
+    def aborted(self) -> str | None:
+        return self.controller.aborted
 
     # -- the loop side --------------------------------------------------------------------------------------
     def attach(self) -> None:
-        topics = self.manager.topics
-        topics.subscribe(SAFETY_STATUS, self._on_status, latched=True)
-        topics.subscribe(JOINT_STATES, self._on_joint_states)
+        """The run's commands to the calibration's controller from the next tick; /safety_status watched."""
+        self.manager.topics.subscribe(SAFETY_STATUS, self._on_status, latched=True)
+        self.manager.claim(self.controller)
 
     def detach(self) -> None:
-        topics = self.manager.topics
-        topics.unsubscribe(JOINT_STATES, self._on_joint_states)
-        topics.unsubscribe(SAFETY_STATUS, self._on_status)
+        self.manager.release(self.controller)
+        self.manager.topics.unsubscribe(SAFETY_STATUS, self._on_status)
 
     def abort(self, reason: str) -> None:
         """Stop the run as soon as possible (any thread): the moving joint holds where it is."""
-        if self._abort_request is None:
-            self._abort_request = reason
+        if self.controller.abort_request is None:
+            self.controller.abort_request = reason
 
     def _on_status(self, status: SafetyStatus) -> None:
-        self._status = status
+        self.controller.status = status
 
     def _errors(self) -> list[str]:
-        status = self._status
+        status = self.controller.status
         if status is None:
             return []
         return [f"{key}: {status.flags[key]}" for key, level in status.levels.items() if level is Level.ERROR]
 
-    def description_angles(self, q: np.ndarray, direction: np.ndarray | None = None,
-                           offset: np.ndarray | None = None) -> np.ndarray:
+    def description_angles(self, q: Floats, direction: Floats | None = None, offset: Floats | None = None) -> Floats:
         """The joints' description angles from host-frame ``q``, with the best calibration known (or the one given)."""
         direction = self.direction if direction is None else direction
         offset = self.offset if offset is None else offset
         return direction * (self.prior_direction * q - offset)
 
-    def host_gravity(self, q: np.ndarray, model: GravityModel | None = None, direction: np.ndarray | None = None,
-                     offset: np.ndarray | None = None) -> np.ndarray:
+    def host_gravity(self, q: Floats, model: GravityModel | None = None, direction: Floats | None = None,
+                     offset: Floats | None = None) -> Floats:
         """The model's holding torque of every joint at host-frame ``q``, in the host frame (``model``: the loop's
         unless given; the calibration: the best known unless given)."""
         direction = self.direction if direction is None else direction
         angles = self.description_angles(q, direction, offset)
         angles[~np.isfinite(angles)] = 0.0  # a joint off this run's buses: taken as hanging
         torques = (model or self.gravity).torques(angles)
-        return self.prior_direction * direction * torques
-
-    def _on_joint_states(self, msg: JointState) -> None:
-        if not self._running:
-            return
-        resources = self.manager.resources
-        state, command = resources.state, resources.command
-        q = state.position
-        t = msg.stamp
-        dt = 1.0 / self.manager.update_rate if self._last_t is None else max(t - self._last_t, 1e-6)
-        self._last_t = t
-        if not np.isfinite(self.hold).any():  # the first tick of the run: hold every joint where it is now
-            self._capture.update(range(self.robot.n))
-        if self._capture:
-            taken = list(self._capture)
-            self._capture.clear()
-            self.hold[taken] = q[taken]
-            self.hold_effort[taken] = state.effort[taken]
-        if self._abort_request is not None and self.aborted is None:
-            self.aborted = self._abort_request
-        if self.aborted is None:
-            errors = self._errors()
-            if errors:
-                self.aborted = "fault: " + "; ".join(errors)
-        moving = self.moving
-        segment = moving.segment if moving is not None else None
-        active = moving is not None and not (isinstance(segment, Hold) and segment.passive)
-        held = np.isfinite(self.hold)
-        if active:
-            held[moving.index] = False
-        if self.aborted is None:
-            drift = np.abs(q - self.hold)
-            drift[~held] = 0.0
-            if drift.max(initial=0.0) > HOLD_TOLERANCE_RAD:
-                k = int(np.argmax(drift))
-                self.aborted = (f"{self.robot.names[k]} moved {drift[k]:.3f} rad while it was held (pushed, or "
-                                "its drive let go)")
-        kp, kd = self.hold_gains
-        hold = held & self.per_tick
-        sag = np.where(hold, self.hold - q, 0.0)
-        self.hold_effort += min(1.0, dt / HOLD_INTEGRAL_S) * kp * sag
-        np.clip(self.hold_effort, -self.effort_limit, self.effort_limit, out=self.hold_effort)
-        command.position[hold] = self.hold[hold]
-        command.velocity[hold] = 0.0
-        command.effort[hold] = self.hold_effort[hold]
-        command.stiffness[hold] = kp
-        command.damping[hold] = kd
-        release = ~self.per_tick  # drives holding on their own gains: no command
-        if active:
-            release[moving.index] = False
-        command.data[:, release] = 0.0
-        command.position[release] = np.nan
-        if moving is None:
-            return
-        i = moving.index
-        if self._gravity_at is None or np.abs(q - self._gravity_at).max() > GRAVITY_STEP_RAD:
-            self._gravity, self._gravity_at = self.host_gravity(q), q.copy()  # the model, when it has changed
-        gravity = self._gravity
-        ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction
-        ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
-        if self.aborted is not None and not isinstance(segment, Hold):
-            segment = moving.segment = Hold(moving)  # stop here, at once
-        if segment is not None and not segment.finished and segment.failure is None:
-            segment.update(Tick(t, dt, float(q[i]), float(state.velocity[i]), float(state.effort[i]), ff))
-            ff = moving.anchor + gravity[i] - moving.gravity0 + moving.correction  # what the update taught it
-            ff = min(max(ff, -moving.effort_limit), moving.effort_limit)
-        if not active or segment is None or segment.target is None:
-            return
-        low, high = moving.bounds
-        command.position[i] = min(max(segment.target, low), high)
-        command.velocity[i] = min(max(segment.velocity, -moving.speed), moving.speed)
-        command.effort[i] = ff
-        command.stiffness[i] = moving.kp
-        command.damping[i] = moving.kd
-        trace = moving.trace
-        trace.t.append(t)
-        trace.q.append(float(q[i]))
-        trace.target.append(float(command.position[i]))
-        trace.effort.append(float(state.effort[i]))
+        return np.asarray(self.prior_direction * direction * torques, dtype=np.float64)
 
     # -- the sequence ---------------------------------------------------------------------------------------
     def run(self) -> AutoResult:
         """Calibrate every joint asked for, then ask for the directions the physics could not tell."""
-        self._start()
         try:
+            self._start()
             self.operator.begin(self.joints)
             for joint in self.joints:
                 if self.aborted is not None:
@@ -513,29 +320,33 @@ class AutoCalibration:
                 self._resolve_directions()
                 self._ask_directions()
         except Aborted as exc:
-            if self.aborted is None:
-                self.aborted = str(exc)
-        finally:
-            self._finish()
+            if self.controller.aborted is None:
+                self.controller.aborted = str(exc)
         return self.result()
 
     def _start(self) -> None:
         errors = self._errors()
         if errors:
             raise PrimeError("the robot reports problems; nothing was moved: " + "; ".join(errors))
-        self._running = True
-        self._wait(lambda: True)  # one tick: the joints hold from here on, where that tick found them
-
-    def _finish(self) -> None:
-        self._running = False
+        self._wait(lambda: True)  # the controller took the commands: every joint held from here, where it is
+        began = self.manager.resources.state.stamp
+        self._wait(lambda: self.manager.resources.state.stamp - began >= self.settle_s)
 
     def _wait(self, done: Callable[[], bool]) -> None:
         seen = self.manager.tick_count
-        self.ticks.until(lambda: self.aborted is not None or (self.manager.tick_count > seen and done()))
+
+        def ended() -> bool:
+            if self.manager.tick_count > seen and self.manager.active is not self.controller and self.aborted is None:
+                fallbacks = self.manager.fallbacks
+                why = fallbacks[-1]["reason"] if fallbacks else "another controller has the commands"
+                self.controller.aborted = f"the calibration lost the commands: {why}"
+            return self.aborted is not None or (self.manager.tick_count > seen and done())
+
+        self.ticks.until(ended)
         if self.aborted is not None:
             raise Aborted(self.aborted)
 
-    def _segment(self, run: JointRun, segment: Segment) -> Segment:
+    def _segment(self, run: JointRun, segment: S) -> S:
         run.segment = segment
         self._wait(lambda: segment.finished or segment.failure is not None)
         if segment.failure is not None:
@@ -549,11 +360,29 @@ class AutoCalibration:
                 joints[joint] = outcome.calibration
         return AutoResult(Calibration(joints), self.outcomes, self.traces, self.joints, self.aborted, self.robot)
 
+    def _check_range(self, joint: str) -> None:
+        """Its whole range against the body, with the other joints where they are: JointFailed if it would bring
+        its arm within the margin; said in the report when its carrying joints are unknown (nothing to check)."""
+        i = self.robot.index(joint)
+        spec = self.robot.joints[i]
+        controller = self.controller
+        angles = np.linspace(spec.lower, spec.upper, max(2, math.ceil((spec.upper - spec.lower) / SWEEP_STEP_RAD)))
+        found = self.body.sweep(self.manager.resources.state.position, i, angles, controller.frame_now())
+        if found is None:
+            self.report(f"{joint}: its range was not checked against the body (the joints that carry it are not "
+                        "calibrated yet)")
+            return
+        contact, angle = found
+        if contact is not None:
+            raise JointFailed(f"not driven: at {angle:+.2f} rad its range would bring {contact.words(self.body.margin)}"
+                              " with the other joints where they are; move them, or calibrate it by hand")
+
     @contextlib.contextmanager
     def _moving(self, joint: str) -> Iterator[JointRun]:
         """``joint`` anchored where it is (its holding effort measured), on its approach impedance, for the
-        block; afterwards anchored where it ended, on the impedance it had, and held there."""
-        robot = self.robot
+        block; afterwards anchored where it ended, on the impedance it had, and held there. A joint the gate
+        refused goes back to where it started first."""
+        robot, controller = self.robot, self.controller
         i = robot.index(joint)
         spec = robot.joints[i]
         cap = self.caps[joint]
@@ -571,128 +400,96 @@ class AutoCalibration:
                         rate=self.manager.update_rate, effort_limit=spec.effort_limit)
         if run.leash <= 0:
             raise JointFailed(f"the speed {self.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
+        self._check_range(joint)
         run.trace = self.traces.setdefault(joint, run.trace)  # the question's motion goes on the same trace
         state = self.manager.resources.state
         start = float(state.position[i])
-        span = spec.upper - spec.lower
-        budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
-        run.bounds = (start - budget, start + budget)
+        run.budget = travel_budget(spec)
+        run.bounds = (start - run.budget, start + run.budget)
         q = state.position.copy()
         reach = []  # the model's gravity on the joint over its travel: how heavy it can be
-        for value in np.linspace(start - budget, start + budget, 17):
+        for value in np.linspace(*run.bounds, 17):
             q[i] = value
             reach.append(abs(float(self.host_gravity(q, self.model)[i])))
         run.weight = max(reach)
         hold = Hold(run, start, ANCHOR_S, passive=True)
         run.segment = hold
         run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
-        self.moving = run
+        controller.runs = (run,)
         try:
             self._wait(lambda: hold.finished)
             run.anchor = float(np.mean(hold.efforts))
             run.gravity0 = float(self.host_gravity(state.position, self.model)[i])
-            with self._impedance(joint, run, registers, ring, start, budget):
+            drive = approach_drive(robot, joint, run, registers, ring) if ring is not None and registers is not None \
+                else contextlib.nullcontext("")
+            with drive as torque_limit:
+                self.outcomes[joint].drive_torque_limit = torque_limit
                 try:
                     yield run
                 finally:  # however it ended: held where it is, with the effort it applies, before the gains go
+                    if self.aborted is None and run.refused is not None:
+                        self.report(f"{joint}: the gate refused its command ({run.refused}); back to where it "
+                                    "started")
+                        self._segment(run, Move(run, start, float(state.position[i])))
                     if self.aborted is None:
                         self._segment(run, Hold(run, None, ANCHOR_S))
         finally:
-            self._capture.add(i)  # held from here where it ended, with the effort it applies there
-            with contextlib.suppress(Aborted):
-                self.ticks.until(lambda: i not in self._capture)
-            if i in self._capture:  # no tick came: take it here
-                self._capture.discard(i)
-                self.hold[i], self.hold_effort[i] = float(state.position[i]), float(state.effort[i])
-            self.moving = None
-
-    @contextlib.contextmanager
-    def _impedance(self, joint: str, run: JointRun, registers: ErobRegisters | None,
-                   ring: tuple[SdoClient, int] | None, start: float, budget: float) -> Iterator[None]:
-        if ring is None or registers is None:
-            yield
-            return
-        sdo, position = ring
-        objects = SizedSdo(sdo)
-        kp_nominal, _ = registers_to_gains(registers, kt=self.robot.hardware.erob_kt[joint],
-                                           gear=self.robot.hardware.erob_gear[joint])
-        # The most effort the approach asks: the gravity along the travel, the anchor's offset from it, the cap.
-        most = run.weight + abs(run.anchor - run.gravity0) + run.cap
-        window = math.ceil(2.0 * most / kp_nominal * COUNTS_PER_RAD)
-        try:
-            rated = objects.read(position, (RATED_TORQUE, 0)) / 1000.0 or RATED_TORQUE_NM
-        except PrimeError:
-            rated = RATED_TORQUE_NM
-        limit = math.ceil(DRIVE_LIMIT_MARGIN * most / rated * 1000.0)
-
-        def wanted(snapshot: GainSnapshot) -> ErobRegisters:
-            return registers
-
-        override = _ApproachOverride(sdo, position, wanted, window, limit)
-        with override:
-            outcome = self.outcomes[joint]
-            if MAX_TORQUE in override.missing:
-                outcome.drive_torque_limit = "none: the drive has no 0x6072 (" + override.missing[MAX_TORQUE] + ")"
-            else:
-                outcome.drive_torque_limit = (f"0x6072 {override.torque_limit} per mille of {rated:g} Nm "
-                                              f"({override.torque_limit * rated / 1000.0:.2f} Nm) while it moved, "
-                                              f"then {override.extra_snapshot[MAX_TORQUE]} again")
-            yield
+            controller.capture.add(i)  # held from here where it ended, with the effort it applies there
+            with contextlib.suppress(Aborted):  # (a controller that lost the commands takes nothing)
+                self.ticks.until(lambda: i not in controller.capture or self.manager.active is not controller)
+            if i in controller.capture:  # no tick came: take it here
+                controller.capture.discard(i)
+                controller.hold[i], controller.hold_effort[i] = float(state.position[i]), float(state.effort[i])
+            controller.runs = ()
 
     def _joint(self, joint: str) -> None:
         robot, outcome = self.robot, self.outcomes[joint]
         i = robot.index(joint)
         spec = robot.joints[i]
-        began = self.manager.resources.state.stamp
+        state = self.manager.resources.state
+        began = state.stamp
         try:
             with self._moving(joint) as run:
-                start = float(self.manager.resources.state.position[i])
+                start = float(state.position[i])
                 # The nearer stop first (by the prior's estimate of where the joint is).
-                here = self.description_angles(self.manager.resources.state.position)[i]
+                here = self.description_angles(state.position)[i]
                 first = -1 if here - spec.lower <= spec.upper - here else 1
-                span = spec.upper - spec.lower
-                budget = span * (1 + SPAN_TOLERANCE) + TRAVEL_MARGIN_RAD
                 self.report(f"{joint}: toward its {'upper' if first > 0 else 'lower'} stop "
                             f"(at most {self.caps[joint]:.2f} Nm into it)")
-                a = self._segment(run, Approach(run, first, start, budget, self.measure))
-                assert isinstance(a, Approach) and a.stop is not None
+                a = self._segment(run, Approach(run, first, start, run.budget, self.measure))
+                assert a.stop is not None
                 if abs(a.stop - start) < RESTING_RAD:
                     # It rested on that stop: its weight there was the stop's, not in its feed-forward. Off the stop
                     # (where free motion teaches the feed-forward what gravity asks) and onto it again.
                     self.report(f"{joint}: it rested on that stop; again, from {RESTING_BACKOFF_RAD:g} rad off it")
-                    position = self.manager.resources.state.position
-                    off = self._segment(run, Move(run, a.stop - first * RESTING_BACKOFF_RAD, a.unloaded(position[i]),
-                                                   leaving=True))
-                    a = self._segment(run, Approach(run, first, off.target, budget, self.measure))
-                    assert isinstance(a, Approach) and a.stop is not None
+                    off = self._segment(run, Move(run, a.stop - first * RESTING_BACKOFF_RAD,
+                                                  a.unloaded(state.position[i]), leaving=True))
+                    a = self._segment(run, Approach(run, first, off.target, run.budget, self.measure))
+                assert a.stop is not None
                 self.report(f"{joint}: stop at {a.stop:+.4f} rad; now the other one")
-                position = self.manager.resources.state.position
-                backed = self._segment(run, Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(position[i]),
-                                                  leaving=True))
-                b = Approach(run, -first, backed.target, budget, self.measure)
+                backed = self._segment(run, Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(state.position[i]),
+                                                 leaving=True))
+                b = Approach(run, -first, backed.target, run.budget, self.measure)
                 self._segment(run, b)
                 assert b.stop is not None
                 self.report(f"{joint}: stop at {b.stop:+.4f} rad; back to where it started")
-                self._segment(run, Move(run, start, b.unloaded(position[i]), leaving=True))
-                outcome.seconds = self.manager.resources.state.stamp - began
+                self._segment(run, Move(run, start, b.unloaded(state.position[i]), leaving=True))
                 outcome.peak_contact_nm = max(a.peak, b.peak)
                 outcome.first_side = first
                 self._conclude(joint, run, a, b)
             if outcome.calibration is not None:  # the joint has stopped: the loop's model may take it now
-                self._know(i, outcome.calibration)  # (its direction may still change at the end)
+                self._know(i, outcome.calibration, settled=self._sweeps[joint].by_limits is not None)
         except JointFailed as exc:
             outcome.status, outcome.message = "failed", str(exc)
-            outcome.seconds = self.manager.resources.state.stamp - began
         except Aborted as exc:
             outcome.status, outcome.message = "aborted", str(exc)
-            outcome.seconds = self.manager.resources.state.stamp - began
             raise
         except PrimeError as exc:  # a drive setting that could not be made or restored: nothing more moves
             outcome.status, outcome.message = "aborted", str(exc)
-            outcome.seconds = self.manager.resources.state.stamp - began
             self.abort(str(exc))
             raise Aborted(str(exc)) from None
         finally:
+            outcome.seconds = state.stamp - began
             if outcome.status == "direction_unknown":  # measured; its direction is settled at the end
                 low, high = outcome.stops or (math.nan, math.nan)
                 self.report(f"{joint}: stops {high - low:.3f} rad apart; its direction is settled at the end")
@@ -703,9 +500,10 @@ class AutoCalibration:
         robot, outcome = self.robot, self.outcomes[joint]
         i = robot.index(joint)
         spec = robot.joints[i]
+        assert a.stop is not None and b.stop is not None  # both approaches ended pressing their stops
         low, high = sorted((a.stop, b.stop))
         outcome.stops = (low, high)
-        outcome.stiffness = self._stiffness(joint, run, (a, b))
+        outcome.stiffness = fit_stiffness(robot, joint, joint in self.rings, (run.kp, run.kd), [a.points, b.points])
         span, described = high - low, spec.upper - spec.lower
         if abs(span - described) > SPAN_TOLERANCE * described:
             outcome.status = "failed"
@@ -720,10 +518,13 @@ class AutoCalibration:
         self._sweeps[joint] = _Sweep(same, flipped, by_limits, self.manager.resources.state.position.copy(),
                                      np.array(b.free))
 
-    def _know(self, i: int, cal: JointCalibration) -> None:
+    def _know(self, i: int, cal: JointCalibration, *, settled: bool) -> None:
+        """Joint ``i``'s calibration, for the loop's model and, once ``settled`` (its direction told), the gate."""
         self.direction[i] = cal.direction
         self.offset[i] = cal.homing_offset
-        self._gravity_at = None  # the loop's model is evaluated afresh with it
+        if settled:
+            self.controller.settled[i] = True
+        self.controller.forget_gravity()
 
     def _resolve_directions(self) -> None:
         """Proximal first: each measured joint's direction from its limits and from the gravity measured along
@@ -748,7 +549,7 @@ class AutoCalibration:
                                                                           ("gravity", by_gravity)) if v is not None)
             outcome.status = "done"
             outcome.message = f"direction from the {outcome.direction_source}; {gravity_text}"
-            self._know(self.robot.index(joint), outcome.calibration)
+            self._know(self.robot.index(joint), outcome.calibration, settled=True)
 
     def _proximal_first(self, joint: str) -> tuple[int, int]:
         return (0 if joint.startswith("left_") else 1, self.robot.index(joint))
@@ -763,7 +564,7 @@ class AutoCalibration:
         take = np.linspace(0, len(samples) - 1, min(GRAVITY_SAMPLES, len(samples))).astype(int)
         samples = samples[take]
         q = sweep.config.copy()
-        predicted: dict[int, np.ndarray] = {}
+        predicted: dict[int, Floats] = {}
         for hypothesis, cal in ((1, sweep.same), (-1, sweep.flipped)):
             direction, offset = self.direction.copy(), self.offset.copy()
             direction[i], offset[i] = cal.direction, cal.homing_offset
@@ -773,29 +574,6 @@ class AutoCalibration:
                 values.append(float(self.host_gravity(q, self.model, direction, offset)[i]))
             predicted[hypothesis] = np.array(values)
         return direction_from_gravity(samples[:, 0], samples[:, 1], predicted)
-
-    def _stiffness(self, joint: str, run: JointRun, stops: Sequence[Approach]) -> Stiffness | None:
-        """Realised stiffness and damping: the effort pressed into both stops against the lag and the velocity
-        command, ``effort = kp * lag + kd * speed + (one constant per stop)``, by least squares."""
-        pressed = [stop for stop in stops if len(stop.points) >= 5]
-        if not pressed:
-            return None
-        rows, efforts = [], []
-        for k, stop in enumerate(pressed):
-            for lag, speed, effort in stop.points:
-                rows.append([lag, speed, *(1.0 if m == k else 0.0 for m in range(len(pressed)))])
-                efforts.append(effort)
-        (kp, kd, *_), *_ = np.linalg.lstsq(np.array(rows), np.array(efforts), rcond=None)
-        hw = self.robot.hardware
-        if joint in self.rings:
-            registers = gains_to_registers(run.kp, run.kd, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint],
-                                           efficiency=hw.erob_torque_efficiency[joint])
-            kp_asked, kd_asked = registers_to_gains(registers, kt=hw.erob_kt[joint], gear=hw.erob_gear[joint])
-            family = "erob"
-        else:
-            kp_asked, kd_asked = run.kp, run.kd
-            family = "erob" if joint in hw.erob_slaves else "sito"
-        return Stiffness(family, kp_asked, kd_asked, float(kp), float(kd), len(efforts))
 
     # -- directions the physics could not tell --------------------------------------------------------------
     def _ask_directions(self) -> None:
@@ -857,36 +635,7 @@ class AutoCalibration:
             spec = self.robot.joints[i]
             outcome.calibration = flip_direction(outcome.calibration, spec.lower, spec.upper)
         outcome.status = "done"
-        outcome.direction_source = "operator"
-        outcome.message = ("direction from the operator's answer"
+        outcome.direction_source = self.operator.answered_by
+        outcome.message = (f"direction from {self.operator.answered_by}"
                            + ("" if same else ": it is wired the other way round, the flip is written"))
-        self._know(i, outcome.calibration)
-
-
-class _ApproachOverride(GainOverride):
-    """The approach gains with a following-error window wide enough for them and the drive's own torque limit
-    lowered to what the approach needs (never raised)."""
-
-    def __init__(self, sdo: SdoClient, position: int, wanted: Callable[[GainSnapshot], ErobRegisters],
-                 window: int, torque_limit: int) -> None:
-        super().__init__(sdo, position, wanted, objects={WINDOW: window}, optional={MAX_TORQUE: torque_limit})
-        self.window = window
-        self.torque_limit = torque_limit
-
-    def __enter__(self) -> _ApproachOverride:
-        # Widen the window only, and lower the torque limit only, from what the drive holds.
-        self.snapshot = None
-        objects = self.objects
-        try:
-            found = objects.read(self.position, WINDOW)
-            self.extra[WINDOW] = max(found, self.window)
-        except PrimeError:
-            pass
-        try:
-            found = objects.read(self.position, MAX_TORQUE)
-            self.torque_limit = min(found, self.torque_limit)
-            self.optional[MAX_TORQUE] = self.torque_limit
-        except PrimeError:
-            pass
-        super().__enter__()
-        return self
+        self._know(i, outcome.calibration, settled=True)

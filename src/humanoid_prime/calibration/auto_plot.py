@@ -6,7 +6,7 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-from humanoid_prime.calibration.auto import AutoResult
+from humanoid_prime.calibration.report import AutoResult
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.files import atomic_write_bytes
 

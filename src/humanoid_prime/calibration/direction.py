@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.calibration.math import flip_direction, offset_from_sweep
 from humanoid_prime.config.calibration import JointCalibration
@@ -42,7 +43,8 @@ def direction_from_limits(prior_direction: int, stops: tuple[float, float], spec
     return same, flipped, None
 
 
-def direction_from_gravity(samples: np.ndarray, measured: np.ndarray, predicted: Mapping[int, np.ndarray]
+def direction_from_gravity(samples: npt.NDArray[np.float64], measured: npt.NDArray[np.float64],
+                           predicted: Mapping[int, npt.NDArray[np.float64]]
                            ) -> tuple[int | None, str]:
     """Which hypothesis (+1 the prior's direction, -1 flipped) the effort measured along a sweep fits: each
     prediction is fitted with a scale and an offset (friction). A verdict needs the two predictions to differ,
@@ -75,7 +77,7 @@ VIEWS = {(0, 1): "in front of the robot", (0, -1): "behind the robot", (1, 1): "
          (1, -1): "at the robot's right side", (2, 1): "above the robot", (2, -1): "below the robot"}
 
 
-def view_of(axis: np.ndarray) -> tuple[np.ndarray, str]:
+def view_of(axis: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], str]:
     """The world axis a person looks along to see a rotation about ``axis`` best, pointing at them (a positive
     rotation turns counter-clockwise for them), and where they stand, in words."""
     k = int(np.argmax(np.abs(axis)))

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+import numpy.typing as npt
 
+from humanoid_prime.config.model import load_model
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.drivers.mujoco.system import load_model
 
 
 class GravityModel:
@@ -28,17 +29,18 @@ class GravityModel:
         self.dof = self.model.jnt_dofadr[self.joint_ids].astype(np.intp)
         self._torques = np.zeros(robot.n)
 
-    def torques(self, q: np.ndarray) -> np.ndarray:
+    def torques(self, q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """Holding torque of every joint at ``q`` (canonical order); the returned array is reused."""
         data = self.data
         data.qpos[self.qpos] = q
         data.qvel[:] = 0.0
         mujoco.mj_forward(self.model, data)
-        return np.take(data.qfrc_bias, self.dof, out=self._torques)
+        np.take(data.qfrc_bias, self.dof, out=self._torques)
+        return self._torques
 
-    def axis(self, joint: str, q: np.ndarray) -> np.ndarray:
+    def axis(self, joint: str, q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """The world direction of ``joint``'s axis at ``q``."""
         data = self.data
         data.qpos[self.qpos] = q
         mujoco.mj_kinematics(self.model, data)
-        return data.xaxis[self.joint_ids[self.robot.index(joint)]].copy()
+        return np.array(data.xaxis[self.joint_ids[self.robot.index(joint)]], dtype=np.float64)

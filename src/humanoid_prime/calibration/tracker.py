@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.topics import JOINT_STATES, JointState, TopicBus
@@ -58,7 +59,7 @@ class SweepTracker:
         self._trace = np.empty((INITIAL_CAPACITY, n))
         self.samples = 0
 
-    def update(self, position: np.ndarray) -> None:
+    def update(self, position: npt.NDArray[np.float64]) -> None:
         """Take one canonical-order position vector (non-finite entries are ignored)."""
         values = position[self.index]
         with self._lock:

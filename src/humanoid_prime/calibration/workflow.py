@@ -13,7 +13,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from humanoid_prime.calibration.math import JointReport, MirrorRow, Status, calibrate_from_sweeps, mirror_check
 from humanoid_prime.calibration.tracker import SweepRow, SweepTracker
@@ -57,7 +56,7 @@ class CalibrationResult:
         """Some joint was swept far enough to compute its offset (calibrated, or flagged as a probable flip)."""
         return any(r.status in (Status.CALIBRATED, Status.PROBABLE_FLIP) for r in self.reports)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         return {
             "joints": {r.joint: {"status": str(r.status), "direction": r.direction, "homing_offset": r.offset,
                                  "prior_offset": r.prior_offset, "message": r.message,
@@ -147,6 +146,6 @@ class VerifyRow:
     def ok(self) -> bool:
         return math.isfinite(self.reading) and abs(self.error) <= VERIFY_TOLERANCE_RAD
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         return {"joint": self.joint, "stop": self.stop, "limit": self.limit, "reading": self.reading,
                 "error": self.error, "ok": self.ok}

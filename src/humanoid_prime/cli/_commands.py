@@ -12,6 +12,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "can": ("can", "monitor, discover or emulate the Sito wrists on CAN"),
     "config": ("config", "the robot's configuration folder: create it, show what is used"),
     "decode": ("decode", "decode a statusword, eRob error code or EtherCAT AL status"),
+    "doctor": ("doctor", "check the host, the buses and the robot before anything moves; the fix for each finding"),
     "ec": ("ec", "EtherCAT commissioning: scan the ring, read and write SDOs"),
     "emulate": ("emulate", "emulate hardware for running the stack without the robot"),
     "gains": ("gains", "eRob registers (vel_reg, pos_reg, integral) for --kp/--kd or --mode"),

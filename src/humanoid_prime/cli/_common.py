@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from humanoid_prime.dds.domain import MAX_DOMAIN_ID, Discovery
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.record.topics import TOPICS as RECORD_TOPICS
 from humanoid_prime.runtime.socket import default_socket_path
 
 if TYPE_CHECKING:
@@ -74,6 +75,10 @@ def add_dds_options(parser: argparse.ArgumentParser, dds_help: str | None = None
         parser.add_argument("--namespace", metavar="NAME",
                             help="(with --dds) ROS 2 namespace of the node and every topic, so several Primes share "
                                  "one domain (default: none)")
+        parser.add_argument("--ros-backend", choices=ROS_BACKENDS, default=None,
+                            help="(with --dds) rclpy: an rclpy node on the middleware ROS 2 is set to, with "
+                                 "parameters, /rosout, services and trajectory actions; dds: one bare Cyclone DDS "
+                                 "participant (topics only) (default: rclpy where it can be imported, else dds)")
     add_domain_option(parser)
 
 
@@ -85,11 +90,14 @@ class DdsOptions:
     namespace: str
     control: bool
     discovery: Discovery
+    backend: str = "dds"
+    backend_asked: bool = False  # --ros-backend given (else chosen by what can be imported)
 
     def describe(self) -> str:
         node = "/prime" if self.namespace == "/" else f"{self.namespace}/prime"
         control = "control from the graph ON" if self.control else "publishing only (no --dds-control)"
-        return f"ROS 2 domain {self.domain}, node {node}, {self.discovery.describe()}; {control}"
+        how = f"{self.discovery.describe()}" if self.backend == "dds" else "rclpy"
+        return f"ROS 2 domain {self.domain}, node {node}, {how}; {control}"
 
 
 def dds_options(args: argparse.Namespace) -> DdsOptions | None:
@@ -98,13 +106,31 @@ def dds_options(args: argparse.Namespace) -> DdsOptions | None:
     from humanoid_prime.dds.domain import discovery, domain_id, node_namespace
 
     control, namespace = getattr(args, "dds_control", False), getattr(args, "namespace", None)
+    backend = getattr(args, "ros_backend", None)
     if not args.dds:
         given = [name for name, value in (("--domain", args.domain), ("--dds-control", control),
-                                          ("--namespace", namespace)) if value not in (None, False)]
+                                          ("--namespace", namespace), ("--ros-backend", backend))
+                 if value not in (None, False)]
         if given:
             raise PrimeError(f"{', '.join(given)} needs --dds")
         return None
-    return DdsOptions(domain_id(args.domain), node_namespace(namespace), control, discovery())
+    return DdsOptions(domain_id(args.domain), node_namespace(namespace), control, discovery(),
+                      ros_backend(backend), backend is not None)
+
+
+ROS_BACKENDS = ("rclpy", "dds")
+
+
+def ros_backend(asked: str | None) -> str:
+    """The node's backend: ``asked`` (``--ros-backend``), else rclpy where it can be imported (a sourced ROS 2
+    install, or the wheels of ``pip install 'humanoid-prime[ros-jazzy]'``), else bare Cyclone DDS."""
+    import importlib.util
+
+    found = importlib.util.find_spec("rclpy") is not None
+    if asked == "rclpy" and not found:
+        raise PrimeError("--ros-backend rclpy: rclpy cannot be imported here; source a ROS 2 install (source "
+                         "/opt/ros/jazzy/setup.bash) or install the wheels (pip install 'humanoid-prime[ros-jazzy]')")
+    return asked or ("rclpy" if found else "dds")
 
 
 def dds_domain(args: argparse.Namespace) -> int | None:
@@ -124,6 +150,20 @@ def add_record_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", metavar="FILE.mcap", type=mcap_file,
                         help="record every topic of the run to FILE.mcap (ROS 2 messages: ros2 bag play, Foxglove, "
                              "rosbags and `prime plot` read it)")
+    parser.add_argument("--topics", type=record_topics, metavar="TOPIC,...",
+                        help="(with --record) record only these topics, to keep a recording small (default: all of "
+                             f"{', '.join(RECORD_TOPICS)})")
+
+
+
+def record_topics(text: str) -> tuple[str, ...]:
+    """argparse type of ``--topics``: comma-separated topic names, each one a recording can hold."""
+    chosen = tuple(dict.fromkeys("/" + name.strip().strip("/") for name in text.split(",") if name.strip()))
+    unknown = [name for name in chosen if name not in RECORD_TOPICS]
+    if unknown or not chosen:
+        raise argparse.ArgumentTypeError(f"{', '.join(unknown) or 'no topic'}: a recording can hold "
+                                         f"{', '.join(RECORD_TOPICS)}")
+    return chosen
 
 
 DEFAULT_WEB_PORT = 8080
@@ -175,6 +215,10 @@ def add_emulation_options(parser: argparse.ArgumentParser, emulate_help: str) ->
     parser.add_argument("--rated-torque", type=real(above=0.0, at_most=1000.0), metavar="NM",
                         help="(with --emulate) what the emulated eRob report in 0x6076 (default 23, the nominal "
                              "eRob70 figure; an eRob80H120I reports 31)")
+    parser.add_argument("--quirks", metavar="NAME,...",
+                        help="(with --emulate) the emulated eRob behave as some real slaves do: "
+                             "reserved-bits, counter, no-size, normal-upload, slow-sii, slow-states, emergency, "
+                             "abort-service, or all (docs/hardware.md)")
 
 
 def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
@@ -182,7 +226,7 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
     the command line), without --emulate is an error."""
     given = {"--truth": args.truth, "--dc-lock-cycles": args.dc_lock_cycles,
              "--mailbox-latency": args.mailbox_latency, "--gain-bytes": args.gain_bytes,
-             "--rated-torque": args.rated_torque, **more}
+             "--rated-torque": args.rated_torque, "--quirks": args.quirks, **more}
     used = [name for name, value in given.items() if value is not None and value is not False]
     if used and not args.emulate:
         raise PrimeError(f"{', '.join(used)}: only with --emulate (these act on the virtual Prime)")
@@ -200,7 +244,22 @@ def ring_options(args: argparse.Namespace, **more: object) -> dict[str, Any]:
         options["gain_bytes"] = args.gain_bytes
     if args.rated_torque is not None:
         options["rated_torque_mnm"] = round(args.rated_torque * 1000)
+    if args.quirks is not None:
+        from humanoid_prime.virtual.ring.quirks import Quirks
+
+        try:
+            Quirks.parse(args.quirks)
+        except ValueError as exc:
+            raise PrimeError(f"--quirks: {exc}") from None
+        options["quirks"] = args.quirks
     return options
+
+
+def add_mailbox_option(parser: argparse.ArgumentParser) -> None:
+    """--ec-mailbox: who works the eRob's mailboxes, overriding ``buses.ethercat.mailbox``."""
+    parser.add_argument("--ec-mailbox", choices=("prime", "soem"),
+                        help="who works the eRob's mailboxes (SDO): prime, Prime's CoE layer, or soem, SOEM alone as "
+                             "before that layer (default: buses.ethercat.mailbox in prime_hardware.yaml, else prime)")
 
 
 def add_realtime_options(parser: argparse.ArgumentParser, *, rate_help: str | None) -> None:

@@ -62,11 +62,15 @@ def config_lines(manager: ControllerManager) -> list[Text]:
 
 
 def loop_line(manager: ControllerManager) -> str:
-    """Tick count, tick cost, overruns and fallbacks in one line."""
+    """Tick count, tick cost, overruns, fallbacks and the commands the body check refused in one line."""
     stats = manager.stats
     tick = stats.tick_us()
+    refused = manager.gate.refused
+    last = refused.last
+    where = f" (last: {last.body1}/{last.body2} {last.distance:.3f} m)" if last is not None else ""
     return (f"ticks {stats.ticks}  tick {_micros(tick['median'])}/{_micros(tick['p99'])}/{_micros(tick['max'])} us "
-            f"med/p99/max  overruns {stats.overruns}  fallbacks {len(manager.fallbacks)}")
+            f"med/p99/max  overruns {stats.overruns}  fallbacks {len(manager.fallbacks)}  refused "
+            f"{refused.count}{where}")
 
 
 class LiveTable:

@@ -36,6 +36,10 @@ SUITES: dict[str, tuple[str, str, str]] = {
             "the simulated Prime at 50 Hz and 1 kHz with and without DDS, and a subscriber process"),
     "record": ("humanoid_prime.bench.dds", "bench_record",
                "the simulated Prime at 50 Hz and 1 kHz with and without --record"),
+    "doctor": ("humanoid_prime.bench.doctor", "bench_doctor",
+               "prime doctor --emulate --backends ec,can, twice: start-up plus checks, beside the emulator's start"),
+    "gate": ("humanoid_prime.bench.gate", "bench_gate",
+             "the simulated Prime at 50 Hz in REMOTE, its gate with and without the body check, in turns"),
 }
 
 _OPS: dict[str, Callable[[float, float], bool]] = {"<=": operator.le, ">=": operator.ge}
@@ -48,8 +52,13 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
     ("sim", "realtime_factor"): ("sim", "floors.realtime_factor", "MuJoCo's own steps in this run"),
     ("bringup", "tick_io_us.median"): ("bringup", "floors.ethercat_cycle_us",
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
-    ("dds", "added_tick_us_median"): ("dds", "floors.tap_added_tick_us_median",
-                                      "handing each tick to the publisher thread, nothing published"),
+    **{("dds", f"{rate}_hz.{backend}added_tick_us_median"): (
+        "dds", f"{rate}_hz.tap_added_tick_us_median", "handing each tick to the publisher thread, nothing published")
+       for rate in (50, 1000) for backend in ("", "rclpy_")},
+    ("doctor", "seconds.median"): ("doctor", "floors.seconds",
+                                   "python -c pass twice (it re-executes in its namespace) + its fixed waits (s)"),
+    ("gate", "added_tick_us_median"): ("gate", "floors.tick_cpu_us_median",
+                                       "the same tick without the body check, in this run (us, median)"),
     ("khz", "overruns"): ("khz", "floors.machine_late_wakeups",
                           "the machine's own: real-time wake-ups a period or more late, all CPUs, "
                           "in as long again right after the run (cyclictest)"),
@@ -77,10 +86,20 @@ TARGETS: tuple[tuple[str, str, str, float, str], ...] = (
     ("bringup", "jitter_us.p99", "<=", b.TARGET_JITTER_P99_US, "loop period jitter at 50 Hz (us, p99)"),
     ("khz", "overruns", "<=", b.TARGET_KHZ_OVERRUNS, "1 kHz on the emulated robot for 60 s: overruns"),
     ("khz", "tick_cpu_us.p99", "<=", math.inf, "control tick at 1 kHz, our CPU (us, p99)"),
-    ("dds", "added_tick_us_median", "<=", b.TARGET_DDS_ADDED_TICK_US, "DDS: added tick cost (us, median, worst rate)"),
+    *(("dds", f"{rate}_hz.{key}added_tick_us_median", "<=", b.TARGET_DDS_ADDED_TICK_US,
+       f"ROS 2 node, {name}: added tick cost at {hz} (us, median)")
+      for key, name in (("", "bare DDS"), ("rclpy_", "rclpy (where it imports)"))
+      for rate, hz in ((50, "50 Hz"), (1000, "1 kHz"))),
     ("dds", "overruns_with_dds", "<=", 0, "DDS: overruns at 50 Hz and 1 kHz"),
     ("record", "added_tick_us_median", "<=", b.TARGET_RECORD_ADDED_TICK_US,
      "recording: added tick cost (us, median, worst rate)"),
+    ("doctor", "seconds.median", "<=", b.TARGET_DOCTOR_S,
+     "prime doctor on the healthy virtual Prime: start-up plus checks (s, median)"),
+    ("doctor", "seconds.max", "<=", b.TARGET_DOCTOR_S, "prime doctor: start-up plus checks (s, worst run)"),
+    ("gate", "added_tick_us_median", "<=", b.TARGET_GATE_ADDED_TICK_US,
+     "command gate with collision: added tick at 50 Hz, 14 joints (us, median)"),
+    ("gate", "refusing.added_tick_us_median", "<=", math.inf,
+     "command gate: added tick while it refuses an arm every tick (us, median)"),
 )
 
 

@@ -16,6 +16,7 @@ from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
     add_json_option,
+    add_mailbox_option,
     add_realtime_options,
     add_socket_option,
     dds_options,
@@ -41,6 +42,7 @@ from humanoid_prime.runtime.session import (
     plan_session,
 )
 from humanoid_prime.runtime.signals import stop_on_signals
+from humanoid_prime.runtime.switching import mode_switcher
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -58,6 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "one MuJoCo plant) inside a private network namespace; needs root or user namespaces")
     add_config_options(p, calibration=True, controllers=True)
     p.add_argument("--interface", metavar="NIC", help="EtherCAT interface (default: from the hardware file)")
+    add_mailbox_option(p)
     p.add_argument("--can-interface", metavar="NAME", help="python-can interface (default: from the hardware file)")
     p.add_argument("--can-channel", metavar="NAME", help="python-can channel (default: from the hardware file)")
     p.add_argument("--sync0-period", type=SECONDS, metavar="S",
@@ -123,7 +126,8 @@ def options_from_args(args: argparse.Namespace) -> BringupOptions:
         bringup_rate=args.bringup_rate, parallel_sdo=False if args.sequential_sdo else None,
         duration=args.duration, mode=initial[0] if initial else None, sequence=sequence, dwell=args.dwell,
         erob_config_dir=args.erob_config_dir, control_socket=args.socket, update_rate=args.rate,
-        realtime=args.realtime, cpu=args.cpu, uncalibrated=args.uncalibrated, config=args.config.as_dict())
+        realtime=args.realtime, cpu=args.cpu, uncalibrated=args.uncalibrated, config=args.config.as_dict(),
+        state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
 
 
 def _load_test_joints(args: argparse.Namespace, robot: Robot) -> list[str]:
@@ -175,8 +179,9 @@ def run(args: argparse.Namespace) -> int:
 
             host_graph = host_network
         # Stamps in the system clock, as ROS 2 nodes on the robot.
+        switch = None if session.manager.broadcaster_only else mode_switcher(session.manager, session.impedance)
         addons.attach(Run(session.manager, report=report, epoch_offset=time.time() - time.monotonic(),
-                          host_graph=host_graph), args, stack)
+                          host_graph=host_graph, switch=switch), args, stack)
         report(f"Prime up in {session.bringup_seconds:.2f} s ({options.backends}"
                f"{', emulated' if options.emulated else ''}):")
         for name, seconds in session.stages:
@@ -253,6 +258,12 @@ def _start_load_test(session: Session, virtual, joints: list[str], stop: threadi
 
 
 def _print_report(summary: dict) -> None:
+    ethercat = summary.get("ethercat_bringup") or {}
+    if "mailbox" in ethercat:
+        drops = ethercat["mailbox_drops"]
+        print(f"EtherCAT mailboxes: {ethercat['mailbox']}" + (
+            f"; messages dropped: {drops['late']} late, {drops['other object']} for another object, "
+            f"{drops['unrecognised']} unrecognised, {drops['malformed']} malformed" if drops else ""))
     for switch in summary["mode_switches"]:
         state = "ok" if switch["ok"] else f"FAILED {switch['failed']}"
         if not switch["together"]:

@@ -36,6 +36,7 @@ from humanoid_prime.cli._common import (
     add_config_options,
     add_emulation_options,
     add_json_option,
+    add_mailbox_option,
     add_realtime_options,
     add_record_option,
     add_socket_option,
@@ -54,6 +55,7 @@ from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.config.location import write_target
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.files import output_problem
 from humanoid_prime.runtime.run import run_loop
 from humanoid_prime.runtime.session import (
     BACKENDS,
@@ -84,6 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="calibration carried through for joints not swept, and the source of the directions "
                         "(default: the file being replaced)")
     add_emulation_options(p, "calibrate the virtual Prime (private network namespace)")
+    add_mailbox_option(p)
     p.add_argument("--scripted", nargs="?", const="all", metavar="JOINT,...",
                    help="(with --emulate) a scripted operator sweeps these joints (default: every joint of the "
                         "run) to both stops, then the run ends")
@@ -139,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
     if virtual and args.output is None and not args.verify and not virtual_may_replace(target, hardware):
         raise PrimeError(f"{target} holds offsets measured on a physical robot, and this run is on a virtual one "
                          "(--emulate or --sim): give --output FILE for its result")
+    _check_results_writable(args, target)
     # The prior is the file being replaced, never identity: a run cannot weaken what it did not sweep.
     prior = load_calibration(hardware, args.prior or (target if target.is_file() else args.calibration))
     checked = load_calibration(hardware, args.calibration) if args.verify else None
@@ -159,6 +163,18 @@ def run(args: argparse.Namespace) -> int:
     asked = tuple(_joint_list(args.joints)) or (
         tuple(_joint_list(args.scripted)) if args.scripted and args.scripted != "all" else run_joints)
     return _calibrate(args, prior, target, asked, emulator)
+
+
+def _check_results_writable(args: argparse.Namespace, target: Path) -> None:
+    """Refuse, before anything moves, a run whose result could not be written at its end: the calibration
+    (the robot's own file where --output is not given), and with --apply the hardware file."""
+    ends = [] if args.verify else [(target, "the calibration", "give --output FILE")]
+    if args.apply:
+        ends.append((Path(args.hardware), "--apply's hardware file", "give --hardware FILE"))
+    for path, what, fix in ends:
+        problem = output_problem(path)
+        if problem is not None:
+            raise PrimeError(f"{what} could not be written at the end of this run: {problem}; {fix} where it can")
 
 
 def _run_joints(robot: Robot, backends: str) -> tuple[str, ...]:
@@ -243,7 +259,8 @@ def _open(args: argparse.Namespace, backends: str, calibration: Any, virtual: An
     options = BringupOptions(backends=backends, calibration=calibration, broadcaster_only=True,
                              emulated=virtual is not None, hardware_file=args.hardware,
                              controllers_file=args.controllers, control_socket=args.socket,
-                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict())
+                             realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict(),
+                             state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
     if virtual is not None:
         options.interface = virtual.master_interface
         options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
@@ -501,10 +518,9 @@ def _verify_joints(session: Session, virtual: Any, joints: tuple[str, ...], rows
 
             def check(joint: str) -> None:
                 spec = robot.joints[robot.index(joint)]
-                with operator.limp(joint):
-                    for side, name, limit in ((-1, "lower", spec.lower), (+1, "upper", spec.upper)):
-                        rows.append(VerifyRow(joint, name, limit, operator.push_to(joint, side)))
-                    operator.let_go(joint)
+                lower, upper = operator.stops(joint)
+                rows.extend((VerifyRow(joint, "lower", spec.lower, lower),
+                             VerifyRow(joint, "upper", spec.upper, upper)))
 
             try:
                 operator.by_hand(joints, check)

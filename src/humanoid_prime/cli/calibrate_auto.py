@@ -45,6 +45,7 @@ from humanoid_prime.runtime.socket import ControlServer
 
 EFFICIENCY_PLAUSIBLE = (0.3, 1.05)  # a measured realised/nominal outside this is not written by --apply
 JOIN_TIMEOUT_S = 60.0  # the sequence's restore after the loop was told to stop
+SETTLE_S = 1.0  # MuJoCo alone: the arms held this long before the first joint moves
 
 
 def add_auto_options(parser: argparse.ArgumentParser) -> None:
@@ -149,16 +150,17 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
     manager.start(now=system.sim_time)
     model = GravityModel(robot)
     try:
-        _settle_held(manager, system, model)
         def angles() -> dict[str, float]:
             return {j: float(system.data.qpos[system.qpos_adr[k]]) for k, j in enumerate(robot.names)}
 
-        # The simulated joints are in the model's own frame: the run's prior is the identity.
+        # The simulated joints are in the model's own frame: the run's prior is the identity, and it is the truth
+        # (the gate knows every body from the start). MuJoCo's arms begin limp: held up a second before anything
+        # moves, as a robot's drives hold its arms when a calibration begins.
         identity = Calibration({j: JointCalibration() for j in prior.joints})
         auto = AutoCalibration(manager, identity, joints, ticks=SteppedTicks(lambda: manager.tick(now=system.sim_time)),
                                operator=WatchingOperator(robot, angles, model), speed=args.speed or MAX_SPEED_RAD_S,
                                assume_direction=args.assume_direction, report=None if args.json else console.print,
-                               model=model)
+                               model=model, frame_known=True, settle_s=SETTLE_S)
         auto.attach()
         try:
             return auto.run()
@@ -166,23 +168,6 @@ def _in_simulation(args: argparse.Namespace, prior: Calibration, console: Consol
             auto.detach()
     finally:
         manager.shutdown()
-
-
-def _settle_held(manager: Any, system: Any, model: GravityModel, seconds: float = 1.0) -> None:
-    """The simulated arms held where they start, on the standby gains and the model's gravity, until they rest:
-    as a robot's arms are when a calibration begins (its drives hold them)."""
-    from humanoid_prime.modes import Mode
-
-    kp, kd = manager.config.mode_gains()[Mode.STANDBY]
-    state, command = manager.resources.state, manager.resources.command
-    here = state.position.copy()
-    for _ in range(round(seconds * manager.update_rate)):
-        command.position[:] = here
-        command.velocity[:] = 0.0
-        command.effort[:] = model.torques(state.position)
-        command.stiffness[:] = kp
-        command.damping[:] = kd
-        manager.tick(now=system.sim_time)
 
 
 def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any], console: Console) -> AutoResult:
@@ -200,7 +185,8 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
         # The loop real-time as in bringup: on a busy machine a loop at normal priority misses the ring's frames.
         options = BringupOptions(backends=args.backends, calibration=identity_from(prior), broadcaster_only=True,
                                  realtime=True, emulated=virtual is not None, hardware_file=args.hardware,
-                                 controllers_file=args.controllers, control_socket=args.socket)
+                                 controllers_file=args.controllers, control_socket=args.socket,
+                                 state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
         if virtual is not None:
             options.interface = virtual.master_interface
             options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
@@ -274,6 +260,8 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: dict[str, Any]
 class TerminalOperator:
     """The person at the robot, at this terminal (cbreak mode): Enter moves a joint, any other key skips it; a key
     pressed while a joint moves stops the run (``on_key``); questions are answered with y or n."""
+
+    answered_by = "the operator's answer"
 
     def __init__(self, console: Console, stream: Any = None) -> None:
         self.console = console

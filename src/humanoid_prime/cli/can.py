@@ -8,10 +8,8 @@ with zero gains (limp) and disables them again on every exit path.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import time
-from collections import Counter
 
 import can
 
@@ -28,16 +26,16 @@ from humanoid_prime.cli._common import (
 from humanoid_prime.config.hardware import HardwareConfig, load_hardware
 from humanoid_prime.config.robot import load_robot
 from humanoid_prime.drivers.sito.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, open_bus
+from humanoid_prime.drivers.sito.probe import listen
 from humanoid_prime.drivers.sito.protocol import (
     MODE_MIT,
-    MOTOR_FRAME_TYPES,
     SITO_MODELS,
     Command,
     Disable,
     Enable,
     Feedback1,
     Feedback2,
-    FrameType,
+    Frame,
     Gains,
     InvalidFrame,
     SitoModel,
@@ -47,7 +45,6 @@ from humanoid_prime.drivers.sito.protocol import (
     current_mA_to_torque,
     firmware_to_kd,
     firmware_to_kp,
-    pack_frame,
     parse,
     sito_model,
     split_arbitration_id,
@@ -56,7 +53,6 @@ from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.plant import InertiaPlant
 from humanoid_prime.virtual.sito import SitoEmulator
 
-PROBE_FEEDBACK_MS = 10
 _ERROR_CLASSES = ((CAN_ERR_BUSOFF, "bus-off"), (CAN_ERR_ACK, "no acknowledge"),
                   (CAN_ERR_CRTL, "controller problem"), (CAN_ERR_RESTARTED, "controller restarted"))
 
@@ -72,10 +68,8 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
         return f"foreign id 0x{msg.arbitration_id:X} dlc {msg.dlc}: {raw}"
     can_id, frame_type = split
     who = f"id {can_id:3d} {joints.get(can_id, '(not configured)'):<18s}"
-    if msg.is_remote_frame:
-        return f"{who} INVALID remote frame type 0x{frame_type:02X}"
     try:
-        frame = parse(frame_type, bytes(msg.data[:msg.dlc]))
+        frame = _parse(frame_type, msg)
     except InvalidFrame as exc:
         return f"{who} INVALID type 0x{frame_type:02X} ({exc}): {raw}"
     match frame:
@@ -103,6 +97,11 @@ def describe(msg: can.Message, model: SitoModel, joints: dict[int, str]) -> str:
         case UndecodedFeedback(kind, payload):
             text = f"feedback 0x{kind:02X} (layout undocumented, ignored by the driver): {payload.hex(' ')}"
     return f"{who} {text}"
+
+
+def _parse(frame_type: int, msg: can.Message) -> Frame:
+    """The Sito frame ``msg`` carries (its id in the Sito range); InvalidFrame as the protocol judges it."""
+    return parse(frame_type, bytes(msg.data[:msg.dlc]), remote=msg.is_remote_frame, fd=msg.is_fd)
 
 
 def _ids(text: str) -> list[int]:
@@ -170,9 +169,10 @@ def _summary_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace) -> tuple[HardwareConfig, can.BusABC, SitoModel]:
-    hardware = load_hardware(args.hardware)
-    bus = open_bus(hardware, interface=args.interface, channel=args.channel)
-    return hardware, bus, sito_model(args.model)
+    """The hardware file, the bus, the Sito model; the bus last, so nothing can fail between it and the caller's
+    ``finally: bus.shutdown()``."""
+    hardware, model = load_hardware(args.hardware), sito_model(args.model)
+    return hardware, open_bus(hardware, interface=args.interface, channel=args.channel), model
 
 
 def _emulate(args: argparse.Namespace) -> int:
@@ -182,24 +182,23 @@ def _emulate(args: argparse.Namespace) -> int:
     if interface == "socketcan" and not channel.startswith("vcan"):
         raise PrimeError(f"refusing to emulate wrists on SocketCAN channel {channel!r}, where real ones may live; "
                          "use a vcan channel or a virtual interface, e.g. --interface udp_multicast")
-    bus = open_bus(robot.hardware, interface=args.interface, channel=args.channel)
     plant = InertiaPlant.wrists(len(robot.hardware.sito_joints), gravity=0.3, coulomb=0.02)
-    emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
-    ids = ", ".join(str(i) for i in emulator.motors)
-    # python-can's virtual bus lives in one process: another command cannot hear these wrists.
-    reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
-             "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
-    print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
-    deadline = time.monotonic() + args.duration if args.duration else float("inf")
-    emulator.start()
-    try:
-        while time.monotonic() < deadline:
-            time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
-    except KeyboardInterrupt:
-        pass
-    finally:
-        emulator.stop()
-        bus.shutdown()
+    with open_bus(robot.hardware, interface=args.interface, channel=args.channel) as bus:  # shut down on every path
+        emulator = SitoEmulator.for_robot(robot, bus, plant, model=args.model)
+        ids = ", ".join(str(i) for i in emulator.motors)
+        # python-can's virtual bus lives in one process: another command cannot hear these wrists.
+        reach = (": heard only inside this process; for another command use --interface udp_multicast --channel "
+                 "239.74.163.2, or a vcan channel" if interface == "virtual" else "")
+        print(f"emulating Sito {args.model} ids {ids} on {channel} ({interface}){reach}", flush=True)
+        deadline = time.monotonic() + args.duration if args.duration else float("inf")
+        emulator.start()
+        try:
+            while time.monotonic() < deadline:
+                time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+        except KeyboardInterrupt:
+            pass
+        finally:
+            emulator.stop()
     enabled = [str(i) for i, m in emulator.motors.items() if m.enabled]
     write_summary(args, {"interface": interface, "channel": channel, "ids": list(emulator.motors),
                          "seconds": round(emulator.time, 3), "enabled_at_end": [int(i) for i in enabled],
@@ -244,40 +243,22 @@ def _discover(args: argparse.Namespace) -> int:
     hardware, bus, model = _open(args)
     joints = _joint_names(hardware)
     probed = (args.ids or sorted(joints)) if args.probe else []
-    heard: dict[int, Counter[str]] = {}
     try:
-        for can_id in probed:
-            for frame in (Gains(0.0, 0.0), Enable(MODE_MIT, (PROBE_FEEDBACK_MS, PROBE_FEEDBACK_MS, 0)),
-                          Command(0, 0, 0)):
-                ident, data = pack_frame(can_id, frame)
-                bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
-        deadline = time.monotonic() + args.duration
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                msg = bus.recv(min(left, 0.1))
-            except can.CanOperationError:  # a datagram that is no CAN frame (udp_multicast): not a wrist
-                continue
-            if msg is None or msg.is_error_frame or not msg.is_extended_id:
-                continue
-            split = split_arbitration_id(msg.arbitration_id)
-            if split is not None and split[1] in MOTOR_FRAME_TYPES:
-                heard.setdefault(split[0], Counter())[FrameType(split[1]).name.lower()] += 1
+        listened = listen(bus, args.duration, enable=probed)
     except can.CanError as exc:
         raise PrimeError(f"CAN error on {args.channel or hardware.can.channel}: {exc}; check that the interface "
                          "is up") from None
     finally:
-        for can_id in probed:
-            ident, data = pack_frame(can_id, Disable())
-            with contextlib.suppress(can.CanError):
-                bus.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data), timeout=0.1)
         bus.shutdown()
-
+    heard, invalid = listened.frames, listened.invalid
     missing = [i for i in (probed or sorted(joints)) if i not in heard]
     result = {
         "channel": args.channel or hardware.can.channel,
         "probed": probed,
         "heard": [{"can_id": i, "joint": joints.get(i), "frames": dict(heard[i])} for i in sorted(heard)],
         "not_heard": [{"can_id": i, "joint": joints.get(i)} for i in missing],
+        "invalid": [{"can_id": i, "joint": joints.get(i), "frames": invalid[i][0], "problem": invalid[i][1]}
+                    for i in sorted(invalid)],
     }
     if args.json:
         print_json(result)
@@ -286,6 +267,10 @@ def _discover(args: argparse.Namespace) -> int:
             frames = ", ".join(f"{k} x{v}" for k, v in sorted(entry["frames"].items()))
             joint = entry["joint"] or f"not in {hardware.path.name}"
             print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  {frames}")
+        for entry in result["invalid"]:
+            joint = entry["joint"] or f"not in {hardware.path.name}"
+            print(f"CAN id {entry['can_id']:3d} (0x{entry['can_id']:02X})  {joint:<18s}  INVALID x{entry['frames']} "
+                  f"({entry['problem']}): not counted as feedback")
         if missing:
             names = ", ".join(f"{i} ({joints.get(i, 'unconfigured')})" for i in missing)
             print(f"not heard: {names}")

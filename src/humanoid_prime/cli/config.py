@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, print_json
@@ -39,16 +40,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _init(args: argparse.Namespace) -> int:
     folder = robot_folder(args.robot)
-    if folder.path.exists() and not folder.path.is_dir():
-        raise PrimeError(f"{folder.path} is a file, not a folder; move it away and run this again")
+    if os.path.lexists(folder.path) and not folder.path.is_dir():
+        raise PrimeError(f"{folder.path} is not a folder; move it away and run this again")
+    kept = {kind: folder.own_file(kind) is not None for kind in KINDS}  # all three checked before one is written
     rows = []
     for kind in KINDS:
         path = folder.path / FILE_NAMES[kind]
-        if path.exists():
-            rows.append({"kind": kind, "path": str(path), "action": "kept"})
-            continue
-        atomic_write_bytes(path, template(kind).read_bytes())
-        rows.append({"kind": kind, "path": str(path), "action": "written"})
+        if not kept[kind]:
+            atomic_write_bytes(path, template(kind).read_bytes())
+        rows.append({"kind": kind, "path": str(path), "action": "kept" if kept[kind] else "written"})
     if args.json:
         print_json({"folder": str(folder.path), "source": folder.why, "files": rows})
         return 0

@@ -6,14 +6,8 @@ import argparse
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_json_option, print_json
-from humanoid_prime.drivers.erob.cia402 import (
-    ERROR_HINTS,
-    describe_al_state,
-    describe_al_status_code,
-    describe_error,
-    drive_state,
-    set_bits,
-)
+from humanoid_prime.drivers.erob.cia402 import ERROR_HINTS, describe_error, drive_state, set_bits
+from humanoid_prime.drivers.ethercat.wire import describe_al_state, describe_al_status_code
 
 
 def _word(text: str) -> int:

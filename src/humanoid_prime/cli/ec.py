@@ -13,21 +13,17 @@ import time
 from typing import Any
 
 from humanoid_prime.cli._commands import summary
-from humanoid_prime.cli._common import add_config_options, add_json_option, print_json, whole
+from humanoid_prime.cli._common import add_config_options, add_json_option, add_mailbox_option, print_json, whole
 from humanoid_prime.config.controllers import load_controllers
 from humanoid_prime.config.robot import Robot, load_robot
-from humanoid_prime.drivers.erob.cia402 import describe_al_status_code, describe_error, drive_state
+from humanoid_prime.drivers.erob.cia402 import describe_error, drive_state
 from humanoid_prime.drivers.erob.objects import ERROR_CODE, RATED_TORQUE, STATUSWORD
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoError
 from humanoid_prime.drivers.ethercat.igh import IGH_TYPES, SHORT_TYPES
-from humanoid_prime.drivers.ethercat.master import (
-    RingError,
-    SdoError,
-    SlaveInfo,
-    check_ring,
-    expected_ring,
-    read_error_history,
-)
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo, check_ring, expected_ring
 from humanoid_prime.drivers.ethercat.sdo import SDO_BACKENDS, open_sdo
+from humanoid_prime.drivers.ethercat.sdo_client import read_error_history, write_fitting
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, describe_al_status_code
 from humanoid_prime.errors import PrimeError
 
 _SCAN_CYCLES = 5  # exchanges after OP before statusword and error code are read from the process data
@@ -71,6 +67,7 @@ def _common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", metavar="NIC", help="EtherCAT NIC (default: buses.ethercat.interface)")
     p.add_argument("--backend", choices=SDO_BACKENDS, default="soem",
                    help="soem: open the NIC here (default); igh: ask a running IgH master via `ethercat`")
+    add_mailbox_option(p)
     add_config_options(p, controllers=True)
     add_json_option(p)
 
@@ -99,8 +96,8 @@ def _row(slave: SlaveInfo, joints: dict[int, str]) -> dict[str, Any]:
         "ring": slave.position, "joint": joints.get(slave.position), "name": slave.name,
         "vendor_id": f"0x{slave.vendor_id:08X}", "product_code": f"0x{slave.product_code:08X}",
         "revision": f"0x{slave.revision:08X}", "is_erob": slave.is_erob,
-        "al_state": slave.state_text, "al_status_code": f"0x{slave.al_status_code:04X}",
-        "al_status": describe_al_status_code(slave.al_status_code),
+        "al_state": slave.state_text, "al_error": bool(slave.al_state & AL_ERROR),
+        "al_status_code": f"0x{slave.al_status_code:04X}", "al_status": describe_al_status_code(slave.al_status_code),
         "statusword": None, "drive_state": None, "error_code": None, "error": None, "rated_torque_nm": None,
     }
 
@@ -117,8 +114,9 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
     joints = {pos: joint for joint, pos in hw.erob_slaves.items()}
     update_rate, bringup_rate = _rates(args, robot)
     master = SoemMaster(args.interface or hw.ethercat.interface, update_rate=update_rate,
-                        bringup_rate=bringup_rate)
+                        bringup_rate=bringup_rate, mailbox=args.ec_mailbox or hw.ethercat.mailbox)
     report["interface"] = master.interface
+    report["mailbox"] = master.mailbox
     with master:
         try:
             found = master.open()
@@ -137,6 +135,7 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
             raise
         finally:
             report["retried"] = [*master.scan_reasons, *master.configure_reasons]
+            report["mailbox_drops"] = master.mailbox_drops()
         report["bringup_seconds"] = round(bringup.seconds, 3)
         for _ in range(_SCAN_CYCLES):
             master.exchange()
@@ -150,6 +149,7 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -
         if args.history:
             for row in rows:
                 row["error_history"] = [f"0x{c:04X}" for c in master.error_history(row["ring"])]
+        report["mailbox_drops"] = master.mailbox_drops()
 
 
 def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) -> None:
@@ -180,7 +180,8 @@ def _scan_igh(args: argparse.Namespace, robot: Robot, report: dict[str, Any]) ->
 def run_scan(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     report: dict[str, Any] = {"backend": args.backend, "interface": None, "slaves": [], "ring_matches": False,
-                              "bringup_seconds": None, "retried": [], "problem": None}
+                              "bringup_seconds": None, "retried": [], "mailbox": None, "mailbox_drops": {},
+                              "problem": None}
     try:
         (_scan_igh if args.backend == "igh" else _scan_soem)(args, robot, report)
     except (RingError, SdoError) as exc:
@@ -205,7 +206,7 @@ def _print_scan(report: dict[str, Any]) -> None:
     for r in rows:
         line = (f"  ring {r['ring']:>2}  {r['joint'] or '-':<22} {r['name'] or '?':<12} "
                 f"vendor {r['vendor_id']} product {r['product_code']}  {r['al_state']:<16}")
-        if r["al_status_code"] != "0x0000":
+        if r["al_error"]:  # a code without the error indication is one the slave left set (ETG.1000.6: ignored)
             line += f" AL status {r['al_status_code']} {r['al_status']}"
         if r["statusword"] is not None:
             line += f" statusword {r['statusword']} ({r['drive_state']})  error {r['error_code']} {r['error']}"
@@ -214,6 +215,11 @@ def _print_scan(report: dict[str, Any]) -> None:
         if "error_history" in r:
             line += f"  history [{', '.join(r['error_history'])}]"
         print(line.rstrip())
+    if report["mailbox"] is not None:
+        drops = report["mailbox_drops"]
+        print(f"mailboxes: {report['mailbox']}" + (
+            f"; messages dropped: {drops['late']} late, {drops['other object']} for another object, "
+            f"{drops['unrecognised']} unrecognised, {drops['malformed']} malformed" if drops else ""))
     for reason in report["retried"]:
         print(f"configured again: {reason}")
     if report["problem"]:
@@ -258,7 +264,7 @@ def _session(args: argparse.Namespace):
         raise PrimeError(f"ring position {args.ring} is not on the ring of {robot.hardware.path.name} "
                          f"(0..{len(robot.hardware.erob_slaves) - 1})")
     return open_sdo(args.backend, robot, interface=args.interface, update_rate=update_rate,
-                    bringup_rate=bringup_rate)
+                    bringup_rate=bringup_rate, mailbox=args.ec_mailbox)
 
 
 def run_sdo_read(args: argparse.Namespace) -> int:
@@ -291,15 +297,19 @@ def run_sdo_write(args: argparse.Namespace) -> int:
                 if type_name is None:
                     raise SdoError(args.ring, index, sub_index, f"{size}-byte object; give --type")
             sdo.download(args.ring, index, sub_index, value, type_name)
+        elif type_name is None:  # the size the drive holds it in; a narrower one if it refuses that length
+            size = len(sdo.sdo_read(args.ring, index, sub_index))
+            try:
+                value.to_bytes(size, "little", signed=value < 0)
+            except OverflowError:
+                raise PrimeError(f"VALUE {value} does not fit {size} bytes") from None
+            write_fitting(sdo, args.ring, (index, sub_index), value, size, signed=value < 0)
         else:
-            if type_name is None:
-                size, signed = len(sdo.sdo_read(args.ring, index, sub_index)), value < 0
-            else:
-                size, signed = IGH_TYPES[type_name]
+            size, signed = IGH_TYPES[type_name]
             try:
                 data = value.to_bytes(size, "little", signed=signed)
             except OverflowError:
-                raise PrimeError(f"VALUE {value} does not fit {type_name or f'{size} bytes'}") from None
+                raise PrimeError(f"VALUE {value} does not fit {type_name}") from None
             sdo.sdo_write(args.ring, index, sub_index, data)
         back, size = _read(sdo, args, index, sub_index)
     result = _result(args, index, sub_index, back, size, type_name)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -110,10 +111,24 @@ def _serve_interface(args: argparse.Namespace, options: RingOptions, command: li
     if args.interface == robot_nic:
         raise PrimeError(f"refusing to emulate on {robot_nic}, the robot's EtherCAT NIC (buses.ethercat.interface); "
                          "use --veth or another interface")
+    _check_servable(args.interface)
     control = args.control or os.path.join(tempfile.gettempdir(), f"prime-ec-{os.getpid()}.sock")
     print(f"emulating {options.slaves} eRob on {args.interface}; control socket: {control}", file=sys.stderr,
           flush=True)
-    status = emulator_main.main(["--iface", args.interface, "--control", control, *options.to_args()])
-    if status:
-        raise PrimeError(f"the emulator could not serve {args.interface} (see the message above)")
-    return 0
+    # a failure past the checks is the emulator's one line ("emulator: ..."), not followed by another
+    return emulator_main.main(["--iface", args.interface, "--control", control, *options.to_args()])
+
+
+def _check_servable(interface: str) -> None:
+    """Refuse, in one line and before anything is printed, an interface the ring cannot serve: one that does not
+    exist, or one this process may not open a raw socket on."""
+    try:
+        socket.if_nametoindex(interface)
+    except OSError:
+        raise PrimeError(f"no network interface {interface!r} to serve (--interface); list them with `ip link`, or "
+                         "use --veth") from None
+    try:
+        socket.socket(socket.AF_PACKET, socket.SOCK_RAW).close()
+    except PermissionError:
+        raise PrimeError(f"serving {interface} needs a raw socket: run as root (or with CAP_NET_RAW), or use "
+                         "--veth") from None

@@ -8,7 +8,8 @@ import sys
 import time
 from types import FrameType
 
-from humanoid_prime.calibration.limp import DampedLimp
+from humanoid_prime.calibration.journal import OverrideJournal
+from humanoid_prime.calibration.limp import DampedLimp, restore_left
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import (
     add_config_options,
@@ -23,7 +24,7 @@ from humanoid_prime.cli._common import (
 )
 from humanoid_prime.config.hardware import load_hardware
 from humanoid_prime.drivers.erob.gains import gains_to_registers, registers_to_gains
-from humanoid_prime.drivers.ethercat.sdo import SdoClient
+from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import SocketSdoClient
 
@@ -78,8 +79,14 @@ def run(args: argparse.Namespace) -> int:
             raise PrimeError(f"DAMPING {args.damping:g} Nm*s/rad cannot be set on {joint}: {exc}") from None
     sdo = _sdo(args)
     marker = sdo if isinstance(sdo, SocketSdoClient) else None
+    journal = OverrideJournal(args.config.folder.state, f"socket {marker.path.absolute()}" if marker else "igh",
+                              f"prime limp {args.ring_position}")
+    for position, line in restore_left(sdo, journal):  # a limp killed before it could restore
+        print(line, file=sys.stderr, flush=True)
+        if marker is not None:
+            marker.mark_limp(position, False)  # restored: the run holds it again
     previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    limp = DampedLimp(sdo, args.ring_position, vel_reg)
+    limp = DampedLimp(sdo, args.ring_position, vel_reg, journal=(journal, joint))
     interrupted = False
     marked = False
     try:

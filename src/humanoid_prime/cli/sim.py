@@ -135,6 +135,7 @@ def _format_line(summary: dict[str, Any]) -> str:
     return (f"visited {_visits(summary['modes_visited'])} | {summary['ticks']} ticks, "
             f"{summary['sim_seconds']:.2f} s simulated in {summary['wall_seconds']:.2f} s"
             f"{f' ({rtf:.1f}x real time)' if rtf else ''} | {tick} | {len(summary['fallbacks'])} fallbacks"
+            f" | {summary['refused']['count']} commands refused by the body check"
             + (f" | recorded {summary['record']['messages'].get('/prime/joint_states', 0)} ticks, "
                f"{summary['record']['dropped_ticks']} DROPPED" if summary.get("record", {}).get("dropped_ticks")
                else "")
@@ -249,11 +250,13 @@ def _run(args: argparse.Namespace, robot: Robot, config: ControllersConfig, mode
             from humanoid_prime.view.feeds import manager_source
 
             state, _ = manager_source(manager)  # for the run's whole life: no detach
-            server.attach(switch_mode=mode_switcher(manager, before=sim.take_over), state=state)
+            switch = mode_switcher(manager, before=sim.take_over)
+            server.attach(switch_mode=switch, state=state)
             # Stamps in simulated time, published on /clock; --fast has no deadline, so a writer makes the loop
             # wait instead of dropping a tick.
             run = Run(manager, report=lambda line: print(line, file=out, flush=True),
-                      request_mode=lambda text: operator_mode(Mode.parse(text)), sim_clock=True, wait=args.fast,
+                      request_mode=lambda text: operator_mode(Mode.parse(text)), switch=switch, sim_clock=True,
+                      wait=args.fast,
                       title="Prime (simulated)", state=state)
             addons.attach(run, args, stack)
             keys = stack.enter_context(ModeKeys(operator_mode, stop.set))

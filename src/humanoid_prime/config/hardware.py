@@ -15,12 +15,16 @@ CAN_ID_RANGE = range(1, 256)  # the id is one byte of the Sito arbitration id
 DEFAULT_KT_NM_PER_MA = 0.132e-3  # eRob70 V4_MC2 motor torque constant
 DEFAULT_GEAR = 50.0  # every Prime eRob is 50:1
 FAMILIES = ("erob", "sito")
+MAX_COLLISION_MARGIN_M = 0.2  # more keeps the hands from ever meeting in front of the torso
+MAX_STOPPING_TIME_S = 1.0  # an arm that needs longer to stop has no business near another
+SAFETY_KEYS = ("collision_margin", "stopping_time")
 
 
 @dataclass(frozen=True)
 class EthercatBus:
     interface: str
     master: int
+    mailbox: str = "prime"  # who works the eRob's mailboxes: Prime's CoE layer, or SOEM alone (the way back)
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,10 @@ class HardwareConfig:
     erob_torque_efficiency: dict[str, float]
     # Per joint given in ``joints.contact_effort_cap`` (Nm): what `prime calibrate --auto` may push a stop with.
     contact_effort_cap: dict[str, float]
+    # ``safety.collision_margin`` (m): how close the command gate lets two bodies of the robot come.
+    collision_margin: float
+    # ``safety.stopping_time`` (s): how far ahead along a moving joint's velocity the gate looks for where it stops.
+    stopping_time: float
 
     @property
     def erob_joints(self) -> tuple[str, ...]:
@@ -98,6 +106,7 @@ def _str(value: object, path: Path, key: str) -> str:
 
 LIMIT_NAMES = ("stiffness", "damping", "velocity")
 MAX_MASTER_INDEX = 31  # IgH masters are numbered from 0 on one host; more is a slip of the keyboard
+MAILBOXES = ("prime", "soem")
 MAX_CAN_BITRATE = 1_000_000  # classic CAN's highest rate
 
 
@@ -125,21 +134,49 @@ def _command_limits(data: dict[str, object], path: Path) -> dict[str, CommandLim
     return result
 
 
+def _safety(data: dict[str, object], path: Path) -> tuple[float, float]:
+    """``safety.collision_margin`` and ``safety.stopping_time``; a value the file leaves out (a file written before
+    the section existed) is the template's."""
+    safety = data.get("safety", {})
+    if not isinstance(safety, dict):
+        raise ConfigError(path, "safety", "expected a mapping of collision_margin and stopping_time")
+    check_keys(path, "safety", safety, SAFETY_KEYS)
+    if path == bundled(HARDWARE_FILE):
+        missing = [key for key in SAFETY_KEYS if key not in safety]
+        if missing:
+            raise ConfigError(path, f"safety.{missing[0]}", "missing", "the template must give every safety value")
+    else:
+        safety = {**load_yaml(bundled(HARDWARE_FILE))["safety"], **safety}
+    values = []
+    for key, most, fix in (("collision_margin", MAX_COLLISION_MARGIN_M, "give it in metres, e.g. 0.03 for 3 cm"),
+                           ("stopping_time", MAX_STOPPING_TIME_S, "give it in seconds, e.g. 0.2")):
+        value = _positive_float(safety[key], path, f"safety.{key}")
+        unit = "m" if key == "collision_margin" else "s"
+        if value > most:
+            raise ConfigError(path, f"safety.{key}", f"{value:g} {unit} is more than {most:g} {unit}", fix)
+        values.append(value)
+    return values[0], values[1]
+
+
 def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     """Load and validate a hardware file (default: the bundled one)."""
     path = config_path(path) if path is not None else bundled(HARDWARE_FILE)
     data = load_yaml(path)
-    check_keys(path, "", data, ("buses", "joints", "torque_efficiency", "command_limits"))
+    check_keys(path, "", data, ("buses", "joints", "torque_efficiency", "command_limits", "safety"))
     buses = _section(data, path, "buses")
     check_keys(path, "buses", buses, ("ethercat", "can"))
     ec = _section(buses, path, "buses.ethercat")
     can = _section(buses, path, "buses.can")
-    check_keys(path, "buses.ethercat", ec, ("interface", "master"))
+    check_keys(path, "buses.ethercat", ec, ("interface", "master", "mailbox"))
     check_keys(path, "buses.can", can, ("interface", "channel", "bitrate"))
     ethercat = EthercatBus(
         interface=_str(ec.get("interface"), path, "buses.ethercat.interface"),
         master=_int(ec.get("master", 0), path, "buses.ethercat.master"),
+        mailbox=_str(ec.get("mailbox", "prime"), path, "buses.ethercat.mailbox"),
     )
+    if ethercat.mailbox not in MAILBOXES:
+        raise ConfigError(path, "buses.ethercat.mailbox", f"must be prime or soem, got {ethercat.mailbox!r}",
+                          "prime: Prime's CoE layer (the default); soem: SOEM does the mailbox work alone")
     if not 0 <= ethercat.master <= MAX_MASTER_INDEX:
         raise ConfigError(path, "buses.ethercat.master", f"must be 0..{MAX_MASTER_INDEX}, got {ethercat.master}",
                           "the IgH master index, 0 for the first")
@@ -247,6 +284,7 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
     contact_effort_cap = {j: _positive_float(v, path, f"joints.contact_effort_cap.{j}") for j, v in caps.items()}
 
     command_limits = _command_limits(data, path)
+    collision_margin, stopping_time = _safety(data, path)
 
     return HardwareConfig(
         path=path,
@@ -261,6 +299,8 @@ def load_hardware(path: str | Path | None = None) -> HardwareConfig:
         command_limits=command_limits,
         erob_torque_efficiency=erob_efficiency,
         contact_effort_cap=contact_effort_cap,
+        collision_margin=collision_margin,
+        stopping_time=stopping_time,
     )
 
 

@@ -7,6 +7,9 @@ Each of the three files (hardware, calibration, controllers) is, in this order:
    (or ``$PRIME_ROBOT``) where a lab has several Primes;
 3. the bundled template, read-only, when the default folder has no such file.
 
+Something of that name in the folder that is not a readable file (a folder, a broken symlink) is refused, never
+passed over for the template: the robot would run on the template's offsets.
+
 A folder the user named (``--robot``, ``$PRIME_ROBOT``, ``$PRIME_CONFIG_DIR``) must exist: ``prime config
 init`` creates it, so a misspelt robot never runs on the templates. Commands that write a file (calibrate,
 flip, ``config init``) write into the robot's folder, never inside the installed package.
@@ -17,11 +20,12 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from humanoid_prime.errors import PrimeError
+from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.files import bundled, check_not_package
 
 CONFIG_DIR_ENV = "PRIME_CONFIG_DIR"
@@ -41,13 +45,50 @@ class RobotFolder:
     named: bool  # the user named it (it must exist to be read)
     robot: str | None
 
+    @property
+    def state(self) -> Path:
+        """Where commands keep what they must remember about this robot between runs (created when written)."""
+        return self.path / "state"
+
     def init_command(self) -> str:
         return "prime config init" + (f" --robot {self.robot}" if self.robot else "")
 
     def check_exists(self) -> None:
+        if os.path.lexists(self.path) and not self.path.is_dir():
+            raise PrimeError(f"the configuration folder {self.path} ({self.why}) is {_not_a_file(self.path)}; "
+                             f"move it away, then `{self.init_command()}`")
         if self.named and not self.path.is_dir():
             raise PrimeError(f"no configuration folder {self.path} ({self.why}); create it with "
                              f"`{self.init_command()}`, or check the name")
+
+    def own_file(self, kind: str) -> Path | None:
+        """The folder's file of ``kind`` if it has one, None if nothing of that name is there; anything else of
+        that name (a folder, a broken symlink, a device) is a ConfigError that says what it is."""
+        path = self.path / FILE_NAMES[kind]
+        if path.is_file():
+            return path
+        if not os.path.lexists(path):
+            return None
+        fix = "point it at the file, or remove it" if path.is_symlink() else "move it away"
+        raise ConfigError(path, "", f"is {_not_a_file(path)}, not the robot's {kind} file",
+                          f"{fix}; `{self.init_command()}` then writes the template there")
+
+
+def _not_a_file(path: Path) -> str:
+    """What ``path``, which exists but is no regular file, is instead."""
+    if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as exc:
+            return f"a broken symlink to {os.readlink(path)} ({exc.strerror})"
+    if path.is_dir():
+        return "a folder"
+    try:
+        kind = stat.S_IFMT(os.stat(path).st_mode)
+    except OSError as exc:
+        return f"unreadable ({exc.strerror})"
+    return {stat.S_IFIFO: "a named pipe", stat.S_IFSOCK: "a socket", stat.S_IFCHR: "a device",
+            stat.S_IFBLK: "a device"}.get(kind, "not a regular file")
 
 
 def robot_folder(robot: str | None = None) -> RobotFolder:
@@ -97,8 +138,8 @@ def resolve(kind: str, given: str | Path | None, folder: RobotFolder) -> ConfigF
     if given is not None:
         return ConfigFile(kind, Path(given).expanduser().absolute(), f"--{kind}", template=False)
     folder.check_exists()
-    path = folder.path / FILE_NAMES[kind]
-    if path.is_file():
+    path = folder.own_file(kind)
+    if path is not None:
         return ConfigFile(kind, path, folder.why, template=False)
     return ConfigFile(kind, template(kind), f"bundled template (no {FILE_NAMES[kind]} in {folder.path})",
                       template=True)

@@ -11,7 +11,7 @@ In NumPy the output check alone was a dozen calls on 14-element arrays, about 10
 interpreter's and NumPy's code paths have left the caches between ticks; a bound kernel call is a few tens of
 nanoseconds warm. The policy controllers stay Python, around onnxruntime."""
 
-from libc.math cimport isfinite
+from libc.math cimport isfinite, isnan
 from libc.string cimport memcpy
 
 import numpy as np
@@ -29,19 +29,22 @@ SHAPE = 6  # Inbox.take only: row ``row`` is not one number per joint
 cdef class CommandCheck:
     """The joints' bounds: position limits with a margin, and a maximum per joint for |velocity|, |effort|,
     stiffness and damping (``maximum``, 4 x n, rows 1 to 4 of a command). ``row`` and ``col`` say where the last
-    check found its problem."""
+    check found its problem. While ``release`` is set, a joint may have no command: a NaN position with the other
+    four rows exactly zero (its drive holds on its own gains, a Sito is limp)."""
 
     cdef const double[::1] lower, upper
     cdef const double[:, ::1] maximum
     cdef double margin
+    cdef public bint release
     cdef readonly Py_ssize_t n, row, col
 
     def __init__(self, const double[::1] lower not None, const double[::1] upper not None,
-                 const double[:, ::1] maximum not None, double margin):
+                 const double[:, ::1] maximum not None, double margin, bint release=False):
         cdef Py_ssize_t n = lower.shape[0]
         if upper.shape[0] != n or maximum.shape[0] != 4 or maximum.shape[1] != n:
             raise ValueError(f"the limits must have {n} joints and the maxima 4 rows of {n}")
         self.lower, self.upper, self.maximum, self.margin = lower, upper, maximum, margin
+        self.release = release
         self.n = n
         self.row = self.col = -1
 
@@ -59,8 +62,8 @@ cdef class CommandCheck:
             return OK
         for r in range(5):
             for j in range(n):
-                if not isfinite(data[r, j]):
-                    return self._found(NON_FINITE, r, j)
+                if not isfinite(data[r, j]) and not (self.release and _no_command(data, j)):
+                    return self._found(NON_FINITE, r, j)  # (no command passes: NaN compares false below)
         for r in (3, 4):
             worst = 0
             for j in range(1, n):
@@ -88,6 +91,10 @@ cdef class CommandCheck:
     cdef int _found(self, int kind, Py_ssize_t row, Py_ssize_t col):
         self.row, self.col = row, col
         return kind
+
+
+cdef inline bint _no_command(double[:, ::1] data, Py_ssize_t j) noexcept:
+    return isnan(data[0, j]) and data[1, j] == 0.0 and data[2, j] == 0.0 and data[3, j] == 0.0 and data[4, j] == 0.0
 
 
 cdef class OutputCheck:
@@ -248,3 +255,167 @@ cdef const double[::1] _row(values):
     else:
         row = np.ascontiguousarray(values, dtype=np.float64)
     return row
+
+
+cdef extern from "<dlfcn.h>" nogil:
+    void* dlopen(const char* filename, int flags)
+    void* dlsym(void* handle, const char* symbol)
+    char* dlerror()
+    int RTLD_NOW
+
+
+ctypedef void (*_kinematics_t)(const void* m, void* d) noexcept nogil
+ctypedef double (*_distance_t)(const void* m, void* d, int geom1, int geom2, double distmax, double* fromto) noexcept nogil
+
+
+cdef class BodyKernel:
+    """The body check's per-tick work on a private MuJoCo model and data (control/body.py has the rules in words):
+    ``pose`` puts a command's pose into the data and runs MuJoCo's kinematics, ``within`` finds every checked pair
+    of geoms closer than the margin, with MuJoCo's own distance (``mj_geomDistance``). MuJoCo's C functions are
+    called through the library the ``mujoco`` package loaded (``library``), one call each, no Python between them.
+
+    ``qadr``: each joint's qpos address; ``pairs`` (P x 2): the geoms checked against each other; ``chains`` (P):
+    the joints that move each pair (bit j for joint j); ``live`` (P): the pairs checked now, those no unknown joint
+    moves. A pose comes from a command (5 x n) and the measured positions (n): the target where the
+    joint has one (a finite position with stiffness above zero), else the measured position; moved into the
+    model's frame by ``scale * q + shift`` per joint (the identity on a calibrated robot); a joint that is not
+    ``known`` or has no finite value is unknown (``unknown``, bit j for joint j; its qpos is left at 0).
+    ``within`` leaves the pairs it found in ``found`` and their distances in ``found_distance`` (``count`` of them).
+    ``lower`` and ``upper``: the joints' stops in the model's frame, where a pose is clipped to."""
+
+    cdef void* m
+    cdef void* d
+    cdef object _model, _data
+    cdef _kinematics_t kinematics
+    cdef _distance_t distance
+    cdef double[::1] qpos
+    cdef const double[:, ::1] xpos
+    cdef const double[::1] rbound, lower, upper
+    cdef const Py_ssize_t[::1] qadr
+    cdef const int[:, ::1] pairs
+    cdef const unsigned long long[::1] chains
+    cdef unsigned char[::1] live
+    cdef readonly unsigned long long unknown
+    cdef const double[::1] scale, shift
+    cdef const unsigned char[::1] known
+    cdef readonly double margin
+    cdef int[::1] found_
+    cdef double[::1] found_distance_
+    cdef readonly Py_ssize_t count
+
+    def __init__(self, bytes library not None, model, data, const Py_ssize_t[::1] qadr not None,
+                 const double[::1] lower not None, const double[::1] upper not None,
+                 const int[:, ::1] pairs not None, const unsigned long long[::1] chains not None,
+                 unsigned char[::1] live not None, double margin):
+        cdef void* handle = dlopen(library, RTLD_NOW)
+        if handle == NULL:
+            raise OSError(f"cannot open MuJoCo's library {library.decode()}: {dlerror().decode()}")
+        self.kinematics = <_kinematics_t>dlsym(handle, b"mj_kinematics")
+        self.distance = <_distance_t>dlsym(handle, b"mj_geomDistance")
+        if self.kinematics == NULL or self.distance == NULL:
+            raise OSError(f"MuJoCo's library {library.decode()} has no mj_kinematics or mj_geomDistance")
+        if pairs.shape[1] != 2 or live.shape[0] != pairs.shape[0] or chains.shape[0] != pairs.shape[0]:
+            raise ValueError("pairs must be P x 2 geoms, with one chain and one live flag per pair")
+        n = qadr.shape[0]
+        if lower.shape[0] != n or upper.shape[0] != n:
+            raise ValueError(f"the limits must have {n} joints")
+        if n > 64:
+            raise ValueError("at most 64 joints (the unknown joints are one bit each)")
+        self._model, self._data = model, data
+        self.m = <void*><size_t>model._address
+        self.d = <void*><size_t>data._address
+        self.qpos, self.xpos, self.rbound = data.qpos, data.geom_xpos, model.geom_rbound
+        self.qadr, self.lower, self.upper, self.pairs, self.live, self.margin = qadr, lower, upper, pairs, live, margin
+        self.chains, self.unknown = chains, 0
+        self.found_ = np.zeros(pairs.shape[0], dtype=np.intc)
+        self.found_distance_ = np.zeros(pairs.shape[0])
+        self.count = 0
+        self.frame(np.ones(n), np.zeros(n), np.ones(n, dtype=np.uint8))
+
+    def frame(self, const double[::1] scale not None, const double[::1] shift not None,
+              const unsigned char[::1] known not None):
+        """Bind the frame the poses are moved into the model's by (the arrays are read at every ``pose``)."""
+        cdef Py_ssize_t n = self.qadr.shape[0]
+        if scale.shape[0] != n or shift.shape[0] != n or known.shape[0] != n:
+            raise ValueError(f"a frame has {n} joints")
+        self.scale, self.shift, self.known = scale, shift, known
+
+    def check(self, const double[:, ::1] command not None, const double[::1] measured not None,
+              const double[::1] velocity not None, double horizon):
+        """``pose`` and ``within`` in one call: how many live pairs the command's pose brings closer than the
+        margin (the gate's every tick)."""
+        self._pose(command, measured, velocity, horizon, True)
+        return self._within()
+
+    def pose(self, const double[:, ::1] command not None, const double[::1] measured not None,
+             const double[::1] velocity not None, double horizon, bint targets=True):
+        """The pose of ``command`` (its targets where ``targets``, else the measured positions only) into the model,
+        and its kinematics. A target is taken ``horizon`` seconds further along the joint's measured ``velocity``:
+        where the joint, moving, comes to rest on it. The bodies an unknown joint carries leave ``live``."""
+        self._pose(command, measured, velocity, horizon, targets)
+
+    cdef _pose(self, const double[:, ::1] command, const double[::1] measured, const double[::1] velocity,
+               double horizon, bint targets):
+        cdef Py_ssize_t j, p, n = self.qadr.shape[0]
+        cdef double q
+        cdef unsigned long long unknown = 0
+        if command.shape[0] != 5 or command.shape[1] != n or measured.shape[0] != n or velocity.shape[0] != n:
+            raise ValueError(f"need a 5 x {n} command, {n} positions and {n} velocities")
+        for j in range(n):
+            if targets and command[3, j] > 0.0 and isfinite(command[0, j]):
+                q = command[0, j] + (horizon * velocity[j] if isfinite(velocity[j]) else 0.0)
+            else:
+                q = measured[j]
+            if isfinite(q) and self.known[j]:
+                q = self.scale[j] * q + self.shift[j]
+                # a joint goes no further than its stops, whatever it is asked (a calibration presses beyond them)
+                self.qpos[self.qadr[j]] = self.lower[j] if q < self.lower[j] else self.upper[j] if q > self.upper[j] \
+                    else q
+            else:
+                self.qpos[self.qadr[j]] = 0.0
+                unknown |= (<unsigned long long>1) << j
+        if unknown != self.unknown:
+            self.unknown = unknown
+            for p in range(self.pairs.shape[0]):
+                self.live[p] = (self.chains[p] & unknown) == 0
+        self.kinematics(self.m, self.d)
+
+    def within(self):
+        """Every live pair closer than the margin at the pose last put: how many (``found``, ``found_distance``)."""
+        return self._within()
+
+    cdef Py_ssize_t _within(self):
+        cdef Py_ssize_t p, count = 0
+        cdef int a, b
+        cdef double dx, dy, dz, reach, exact
+        for p in range(self.pairs.shape[0]):
+            if not self.live[p]:
+                continue
+            a, b = self.pairs[p, 0], self.pairs[p, 1]
+            dx = self.xpos[a, 0] - self.xpos[b, 0]
+            dy = self.xpos[a, 1] - self.xpos[b, 1]
+            dz = self.xpos[a, 2] - self.xpos[b, 2]
+            reach = self.rbound[a] + self.rbound[b] + self.margin
+            if dx * dx + dy * dy + dz * dz >= reach * reach:
+                continue  # their bounding spheres are further apart than the margin
+            exact = self.distance(self.m, self.d, a, b, self.margin, NULL)
+            if exact < self.margin:
+                self.found_[count] = <int>p
+                self.found_distance_[count] = exact
+                count += 1
+        self.count = count
+        return count
+
+    def distance_of(self, Py_ssize_t pair, double most):
+        """MuJoCo's distance of ``pair`` at the pose last put, up to ``most``."""
+        if not 0 <= pair < self.pairs.shape[0]:
+            raise IndexError(f"no pair {pair}")
+        return self.distance(self.m, self.d, self.pairs[pair, 0], self.pairs[pair, 1], most, NULL)
+
+    @property
+    def found(self):
+        return np.asarray(self.found_)[:self.count]
+
+    @property
+    def found_distance(self):
+        return np.asarray(self.found_distance_)[:self.count]

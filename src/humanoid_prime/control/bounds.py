@@ -21,9 +21,11 @@ FAMILY_NAMES = {"erob": "eRob", "sito": "Sito"}
 
 
 class CommandBounds:
-    """The bounds of ``robot``'s joints (canonical order) and their compiled check (``check``)."""
+    """The bounds of ``robot``'s joints (canonical order) and their compiled check (``check``). ``release``: a joint
+    may have no command (a NaN position, the other four rows zero), as the manager's gate allows a controller that
+    ``releases`` (control/controller.py); REMOTE's messages give every joint a command."""
 
-    def __init__(self, robot: Robot) -> None:
+    def __init__(self, robot: Robot, *, release: bool = False) -> None:
         self.names = robot.names
         self.families = tuple(j.family for j in robot.joints)
         self.lower = np.ascontiguousarray(robot.lower, dtype=np.float64)
@@ -34,7 +36,7 @@ class CommandBounds:
         self.maximum = np.array([[limits[f].velocity for f in self.families], robot.effort_limit,
                                  [limits[f].stiffness for f in self.families],
                                  [limits[f].damping for f in self.families]], dtype=np.float64)
-        self.check = CommandCheck(self.lower, self.upper, self.maximum, POSITION_MARGIN)
+        self.check = CommandCheck(self.lower, self.upper, self.maximum, POSITION_MARGIN, release)
 
     def refusal(self, found: int, row: int, col: int, value: float) -> str:
         """What the check found (``found`` at ``row``, ``col``; ``value`` is what the command held there), in

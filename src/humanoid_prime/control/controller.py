@@ -4,7 +4,8 @@ A controller sees the joint-frame arrays (``StateArrays`` in, ``CommandArrays`` 
 model (names, family per joint, limits) and the topic bus. ``update`` runs once per tick on
 preallocated arrays and must write every element of all five command rows; it raises
 ``ControllerError`` (or lets any exception escape) when it cannot produce a safe command, and the
-manager then swaps it for its fallback within the same tick.
+manager then swaps it for its fallback within the same tick. What it writes is a proposal: the manager's gate
+checks it (the bounds, the body) before anything reaches a bus.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy.typing as npt
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import SafetyFlags
 from humanoid_prime.control.hardware import Lifecycle
-from humanoid_prime.control.interfaces import CommandArrays, StateArrays
+from humanoid_prime.control.interfaces import CommandArrays, Frame, StateArrays
 from humanoid_prime.control.topics import TopicBus
 from humanoid_prime.errors import ControllerError
 from humanoid_prime.modes import Mode
@@ -27,11 +28,15 @@ from humanoid_prime.modes import Mode
 class Controller(SafetyFlags, ABC):
     """Base of the joint-state broadcaster and the five mode controllers.
 
-    ``mode`` is the mode a controller implements (None for the broadcaster); ``claims_commands`` says
-    whether it claims every command interface while active. The manager drives ``lifecycle``.
+    ``mode`` is the mode a controller implements (None for the broadcaster and the tasks of a broadcaster-only
+    run); ``claims_commands`` says whether it claims every command interface while active; ``releases``, whether
+    the gate lets its command leave a joint with no command (the modes command every joint). The manager drives
+    ``lifecycle``.
     """
 
     claims_commands: bool = True
+    releases: bool = False  # its command may leave a joint with no command (NaN position, the rest zero)
+    frame: Frame | None = None  # its positions' frame, where it is not the model's (control/interfaces.py)
 
     def __init__(self, name: str, mode: Mode | None) -> None:
         super().__init__(name)
@@ -46,6 +51,18 @@ class Controller(SafetyFlags, ABC):
 
     def on_deactivate(self) -> None:
         """Stop; the command interfaces are released right after."""
+
+    def planned(self) -> tuple[npt.NDArray[np.float64], float] | None:
+        """The targets this activation plans in advance (k x n, joint frame, in order, the path between them a
+        straight line) and the stiffness they are held with: the gate checks the plan once, right after
+        ``on_activate``, and refuses the activation if it would bring two bodies within the margin. None: nothing
+        is planned (every tick's command is checked as it comes)."""
+        return None
+
+    def on_refused(self, reason: str, held: npt.NDArray[np.bool_]) -> None:
+        """The gate refused this tick's command against the body (``reason`` names the two bodies and their
+        distance): the ``held`` joints (the arms it would drive) hold their last command. Called in the tick,
+        before the write."""
 
     @abstractmethod
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:

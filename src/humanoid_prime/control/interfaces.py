@@ -5,7 +5,10 @@ Preallocated once; the hot path writes into them in place (no per-tick allocatio
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+import numpy.typing as npt
 
 COMMAND_NAMES = ("position", "velocity", "effort", "stiffness", "damping")
 STATE_NAMES = ("position", "velocity", "effort")
@@ -27,6 +30,26 @@ class CommandArrays:
 
     def copy_from(self, other: CommandArrays) -> None:
         np.copyto(self.data, other.data)
+
+    def freeze(self) -> None:
+        """Make the arrays read-only from Python: a writer bound before (a compiled kernel's view) is the only one
+        left (the controller manager's gate commits the command so)."""
+        for array in (self.data, self.position, self.velocity, self.effort, self.stiffness, self.damping):
+            array.flags.writeable = False
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Where a controller's joint positions are not the model's (a calibration's host frame, which is what it is
+    finding): model = ``scale * position + shift`` per joint. ``known``: the joints whose frame is known (the body
+    check leaves the bodies of the others out); ``limited``: the joints whose limits apply, moved by the frame (not
+    a joint pressing a stop to find it). The controller may change the arrays in place as it learns (in its
+    ``update``, on the loop's thread)."""
+
+    scale: npt.NDArray[np.float64]
+    shift: npt.NDArray[np.float64]
+    known: npt.NDArray[np.uint8]
+    limited: npt.NDArray[np.uint8]
 
 
 class StateArrays:

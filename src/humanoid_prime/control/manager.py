@@ -1,45 +1,50 @@
+# Over 450 lines: the loop, the staged lifecycle and the switching share one lock and one state; what stands alone
+# is beside it (stats, gate, rate, resources).
 """The controller manager: one fixed-rate loop, read -> update -> write, and everything around it.
 
 - Staged start: hardware configure and activate, then the joint-state broadcaster, then ZERO_TORQUE
-  active, then the other mode controllers loaded inactive, strictly in that order.
+  active, then the other mode controllers loaded inactive, strictly in that order. A broadcaster-only run (a
+  single bus, a calibration) has no mode controllers: its commands are the passive controller's (no command,
+  the joints marked limp following), until a task controller claims them (``claim``: the hands-free
+  calibration) and after it hands them back (``release``).
 - Flat switching: ``request_mode`` (any thread) is applied at the start of the next tick, after the
-  read, so the new controller activates on the live measured state. Exactly one mode controller is
-  active and it owns every command interface (``command_owner``); the old one is deactivated before the
+  read, so the new controller activates on the live measured state. Exactly one controller is active
+  and it owns every command interface (``command_owner``); the old one is deactivated before the
   new one activates.
-- Fallback within one tick: a mode controller that raises, or whose command fails the output check,
-  is discarded for that tick and replaced (DAMPING, then ZERO_TORQUE, then a limp command) whose
-  update runs in the same tick, so every write is already safe.
-- Telemetry: ``/control_mode`` on start and every switch; ``/safety_status`` (latched) whenever any
+- The one gate (control/gate.py): whatever the active controller proposes is checked once per tick, against
+  the bounds and the body, and only then committed to the command the hardware components write; nothing
+  else can write it. A controller's plan (STANDBY's entry trajectory) is checked when it activates.
+- Fallback within one tick: a controller that raises, fails to activate (its plan refused), or whose command
+  breaks a bound, is discarded for that tick and replaced (a mode by DAMPING, then ZERO_TORQUE, then a limp
+  command; a task controller by the passive command) whose update runs in the same tick, so every write is
+  already safe. A command the body refuses holds the arms it would drive, without a fallback.
+- Telemetry: ``/control_mode`` on start and every mode switch; ``/safety_status`` (latched) whenever any
   component's, controller's or the manager's flags change.
-
-Output check (every tick): the command bounds of control/bounds.py, the same for every source. A target up to
-``POSITION_MARGIN`` beyond a limit is clipped onto it; further out, as for any other bound, the command is
-rejected, because a command out of bounds is a fault of the controller, not something to correct silently.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import SupportsFloat, TypedDict
-
-import numpy as np
-import numpy.typing as npt
+from dataclasses import dataclass
+from typing import TypedDict
 
 from humanoid_prime.config.controllers import ControllersConfig
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.control._tick import OK, OutputCheck
-from humanoid_prime.control.bounds import CommandBounds
+from humanoid_prime.control._tick import OK
 from humanoid_prime.control.controller import Controller
 from humanoid_prime.control.controllers import build_controllers
+from humanoid_prime.control.controllers.passive import PassiveController
 from humanoid_prime.control.flags import Level, SafetyFlags
+from humanoid_prime.control.gate import CommandGate
 from humanoid_prime.control.hardware import HardwareComponent, Lifecycle
 from humanoid_prime.control.interfaces import CommandArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.control.resources import ResourceManager
+from humanoid_prime.control.stats import LoopStats
 from humanoid_prime.control.topics import CONTROL_MODE, SAFETY_STATUS, ControlMode, SafetyStatus, TopicBus
 from humanoid_prime.errors import ControllerError, LifecycleError, PrimeError
 from humanoid_prime.modes import JOINT_STATE_BROADCASTER, MODE_CONTROLLERS, Mode
@@ -68,88 +73,6 @@ class ModeOutcome:
     reason: str = ""
 
 
-@dataclass
-class LoopStats:
-    """Tick cost (read + update + write, without the wait), the part of it spent in bus I/O (the hardware
-    components' ``io_s``), and tick-to-tick period, in ring buffers."""
-
-    period: float
-    capacity: int = 1 << 16
-    ticks: int = 0
-    overruns: int = 0
-    costs: npt.NDArray[np.float64] = field(init=False, repr=False)
-    ios: npt.NDArray[np.float64] = field(init=False, repr=False)
-    periods: npt.NDArray[np.float64] = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        self.costs = np.zeros(self.capacity)
-        self.ios = np.zeros(self.capacity)
-        self.periods = np.full(self.capacity, np.nan)
-        # The tick writes through plain memoryviews of doubles: one C store each, not NumPy's item assignment.
-        self._rows = tuple(a.data.cast("B").cast("d") for a in (self.costs, self.ios, self.periods))
-
-    def record(self, cost: float, period: float, io: float = 0.0) -> None:
-        """``period`` is NaN for the first tick."""
-        i = self.ticks % self.capacity
-        costs, ios, periods = self._rows
-        costs[i] = cost
-        ios[i] = io
-        periods[i] = period
-        self.ticks += 1
-
-    def split_us(self) -> dict[str, dict[str, float | None]]:
-        """The tick cost split in our CPU (cost minus bus I/O) and bus I/O: median, p99 and max of each."""
-        k = min(self.ticks, self.capacity)
-        if not k:
-            empty = {"median": None, "p99": None, "max": None}
-            return {"cpu": dict(empty), "io": dict(empty)}
-        figures: dict[str, dict[str, float | None]] = {}
-        for name, values in (("cpu", self.costs[:k] - self.ios[:k]), ("io", self.ios[:k])):
-            median, p99, top = np.percentile(values, (50, 99, 100)) * 1e6
-            figures[name] = {"median": round(float(median), 3), "p99": round(float(p99), 3),
-                             "max": round(float(top), 3)}
-        return figures
-
-    def jitter_us(self, percentiles: tuple[float, ...]) -> dict[float, float]:
-        """Percentiles of |period - nominal| in us over the last ``capacity`` ticks (empty before two ticks)."""
-        k = min(self.ticks, self.capacity)
-        periods = self.periods[:k]
-        periods = periods[np.isfinite(periods)]
-        if not periods.size:
-            return {}
-        values = np.percentile(np.abs(periods - self.period) * 1e6, percentiles)
-        return {p: float(v) for p, v in zip(percentiles, values, strict=True)}
-
-    def tick_us(self) -> dict[str, float | None]:
-        """Tick cost median, p99 and max over the last ``capacity`` ticks, in one pass (the live table asks
-        for these several times a second, from a thread that shares the interpreter with the loop)."""
-        k = min(self.ticks, self.capacity)
-        if not k:
-            return {"median": None, "p99": None, "max": None}
-        median, p99, top = np.percentile(self.costs[:k], (50, 99, 100)) * 1e6
-        return {"median": round(float(median), 3), "p99": round(float(p99), 3), "max": round(float(top), 3)}
-
-    def summary(self) -> dict[str, object]:
-        """Figures over the last ``capacity`` ticks; None where there is nothing to measure yet."""
-        k = min(self.ticks, self.capacity)
-        periods = self.periods[:k]
-        periods = periods[np.isfinite(periods)]
-        jitter = self.jitter_us((99,))
-
-        def stat(values: npt.NDArray[np.float64],
-                 fn: Callable[[npt.NDArray[np.float64]], SupportsFloat]) -> float | None:
-            return round(float(fn(values)), 3) if values.size else None
-
-        return {
-            "ticks": self.ticks,
-            "overruns": self.overruns,
-            "tick_us": self.tick_us(),
-            **{f"tick_{part}_us": figures for part, figures in self.split_us().items()},
-            "period_ms": {"mean": stat(periods * 1e3, np.mean)},
-            "jitter_us": {"p99": round(jitter[99], 3) if jitter else None},
-        }
-
-
 class ControllerManager:
     """Owns the hardware components (through the resource manager), the controllers and the loop.
 
@@ -160,7 +83,7 @@ class ControllerManager:
     def __init__(self, robot: Robot, components: Sequence[HardwareComponent], config: ControllersConfig, *,
                  update_rate: float | None = None, topics: TopicBus | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
-                 broadcaster_only: bool = False) -> None:
+                 broadcaster_only: bool = False, check_body: bool = True) -> None:
         rate = config.update_rate if update_rate is None else update_rate
         if not (math.isfinite(rate) and rate > 0):
             raise PrimeError(f"update rate must be a positive number of Hz, got {rate!r}")
@@ -174,6 +97,10 @@ class ControllerManager:
         self.resources = ResourceManager(robot, components, partial=broadcaster_only)
         self.topics = topics if topics is not None else TopicBus()
         self.controllers = build_controllers(robot, config)
+        self.passive: PassiveController | None = None  # a broadcaster-only run's command
+        if broadcaster_only:
+            self.passive = PassiveController()
+            self.controllers[self.passive.name] = self.passive
         self.stats = LoopStats(self.period)
         self.active: Controller | None = None
         self.active_mode: Mode | None = None
@@ -194,22 +121,22 @@ class ControllerManager:
         self._change_seen = -1
         self._end_of_tick: tuple[Callable[[], None], ...] = ()
         self._lock = threading.Lock()
-        self._request: Mode | None = None
+        self._request: Controller | None = None
         self._reset = False
         self._refused: dict[Mode, str] = {}  # modes this run may not enter, and why
         self._tickets = 0  # mode requests made; the latest one is the one applied
-        self._applying: tuple[int, Mode] | None = None  # the request applied in this tick, until the tick ends
+        self._applying: tuple[int, Controller] | None = None  # the request applied in this tick, until it ends
         self._outcome: tuple[int, ModeOutcome] | None = None  # the latest applied request and what came of it
         self._applied = threading.Condition(self._lock)
         self._started = False
         self._closed = False
         self._last_now: float | None = None
         self._fresh_schedule = False  # the next tick starts a run's schedule: no period to measure before it
-        # The per-tick command handling and output check, compiled (control/_tick), bound to the proposal,
-        # the command and the bounds.
-        self.bounds = CommandBounds(robot)
+        # The one gate, between the controllers' proposal and the command the components write (read-only from
+        # here on). ``check_body`` is False only where a benchmark measures what the body check costs.
         self._proposal = CommandArrays(robot.n)
-        self._output = OutputCheck(self._proposal.data, self.resources.command.data, self.bounds.check)
+        self.gate = CommandGate(robot, self._proposal, self.resources.command, self.flags, body=check_body)
+        self.bounds = self.gate.bounds
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
@@ -228,29 +155,27 @@ class ControllerManager:
         names = (JOINT_STATE_BROADCASTER,) if self.broadcaster_only else (JOINT_STATE_BROADCASTER,
                                                                           *MODE_CONTROLLERS.values())
         for name in names:
-            controller = self.controllers[name]
-            controller.on_configure(self.robot, self.topics)
-            controller.lifecycle = Lifecycle.INACTIVE
+            self._configure(self.controllers[name])
             t = self._stage(name, t)
+        if self.passive is not None:
+            self._configure(self.passive)
         self.resources.activate()
         t = self._stage("hardware activate", t)
         now = t if now is None else now
         self.resources.read(now)
-        if self.broadcaster_only:
-            # No controller claims the commands: "no command" everywhere (NaN position, zero gains), which the
-            # hardware components take as hold (eRob keeps its CSP target) and limp (Sito sends nothing).
-            command = self.resources.command
-            command.data[:] = 0.0
-            command.position[:] = np.nan
         broadcaster = self.controllers[JOINT_STATE_BROADCASTER]
         broadcaster.on_activate(self.resources.state, now)
         broadcaster.lifecycle = Lifecycle.ACTIVE
-        if not self.broadcaster_only:
-            self._activate(Mode.ZERO_TORQUE, now)
+        # No command ("none" everywhere: eRob hold their CSP targets, Sito are limp) in a broadcaster-only run.
+        self._activate(self.passive if self.passive is not None else self._by_mode[Mode.ZERO_TORQUE], now)
         t = self._stage("controllers activated", t)
         self.started_at = t
         self._started = True
         self._publish_safety(now)
+
+    def _configure(self, controller: Controller) -> None:
+        controller.on_configure(self.robot, self.topics)
+        controller.lifecycle = Lifecycle.INACTIVE
 
     def _stage(self, name: str, since: float) -> float:
         now = self.clock()
@@ -315,7 +240,7 @@ class ControllerManager:
         with self._lock:
             refused = self._refused.get(mode)
             if refused is None:
-                self._request = mode
+                self._request = self._by_mode[mode]
                 self._tickets += 1
                 return self._tickets
         self.flags.set_flag("refused", f"{mode.value} refused: {refused}", Level.WARN)
@@ -335,6 +260,27 @@ class ControllerManager:
                                                                   f"{outcome.requested.value}")
         return outcome
 
+    def claim(self, controller: Controller) -> None:
+        """Hand the commands to ``controller`` from the next tick on (any thread): a task of a broadcaster-only
+        run, such as the hands-free calibration; it is configured here the first time, and its flags join
+        /safety_status. Its output passes the gate like any mode's; ``release`` hands the commands back."""
+        if self.passive is None:
+            raise PrimeError(f"{controller.name} can only command a broadcaster-only run: this run's commands are "
+                             "its modes'")
+        if controller.lifecycle is Lifecycle.UNCONFIGURED:
+            self._configure(controller)
+            self.add_flag_source(controller)
+        with self._lock:
+            self._request = controller
+            self._tickets += 1
+
+    def release(self, controller: Controller) -> None:
+        """``controller`` hands the commands back to the passive command from the next tick (any thread)."""
+        with self._lock:
+            if self.passive is not None and (self.active is controller or self._request is controller):
+                self._request = self.passive
+                self._tickets += 1
+
     def request_reset(self) -> list[str]:
         """Ask for the operator's fault reset (thread-safe), applied at the start of the next tick: every
         hardware component clears its latched faults with that tick's write, and the active mode is entered
@@ -347,40 +293,66 @@ class ControllerManager:
 
     def _apply_request(self, now: float) -> None:
         with self._lock:
-            mode, self._request = self._request, None
+            controller, self._request = self._request, None
             reset, self._reset = self._reset, False
-            if mode is not None:
-                self._applying = (self._tickets, mode)
+            if controller is not None:
+                self._applying = (self._tickets, controller)
         if reset:
             self.resources.reset_faults()
             self.resets += 1
-            if mode is None:
-                mode = self.active_mode  # None in a broadcaster-only run: nothing to re-enter
-        if mode is not None:
+            if controller is None and self.passive is None:
+                controller = self.active  # the mode is entered again (a broadcaster-only run's command goes on)
+        if controller is not None:
             self.flags.clear_flag("fallback")
-            self._activate(mode, now)
+            self._activate(controller, now)
 
-    def _activate(self, mode: Mode, now: float) -> None:
-        """Make ``mode`` active on the current measured state; a controller that refuses to activate is
-        replaced by its fallback, recorded like any other fallback."""
+    def _fallback(self, controller: Controller) -> Controller | None:
+        """A mode's fallback mode; a task's, the passive command; the passive command's: none."""
+        if controller.mode is not None:
+            fallback = FALLBACK[controller.mode]
+            return None if fallback is None else self._by_mode[fallback]
+        return None if controller is self.passive else self.passive
+
+    def _activate(self, controller: Controller, now: float) -> None:
+        """Make ``controller`` active on the current measured state, its plan checked by the gate; a controller
+        that refuses to activate, or whose plan the gate refuses, is replaced by its fallback, recorded like any
+        other fallback."""
         while True:
-            controller = self._by_mode[mode]
             self._deactivate_active()
+            activated = False
             try:
                 controller.on_activate(self.resources.state, now)
+                activated = True
+                self._check_plan(controller)
             except Exception as exc:
-                fallback = FALLBACK[mode]
+                if activated:
+                    with contextlib.suppress(Exception):
+                        controller.on_deactivate()
+                fallback = self._fallback(controller)
                 if fallback is None:
                     raise
-                self._record_fallback(mode, fallback, f"{controller.name} could not activate: {_describe(exc)}")
-                mode = fallback
+                self._record_fallback(controller, fallback, f"{controller.name} could not activate: "
+                                                            f"{_describe(exc)}")
+                controller = fallback
                 continue
             controller.lifecycle = Lifecycle.ACTIVE
             self.active = controller
-            self.active_mode = mode
-            self.modes_visited.append(mode.value)
-            self.topics.publish(CONTROL_MODE, ControlMode(mode.value, controller.name, now))
+            self.active_mode = controller.mode
+            self.gate.bind(controller)
+            if controller.mode is not None:
+                self.modes_visited.append(controller.mode.value)
+                self.topics.publish(CONTROL_MODE, ControlMode(controller.mode.value, controller.name, now))
             return
+
+    def _check_plan(self, controller: Controller) -> None:
+        plan = controller.planned()
+        if plan is None:
+            return
+        found = self.gate.check_plan(*plan, self.resources.state)
+        if found is not None:
+            contact, share = found
+            raise ControllerError(f"its path would bring {contact.words(self.gate.margin)} {share:.0%} of the way "
+                                  "(the gate refused it when it was planned)")
 
     def _deactivate_active(self) -> None:
         controller = self.active
@@ -402,9 +374,10 @@ class ControllerManager:
         active = self.active
         return active.name if active is not None and active.claims_commands else None
 
-    def _record_fallback(self, failed: Mode, to: Mode, reason: str) -> None:
-        self.fallbacks.append({"tick": self.tick_count, "from": failed.value, "to": to.value, "reason": reason})
-        self.flags.set_flag("fallback", f"{reason}; fell back from {failed.value} to {to.value}")
+    def _record_fallback(self, failed: Controller, to: Controller, reason: str) -> None:
+        names = [c.mode.value if c.mode is not None else c.name for c in (failed, to)]
+        self.fallbacks.append({"tick": self.tick_count, "from": names[0], "to": names[1], "reason": reason})
+        self.flags.set_flag("fallback", f"{reason}; fell back from {names[0]} to {names[1]}")
 
     # ---- the loop --------------------------------------------------------------------------------
 
@@ -442,8 +415,11 @@ class ControllerManager:
     def _tell_outcome(self) -> None:
         """The request applied in this tick has had its first update: tell ``wait_mode`` what became of it."""
         assert self._applying is not None  # tick() calls this only while a request is being applied
-        ticket, requested = self._applying
+        ticket, controller = self._applying
         self._applying = None
+        requested = controller.mode
+        if requested is None:
+            return  # a task's claim or release: no mode outcome to tell
         active = self.active_mode
         reason = ""
         if active is not requested:
@@ -461,24 +437,32 @@ class ControllerManager:
             self.flags.set_flag("broadcast", f"{broadcaster.name} failed: {_describe(exc)}", Level.WARN)
 
     def _update(self, now: float, dt: float) -> None:
-        output = self._output
-        output.propose()
+        gate = self.gate
+        gate.propose()
         reason = self._run_active(now, dt)
         while reason is not None:
-            failed = self.active_mode
-            assert failed is not None  # tick() updates only while a mode is active
-            fallback = FALLBACK[failed]
+            failed = self.active
+            assert failed is not None  # tick() updates only while a controller is active
+            fallback = self._fallback(failed)
             if fallback is None:
                 # Last resort: limp on every joint, target left on the last valid command.
                 self._record_fallback(failed, failed, f"{reason}; writing a limp command")
-                output.propose()
+                gate.propose()
                 self._proposal.data[1:] = 0.0
                 break
             self._record_fallback(failed, fallback, reason)
             self._activate(fallback, now)
-            output.propose()
+            gate.propose()
             reason = self._run_active(now, dt)
-        output.commit()
+        refused = gate.check_body(self.resources.state, self.tick_count)
+        active = self.active
+        if refused is not None and active is not None:
+            try:
+                active.on_refused(refused.words(gate.margin), gate.held)
+            except Exception as exc:
+                self.flags.set_flag("refused_hook", f"{active.name} failed to take a refusal: {_describe(exc)}",
+                                    Level.WARN)
+        gate.commit()
 
     def _run_active(self, now: float, dt: float) -> str | None:
         controller = self.active
@@ -487,7 +471,7 @@ class ControllerManager:
             controller.update(now, dt, self.resources.state, self._proposal)
         except Exception as exc:
             return f"{controller.name}: {_describe(exc)}"
-        found = self._output.check()  # the output check (module docstring), clipping within the margin in place
+        found = self.gate.check_bounds()  # the bounds (control/gate.py), clipping within the margin in place
         if found == OK:
             return None
         row, col = self.bounds.check.row, self.bounds.check.col

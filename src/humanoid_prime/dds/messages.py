@@ -12,9 +12,24 @@ is 16 bytes; Humble's were 24, so a Humble node lists Prime's topics but not the
 # No `from __future__ import annotations`: Cyclone DDS resolves these field annotations at run time.
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, bounded_str, byte, float64, int32, sequence, uint8, uint32
+from cyclonedds.idl.types import byte, float64, int32, uint8, uint32
+
+GID_BYTES = 16  # RMW_GID_STORAGE_SIZE since Iron
+NAME_BYTES = 256  # rmw_dds_common's bounded node names and namespaces
+
+if TYPE_CHECKING:  # Cyclone's IDL annotations are type constructors run at import; the checker reads them so
+    from builtins import list as sequence
+
+    GidBytes = list[int]
+    Name = str
+else:
+    from cyclonedds.idl.types import array, bounded_str, sequence
+
+    GidBytes = array[uint8, GID_BYTES]
+    Name = bounded_str[NAME_BYTES]
 
 
 def dds_type_name(ros_type: str) -> str:
@@ -148,18 +163,16 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "tf2_msgs/msg/TFMessage": TFMessage,
 }
 
-GID_BYTES = 16  # RMW_GID_STORAGE_SIZE since Iron
-
 
 @dataclass
 class Gid(IdlStruct, typename=dds_type_name("rmw_dds_common/msg/Gid")):
-    data: array[uint8, GID_BYTES] = field(default_factory=lambda: [0] * GID_BYTES)
+    data: GidBytes = field(default_factory=lambda: [0] * GID_BYTES)
 
 
 @dataclass
 class NodeEntitiesInfo(IdlStruct, typename=dds_type_name("rmw_dds_common/msg/NodeEntitiesInfo")):
-    node_namespace: bounded_str[256] = ""
-    node_name: bounded_str[256] = ""
+    node_namespace: Name = ""
+    node_name: Name = ""
     reader_gid_seq: sequence[Gid] = field(default_factory=list)
     writer_gid_seq: sequence[Gid] = field(default_factory=list)
 

@@ -11,10 +11,11 @@ settings (``domain.py``) and then ``CYCLONEDDS_URI``.
 
 from __future__ import annotations
 
+import contextlib
 import threading
-from typing import Any
+from typing import TypeVar
 
-from cyclonedds.core import DDSException
+from cyclonedds.core import DDSException, Listener, ReadCondition
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.internal import InvalidSample
@@ -31,6 +32,7 @@ from humanoid_prime.errors import PrimeError
 
 ROS_TOPIC_PREFIX = "rt"
 DEFAULT_DEPTH = 10
+T = TypeVar("T", bound=IdlStruct)
 DISCOVERY_TOPIC = "ros_discovery_info"  # a DDS topic of the rmw layer, outside ROS 2's names
 ENCLAVE = b"enclave=/;"  # the participant user data rmw implementations read (no security enclave)
 
@@ -46,7 +48,7 @@ def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool
             data_type: type[IdlStruct] | None = None) -> Qos:
     """ROS 2's QoS profile as rmw_cyclonedds maps it: reliable, volatile, keep-last ``depth`` (the default
     profile), or transient-local for a latched topic; with ``data_type``, its type hash in the user data."""
-    policies: list[Any] = [
+    policies: list[object] = [
         Policy.Reliability.Reliable(duration(milliseconds=100)) if reliable else Policy.Reliability.BestEffort,
         Policy.History.KeepLast(depth),
         Policy.DataRepresentation(use_cdrv0_representation=True),  # XCDR1 only, as both ROS 2 middlewares
@@ -64,10 +66,11 @@ def ros_qos(*, latched: bool = False, depth: int = DEFAULT_DEPTH, reliable: bool
     return Qos(*policies)
 
 
-def take(reader: DataReader, n: int = 64, **conditions: Any) -> list[Any]:
-    """Up to ``n`` samples from ``reader``, without the data-less ones (a writer gone away, an instance
-    disposed) that DDS also delivers."""
-    return [s for s in reader.take(N=n, **conditions) if not isinstance(s, InvalidSample)]
+def take(reader: DataReader[T], n: int = 64, condition: ReadCondition | None = None) -> list[T]:
+    """Up to ``n`` samples from ``reader`` (those ``condition`` selects), without the data-less ones (a writer gone
+    away, an instance disposed) that DDS also delivers."""
+    samples = reader.take(N=n) if condition is None else reader.take(N=n, condition=condition)
+    return [s for s in samples if not isinstance(s, InvalidSample)]
 
 
 class _Domains:
@@ -101,7 +104,7 @@ class _Domains:
 _domains = _Domains()
 
 
-def _gid(entity: Any) -> msg.Gid:
+def _gid(entity: DomainParticipant | DataWriter[IdlStruct] | DataReader[IdlStruct]) -> msg.Gid:
     """An entity's ROS 2 GID: its DDS GUID, as every rmw implementation takes it (wire order)."""
     return msg.Gid(data=list(entity.guid.bytes))
 
@@ -123,10 +126,10 @@ class DdsNode:
             _domains.leave(self.domain)
             raise PrimeError(f"cannot join DDS domain {self.domain}: {exc} (check CYCLONEDDS_URI and the network "
                              "interfaces)") from None
-        self._topics: dict[str, Topic] = {}
-        self._readers: list[DataReader] = []
-        self._writers: list[DataWriter] = []
-        self._discovery: DataWriter | None = None
+        self._topics: dict[str, Topic[IdlStruct]] = {}
+        self._readers: list[DataReader[IdlStruct]] = []
+        self._writers: list[DataWriter[IdlStruct]] = []
+        self._discovery: DataWriter[msg.ParticipantEntitiesInfo] | None = None
         if name is not None:
             qos = ros_qos(latched=True, depth=1, data_type=msg.ParticipantEntitiesInfo)
             self._discovery = DataWriter(self.participant, Topic(self.participant, DISCOVERY_TOPIC,
@@ -136,24 +139,27 @@ class DdsNode:
         """The ROS 2 name of ``topic`` (absolute) for this node: under its namespace."""
         return in_namespace(self.namespace, topic)
 
-    def _topic(self, topic: str, data_type: type) -> Topic:
+    def _topic(self, topic: str, data_type: type[T]) -> Topic[T]:
         name = dds_topic_name(self.topic_name(topic))
         if name not in self._topics:
             self._topics[name] = Topic(self.participant, name, data_type)
-        return self._topics[name]
+        return self._topics[name]  # type: ignore[return-value]  # one topic name, one type
 
-    def writer(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH) -> DataWriter:
+    def writer(self, topic: str, data_type: type[T], *, latched: bool = False, depth: int = DEFAULT_DEPTH,
+               reliable: bool = True, listener: Listener | None = None) -> DataWriter[T]:
         writer = DataWriter(self.participant, self._topic(topic, data_type),
-                            qos=ros_qos(latched=latched, depth=depth, data_type=data_type))
-        self._writers.append(writer)
+                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type),
+                            listener=listener)
+        self._writers.append(writer)  # type: ignore[arg-type]  # kept for their GUIDs only
         self.announce()
         return writer
 
-    def reader(self, topic: str, data_type: type, *, latched: bool = False, depth: int = DEFAULT_DEPTH,
-               reliable: bool = True) -> DataReader:
+    def reader(self, topic: str, data_type: type[T], *, latched: bool = False, depth: int = DEFAULT_DEPTH,
+               reliable: bool = True, listener: Listener | None = None) -> DataReader[T]:
         reader = DataReader(self.participant, self._topic(topic, data_type),
-                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type))
-        self._readers.append(reader)
+                            qos=ros_qos(latched=latched, depth=depth, reliable=reliable, data_type=data_type),
+                            listener=listener)
+        self._readers.append(reader)  # type: ignore[arg-type]  # kept for their GUIDs only
         self.announce()
         return reader
 
@@ -170,15 +176,23 @@ class DdsNode:
             self._discovery.write(self.entities_info())
 
     def close(self) -> None:
-        """Delete the participant (and with it every reader, writer and topic: peers see them go at once)."""
-        participant = getattr(self, "participant", None)
+        """Leave the graph: first the node (``ros_discovery_info`` without it, then that instance disposed and
+        unregistered, as rmw does when a node is destroyed, so a peer's node list drops it at once), then the
+        participant (with every reader, writer and topic: peers see them go at once)."""
+        participant: DomainParticipant | None = getattr(self, "participant", None)
         if participant is None:
             return
+        if self._discovery is not None:
+            gone = msg.ParticipantEntitiesInfo(gid=_gid(participant), node_entities_info_seq=[])
+            with contextlib.suppress(DDSException):
+                self._discovery.write(gone)
+                self._discovery.dispose(gone)
+                self._discovery.unregister_instance(gone)
         self._readers.clear()
         self._writers.clear()
         self._topics.clear()
         self._discovery = None
-        self.participant = None
+        del self.participant
         participant.__del__()  # dds_delete now, not whenever the collector gets to it
         _domains.leave(self.domain)
 

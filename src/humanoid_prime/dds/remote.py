@@ -18,15 +18,17 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, REMOTE_COMMAND, SAFETY_STATUS
 from humanoid_prime.dds import messages as msg
-from humanoid_prime.dds.bridge import MODE_REQUEST
+from humanoid_prime.dds.graph import MODE_REQUEST
 from humanoid_prime.dds.node import DdsNode, take
+
+Array = npt.NDArray[np.float64]
 
 NODE_NAME = "prime_remote"
 
@@ -36,16 +38,16 @@ class Motion:
     """Targets over time: from ``start`` to ``pose`` in ``ramp`` seconds (smoothstep), then ``pose`` plus a
     sine of ``amplitude`` rad at ``frequency`` Hz on the ``wave`` joints (clipped into the joint limits)."""
 
-    start: np.ndarray
-    pose: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    wave: np.ndarray  # bool per joint
+    start: Array
+    pose: Array
+    lower: Array
+    upper: Array
+    wave: Array  # bool per joint
     amplitude: float = 0.0
     frequency: float = 0.5
     ramp: float = 2.0
 
-    def target(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+    def target(self, t: float) -> tuple[Array, Array]:
         """Position and velocity targets ``t`` seconds after the start."""
         if t < self.ramp:
             s = t / self.ramp
@@ -65,7 +67,7 @@ class Seen:
     joint_states: int = 0
     first_joint_state_s: float | None = None  # monotonic time of the first and the latest joint state
     last_joint_state_s: float | None = None
-    position: np.ndarray | None = None
+    position: Array | None = None
     stamp: float | None = None
     modes: list[str] = field(default_factory=list)
     safety: list[tuple[str, str, str]] = field(default_factory=list)  # (status name, level, message), latest
@@ -75,9 +77,10 @@ class Seen:
         return self.modes[-1] if self.modes else None
 
     def joint_state_rate(self) -> float | None:
-        if self.joint_states < 2 or self.first_joint_state_s == self.last_joint_state_s:
+        first, last = self.first_joint_state_s, self.last_joint_state_s
+        if self.joint_states < 2 or first is None or last is None or first == last:
             return None
-        return (self.joint_states - 1) / (self.last_joint_state_s - self.first_joint_state_s)
+        return (self.joint_states - 1) / (last - first)
 
 
 class RemoteClient:
@@ -99,7 +102,7 @@ class RemoteClient:
             raise
         self.seen = Seen()
         self.sent = 0
-        self.on_joint_state: Callable[[float, np.ndarray], None] | None = None  # (arrival, positions)
+        self.on_joint_state: Callable[[float, Array], None] | None = None  # (arrival, positions)
 
     def poll(self) -> None:
         for sample in take(self.joint_states):
@@ -114,10 +117,10 @@ class RemoteClient:
             seen.stamp = msg.seconds(sample.header.stamp)
             if self.on_joint_state is not None:
                 self.on_joint_state(now, seen.position)
-        for sample in take(self.control_mode):
-            self.seen.modes.append(sample.data)
-        for sample in take(self.safety_status):
-            self.seen.safety = [(s.name, msg.LEVEL_NAMES.get(s.level, str(s.level)), s.message) for s in sample.status]
+        for mode in take(self.control_mode):
+            self.seen.modes.append(mode.data)
+        for status in take(self.safety_status):
+            self.seen.safety = [(s.name, msg.LEVEL_NAMES.get(s.level, str(s.level)), s.message) for s in status.status]
 
     def wait_for_joint_states(self, timeout: float, sleep: Callable[[float], None] = time.sleep) -> bool:
         """Poll until a joint state of Prime arrived or ``timeout`` seconds passed."""
@@ -127,8 +130,8 @@ class RemoteClient:
             sleep(0.01)
         return self.seen.position is not None
 
-    def send(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray, stiffness: np.ndarray,
-             damping: np.ndarray, stamp: float | None = None) -> None:
+    def send(self, position: Array, velocity: Array, effort: Array, stiffness: Array,
+             damping: Array, stamp: float | None = None) -> None:
         self.commands.write(msg.MitCommand(
             header=msg.Header(stamp=msg.stamp(time.time() if stamp is None else stamp)), name=self.names,
             position=[float(v) for v in position], velocity=[float(v) for v in velocity],
@@ -156,7 +159,7 @@ class Tracking:
     about 0.15 rad for a shoulder at kp 20); what is left once that is taken out (``residual_rms``) is how well
     the motion is followed, and ``range_ratio`` is the measured swing over the commanded swing."""
 
-    def __init__(self, joints: np.ndarray, target: Callable[[float], np.ndarray], since: float) -> None:
+    def __init__(self, joints: Array, target: Callable[[float], Array], since: float) -> None:
         self.joints = joints
         self.target = target
         self.since = since
@@ -168,7 +171,7 @@ class Tracking:
         self._measured = np.array([np.inf, -np.inf])[:, None] * np.ones(n)  # rows: min, max
         self._commanded = self._measured.copy()
 
-    def __call__(self, arrival: float, position: np.ndarray) -> None:
+    def __call__(self, arrival: float, position: Array) -> None:
         if arrival < self.since or not self.joints.any():
             return
         target = self.target(arrival)[self.joints]
@@ -182,7 +185,7 @@ class Tracking:
             np.minimum(bounds[0], values, out=bounds[0])
             np.maximum(bounds[1], values, out=bounds[1])
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, float | int | None]:
         if not self.samples:
             return {"samples": 0, "max_rad": None, "offset_rad": None, "residual_rms_rad": None, "range_ratio": None}
         mean = self._sum / self.samples

@@ -10,14 +10,17 @@ vector operations on all actuated joints at once.
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from humanoid_prime.errors import PrimeError
 
+Array = npt.NDArray[np.float64]
 
-def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+
+def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> Array:
     """(x, y, z, w) of the URDF rotation: roll about x, then pitch about y, then yaw about z (fixed axes)."""
     cr, sr = np.cos(roll / 2), np.sin(roll / 2)
     cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
@@ -26,7 +29,7 @@ def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
                      cr * cp * cy + sr * sp * sy])
 
 
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def quaternion_multiply(a: Array, b: Array) -> Array:
     """Hamilton product of (x, y, z, w) quaternions, row by row (a's rotation, then b's, in a's frame)."""
     ax, ay, az, aw = np.moveaxis(a, -1, 0)
     bx, by, bz, bw = np.moveaxis(b, -1, 0)
@@ -34,7 +37,7 @@ def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
 
 
-def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+def rotate(q: Array, v: Array) -> Array:
     """``v`` rotated by the unit quaternion ``q`` (x, y, z, w)."""
     u, w = q[..., :3], q[..., 3:]
     t = 2.0 * np.cross(u, v)
@@ -48,22 +51,25 @@ class Frames:
     root: str
     static_parents: tuple[str, ...]
     static_children: tuple[str, ...]
-    static_translations: np.ndarray  # (n_fixed, 3)
-    static_rotations: np.ndarray  # (n_fixed, 4) x, y, z, w
+    static_translations: Array  # (n_fixed, 3)
+    static_rotations: Array  # (n_fixed, 4) x, y, z, w
     parents: tuple[str, ...]  # actuated joints, canonical order
     children: tuple[str, ...]
-    origins: np.ndarray  # (n, 3)
-    origin_rotations: np.ndarray  # (n, 4)
-    axes: np.ndarray  # (n, 3), unit
-    prismatic: np.ndarray  # (n,) bool
+    origins: Array  # (n, 3)
+    origin_rotations: Array  # (n, 4)
+    axes: Array  # (n, 3), unit
+    prismatic: Array  # (n,) bool
+
+    # The common case (Prime's description): revolute joints whose origins do not rotate; a few vector operations
+    # then give every transform.
+    _turned: bool = field(init=False)
+    _slides: bool = field(init=False)
 
     def __post_init__(self) -> None:
-        # The common case (Prime's description): revolute joints whose origins do not rotate; a few vector
-        # operations then give every transform.
         object.__setattr__(self, "_turned", not np.allclose(self.origin_rotations, [0.0, 0.0, 0.0, 1.0]))
         object.__setattr__(self, "_slides", bool(self.prismatic.any()))
 
-    def transforms(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def transforms(self, positions: Array) -> tuple[Array, Array]:
         """Translations (n, 3) and rotations (n, 4) of each actuated joint's child in its parent, at
         ``positions`` (canonical order; NaN, not measured, counts as 0)."""
         q = np.nan_to_num(positions, nan=0.0)
@@ -78,7 +84,7 @@ class Frames:
         slide = np.where(self.prismatic, q, 0.0)[:, None] * self.axes
         return self.origins + rotate(self.origin_rotations, slide), rotations
 
-    def link_pose(self, link: str, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def link_pose(self, link: str, positions: Array) -> tuple[Array, Array]:
         """The pose of ``link`` in the root link at ``positions``: translation (3,) and rotation (4,)."""
         translations, rotations = self.transforms(positions)
         parent_of = {c: (p, self.static_translations[i], self.static_rotations[i])
@@ -95,19 +101,20 @@ class Frames:
         return translation, rotation
 
 
-def _floats(text: str | None, default: str) -> np.ndarray:
+def _floats(text: str | None, default: str) -> Array:
     return np.array([float(v) for v in (text or default).split()])
 
 
 def frames_from_urdf(urdf: str, joint_names: tuple[str, ...]) -> Frames:
     """The frames of ``urdf``; ``joint_names`` (the canonical order) are its actuated joints."""
     root = ET.fromstring(urdf)
-    fixed: list[tuple[str, str, np.ndarray, np.ndarray]] = []
-    moving: dict[str, tuple[str, str, np.ndarray, np.ndarray, np.ndarray, bool]] = {}
+    fixed: list[tuple[str, str, Array, Array]] = []
+    moving: dict[str, tuple[str, str, Array, Array, Array, bool]] = {}
     children = set()
     for joint in root.findall("joint"):
         kind = joint.get("type")
-        parent, child = joint.find("parent").get("link"), joint.find("child").get("link")  # type: ignore[union-attr]
+        parent = joint.find("parent").get("link", "")  # type: ignore[union-attr]  # URDF: every joint has both
+        child = joint.find("child").get("link", "")  # type: ignore[union-attr]
         children.add(child)
         origin = joint.find("origin")
         xyz = _floats(origin.get("xyz") if origin is not None else None, "0 0 0")

@@ -12,8 +12,12 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+import numpy.typing as npt
+from cyclonedds.idl._support import Buffer, Endianness
 
 from humanoid_prime.dds import messages as msg
+
+Array = npt.NDArray[np.float64]
 
 ENCAPSULATION = 4  # the CDR header before the payload; alignment counts from after it
 
@@ -23,7 +27,8 @@ class PackedTF(msg.TFMessage):
 
     packed: bytes = b""
 
-    def serialize(self, buffer=None, endianness=None, use_version_2=None) -> bytes:  # noqa: ARG002 - DataWriter's call
+    def serialize(self, buffer: Buffer | None = None, endianness: Endianness | None = None,
+                  use_version_2: bool | None = None) -> bytes:
         return self.packed
 
 
@@ -58,7 +63,7 @@ class TfPacker:
             raise AssertionError("a /tf marker is missing, repeated or misaligned")  # the layout changed
         return (at - ENCAPSULATION) // size
 
-    def fill(self, translations: np.ndarray, rotations: np.ndarray, stamp: msg.Time) -> PackedTF:
+    def fill(self, translations: Array, rotations: Array, stamp: msg.Time) -> PackedTF:
         """The message for one tick: every transform's translation (n, 3) and rotation (n, 4, x y z w)."""
         self._doubles[self._number_at[:, :3]] = translations
         self._doubles[self._number_at[:, 3:]] = rotations

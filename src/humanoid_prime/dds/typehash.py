@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 from functools import cache
-from typing import Any
+from typing import get_args
 
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl._type_normalize import get_extended_type_hints
@@ -25,6 +25,7 @@ FIELD_TYPE_IDS = {
     "float32": 10, "float64": 11, "char": 13, "bool": 15, "byte": 16, "string": 17, "bounded_string": 21,
 }
 ARRAY, BOUNDED_SEQUENCE, UNBOUNDED_SEQUENCE = 48, 96, 144
+Json = dict[str, object]  # a part of a type description, as it is hashed
 
 
 def ros_type_name(cls: type[IdlStruct]) -> str:
@@ -33,15 +34,15 @@ def ros_type_name(cls: type[IdlStruct]) -> str:
     return f"{package}/{kind}/{name.removesuffix('_')}"
 
 
-def _field_type(annotation: Any) -> tuple[dict[str, Any], type[IdlStruct] | None]:
+def _field_type(annotation: object) -> tuple[Json, type[IdlStruct] | None]:
     """The FieldType of one field annotation, and the nested struct it names (if any)."""
     offset, capacity, element = 0, 0, annotation
     if isinstance(annotation, array):
-        offset, capacity, element = ARRAY, annotation.length, annotation.subtype
+        offset, capacity, element = ARRAY, int(annotation.length), annotation.subtype
     elif isinstance(annotation, sequence):
-        bounded = annotation.max_length is not None
-        offset = BOUNDED_SEQUENCE if bounded else UNBOUNDED_SEQUENCE
-        capacity, element = (annotation.max_length if bounded else 0), annotation.subtype
+        bound = annotation.max_length
+        offset = UNBOUNDED_SEQUENCE if bound is None else BOUNDED_SEQUENCE
+        capacity, element = (0 if bound is None else int(bound)), annotation.subtype
     nested: type[IdlStruct] | None = None
     string_capacity = 0
     if isinstance(element, type) and issubclass(element, IdlStruct):
@@ -51,12 +52,12 @@ def _field_type(annotation: Any) -> tuple[dict[str, Any], type[IdlStruct] | None
     elif isinstance(element, bounded_str):
         base, string_capacity = "bounded_string", element.max_length
     else:
-        base = element.__metadata__[0]  # cyclonedds' primitives: Annotated[int, 'int32']
+        base = str(get_args(element)[1])  # cyclonedds' primitives: Annotated[int, 'int32']
     return ({"type_id": FIELD_TYPE_IDS[base] + offset, "capacity": capacity, "string_capacity": string_capacity,
              "nested_type_name": ros_type_name(nested) if nested is not None else ""}, nested)
 
 
-def _individual(cls: type[IdlStruct]) -> tuple[dict[str, Any], list[type[IdlStruct]]]:
+def _individual(cls: type[IdlStruct]) -> tuple[Json, list[type[IdlStruct]]]:
     fields, nested = [], []
     for name, annotation in get_extended_type_hints(cls).items():
         field_type, inner = _field_type(annotation)
@@ -66,10 +67,10 @@ def _individual(cls: type[IdlStruct]) -> tuple[dict[str, Any], list[type[IdlStru
     return {"type_name": ros_type_name(cls), "fields": fields}, nested
 
 
-def type_description(cls: type[IdlStruct]) -> dict[str, Any]:
+def type_description(cls: type[IdlStruct]) -> Json:
     """The hashed form of ``cls``'s TypeDescription: the type and every type it refers to (defaults left out)."""
     top, pending = _individual(cls)
-    referenced: dict[str, dict[str, Any]] = {}
+    referenced: dict[str, Json] = {}
     while pending:
         inner = pending.pop()
         name = ros_type_name(inner)

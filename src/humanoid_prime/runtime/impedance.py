@@ -54,7 +54,8 @@ from humanoid_prime.drivers.erob.objects import (
     VEL_LOOP_GAIN,
     VEL_LOOP_INTEGRAL,
 )
-from humanoid_prime.drivers.ethercat.master import HELPER_PRIORITY, SlaveInfo, raise_thread
+from humanoid_prime.drivers.ethercat.priority import HELPER_PRIORITY, raise_thread
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, SizedSdo
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode

@@ -18,7 +18,8 @@ import numpy as np
 from humanoid_prime.control.hardware import DriveStatus
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import Snapshot
-from humanoid_prime.drivers.erob.cia402 import describe_al_state, drive_state
+from humanoid_prime.drivers.erob.cia402 import drive_state
+from humanoid_prime.drivers.ethercat.wire import describe_al_state
 
 RATE_WINDOW_S = 1.0  # the loop rate is measured over about the last second of ticks
 NONE = "—"

@@ -28,6 +28,7 @@ class ComponentSettings:
     update_rate: float
     bringup_rate: float = 1000.0
     ethercat_interface: str | None = None  # default: the hardware file's
+    ethercat_mailbox: str | None = None  # prime or soem; default: the hardware file's
     sync0_period_s: float | None = None  # cross-check only: SYNC0 is derived from update_rate
     parallel_sdo: bool = True
     erob_config_dir: str | Path | None = None  # also write the folded per-slave configs here
@@ -46,7 +47,8 @@ def _ethercat(settings: ComponentSettings) -> HardwareComponent:
     robot = settings.robot
     interface = settings.ethercat_interface or robot.hardware.ethercat.interface
     master = SoemMaster(interface, update_rate=settings.update_rate, bringup_rate=settings.bringup_rate,
-                        sync0_period_s=settings.sync0_period_s, parallel_sdo=settings.parallel_sdo)
+                        sync0_period_s=settings.sync0_period_s, parallel_sdo=settings.parallel_sdo,
+                        mailbox=settings.ethercat_mailbox or robot.hardware.ethercat.mailbox)
     return EthercatSystem(robot, settings.calibration, update_rate=settings.update_rate,
                           bringup_rate=settings.bringup_rate, master=master, interface=interface,
                           config_dir=settings.erob_config_dir, emulated=settings.emulated)

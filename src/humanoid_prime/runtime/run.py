@@ -61,14 +61,10 @@ def run_loop(session: Session, stop: threading.Event,
 
     realtime = None
     between_ticks = None
-    master = session.ethercat.master if session.ethercat is not None else None
-    polled = False
     if options.realtime:
         realtime = enter_realtime(session.manager.period, cpu=options.cpu, memory_refused=session.plan.memory_refused)
         between_ticks = GcBetweenTicks()
-        # EtherCAT frames are polled for while this thread owns the cycle at real-time priority (soem_master.py).
-        polled = realtime.fifo and master is not None and master.poll_frames(True)
-        realtime_report: dict[str, object] = {**realtime.as_dict(), "ethercat_frames_polled": polled}
+        realtime_report: dict[str, object] = realtime.as_dict()
         session.reports["realtime"] = realtime_report
         if report is not None:
             report(realtime.line())
@@ -81,8 +77,6 @@ def run_loop(session: Session, stop: threading.Event,
             session.impedance.wait_idle(5.0)
             close_impedance_while_ticking(session, between_ticks)
     finally:
-        if polled and master is not None:
-            master.poll_frames(False)
         if realtime is not None:
             leave_realtime(realtime)
         if between_ticks is not None:  # with realtime

@@ -29,6 +29,8 @@ from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 
+from humanoid_prime.calibration.journal import OverrideJournal
+from humanoid_prime.calibration.limp import restore_left
 from humanoid_prime.config.calibration import Calibration, load_calibration
 from humanoid_prime.config.controllers import ControllersConfig, check_command_limits, load_controllers
 from humanoid_prime.config.description import BACKEND_BLOCKS, ETHERCAT_BLOCK, SITO_BLOCK
@@ -42,7 +44,7 @@ from humanoid_prime.drivers.erob.gains import check_erob_limits, check_mode_gain
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE
 from humanoid_prime.drivers.ethercat.fold import check_foldable
 from humanoid_prime.drivers.ethercat.master import sync0_period_ns
-from humanoid_prime.drivers.ethercat.sdo import SizedSdo
+from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
 from humanoid_prime.drivers.sito.system import check_wire_limits
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.modes import Mode
@@ -58,6 +60,7 @@ if TYPE_CHECKING:
     from humanoid_prime.drivers.sito.system import SitoSystem
 
 BACKENDS = tuple(BACKEND_BLOCKS)
+BUS_READY_S = 5.0  # the longest a run waits for its ring to carry SDOs (as the impedance manager does)
 MOVING_MODES = (Mode.STANDBY, Mode.LOCOMOTION, Mode.REMOTE)  # modes whose commands drive joints to targets
 
 
@@ -71,6 +74,7 @@ class BringupOptions:
     broadcaster_only: bool | None = None  # default: single-bus runs only
     controllers_file: str | Path | None = None
     interface: str | None = None  # EtherCAT NIC (default: prime_hardware.yaml)
+    ec_mailbox: str | None = None  # who works the eRob's mailboxes, prime or soem (default: prime_hardware.yaml)
     can_interface: str | None = None  # python-can interface (default: prime_hardware.yaml)
     can_channel: str | None = None
     sync0_period_s: float | None = None  # must equal 1/update_rate; only for an explicit cross-check
@@ -87,6 +91,8 @@ class BringupOptions:
     cpu: int | None = None  # (with realtime) pin the loop thread to this CPU
     uncalibrated: bool = False  # on the robot, allow the modes that move joints with an identity calibration
     config: dict[str, dict[str, object]] | None = None  # the files used (path, sha256, source), for the reports
+    # the robot's state folder: a drive a killed `prime limp` left limp there is restored once the ring is up
+    state_folder: Path | None = None
 
 
 @dataclass
@@ -242,10 +248,14 @@ class Session:
         return self.plan.stages
 
     def mark_limp(self, joint: str, limp: bool) -> None:
-        """In a broadcaster-only run: while ``limp``, give ``joint`` a finite target with zero stiffness, so its
-        CSP target follows the actual position (no following error while it is swept); otherwise NaN again,
-        no command, and the drive holds where it is."""
-        self.manager.resources.command.position[self.robot.index(joint)] = 0.0 if limp else np.nan
+        """In a broadcaster-only run, from the next tick: while ``limp``, ``joint``'s target follows where it is at
+        zero stiffness, so its CSP target follows the actual position (no following error while it is swept);
+        otherwise no command again, and the drive holds where it is. The passive controller writes it, through
+        the gate, as every command."""
+        passive = self.manager.passive
+        if passive is None:
+            raise PrimeError("a joint is marked limp only in a broadcaster-only run (a calibration or single-bus run)")
+        passive.mark_limp(self.robot.index(joint), limp)
 
     def note(self, status: SafetyStatus) -> None:
         """Keep the history of every flag: opened when it appears, closed when it clears."""
@@ -316,6 +326,9 @@ class Session:
         ec_bringup = None
         if self.ethercat is not None and self.ethercat.bringup is not None:
             ec_bringup = self.ethercat.bringup.as_dict()
+            master = self.ethercat.master
+            if master is not None:  # who worked the mailboxes, and what they dropped, by why
+                ec_bringup.update(mailbox=master.mailbox, mailbox_drops=master.mailbox_drops())
             ec_bringup["rated_torque_nm"] = {  # 0x6076 of each drive; null: unread, nominal used
                 joint: (float(r) if math.isfinite(r) else None)
                 for joint, r in zip(self.ethercat.joints, self.ethercat.rated_torque_nm, strict=True)}
@@ -340,6 +353,7 @@ class Session:
             "jitter_us": stats["jitter_us"],
             "overruns": stats["overruns"],
             "fallbacks": list(self.manager.fallbacks),
+            "refused": self.manager.gate.refused.as_dict(),
             "faults": [r.as_dict() for r in self.faults],
             "gate_reset_failures": list(self.gate_reset_failures),
             **{key: value for key, value in self.reports.items()},
@@ -365,7 +379,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     stack.callback(sys.setswitchinterval, tighten_switch_interval(1.0 / plan.update_rate))
     settings = ComponentSettings(
         robot, plan.calibration, update_rate=plan.update_rate, bringup_rate=plan.bringup_rate,
-        ethercat_interface=options.interface, sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
+        ethercat_interface=options.interface, ethercat_mailbox=options.ec_mailbox,
+        sync0_period_s=options.sync0_period_s, parallel_sdo=plan.parallel_sdo,
         erob_config_dir=options.erob_config_dir, can_interface=options.can_interface,
         can_channel=options.can_channel, emulated=options.emulated)
     manager = assemble(settings, plan.config, BACKEND_BLOCKS[options.backends],
@@ -388,6 +403,8 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
     session.bringup_seconds = t - plan.began
 
     ethercat = session.ethercat
+    if ethercat is not None and options.state_folder is not None and not options.emulated:
+        _restore_left_overrides(session, options.state_folder)  # before anything arms a gate
     if ethercat is not None and not plan.broadcaster_only:
         master = ethercat.master
         assert master is not None  # opened when the manager started
@@ -399,13 +416,37 @@ def open_session(plan: Plan, stack: contextlib.ExitStack) -> Session:
         stack.callback(lambda: session.gate_reset_failures.extend(impedance.close()))
         # The bus is ready and joint states have flowed (the first tick); the worker arms the gate (while the
         # loop already ticks) and follows the mode.
-        impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=5.0,
+        impedance.start(manager.topics, lambda: ethercat.bus_ready, timeout=BUS_READY_S,
                         why_not_ready=master.readiness, dropped=ethercat)
         plan.stage("impedance manager started", t)
     if plan.control is not None:
         serve(session, plan.control)
         stack.callback(plan.control.detach)  # answering stops, and limp joints are reset, before teardown
     return session
+
+
+def _restore_left_overrides(session: Session, folder: Path) -> None:
+    """Drives an override left as it made them (``calibration.journal``: a `prime limp` killed outright) on this
+    robot's ring, through this run's control socket or an IgH master, are restored from their records before
+    anything else writes a drive, and each is said on stderr and among the run's faults. An emulated ring is new
+    and is never restored from records (the robot's records stay for the robot)."""
+    control = session.plan.control
+    ways = ["igh", *([f"socket {control.path.absolute()}"] if control is not None else [])]
+    journals = [journal for journal in (OverrideJournal(folder, way) for way in ways) if journal.left()]
+    ethercat = session.ethercat
+    if not journals or ethercat is None:
+        return
+    deadline = time.monotonic() + BUS_READY_S
+    while not ethercat.bus_ready:  # mailbox traffic before every slave is in OP faults a drive
+        if time.monotonic() > deadline:
+            raise PrimeError(f"drives left limp by a killed `prime limp` wait to be restored, and the ring did not "
+                             f"come up within {BUS_READY_S:g} s to restore them")
+        time.sleep(0.005)
+    assert ethercat.master is not None  # opened when the manager started
+    for journal in journals:
+        for position, line in restore_left(ethercat.master, journal):
+            print(line, file=sys.stderr, flush=True)
+            session.record_fault(f"limp/ring{position}", line, Level.WARN)
 
 
 def serve(session: Session, server: ControlServer) -> None:

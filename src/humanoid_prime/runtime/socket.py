@@ -137,8 +137,7 @@ class ControlServer:
         with conn:
             conn.settimeout(10.0)
             try:
-                request = json.loads(_recv_line(conn, MAX_REQUEST_BYTES))
-                reply = self._answer(request)
+                reply = self._answer(_parse_request(_recv_line(conn, MAX_REQUEST_BYTES)))
             except (ValueError, KeyError, TypeError) as exc:
                 reply = {"ok": False, "error": f"bad request: {exc}"}
             except OSError:
@@ -221,6 +220,18 @@ def check_socket_path(path: Path) -> None:
     if path.exists() and not stat.S_ISSOCK(path.stat().st_mode):
         raise PrimeError(f"control socket path {path} exists and is not a socket; refusing to replace it "
                          "(give another --socket)")
+
+
+def _parse_request(line: str) -> Request:
+    """A request's JSON; ValueError for one that is not a JSON object, or nests deeper than Python's parser
+    recurses (a line of 60,000 brackets fits the size limit)."""
+    try:
+        request = json.loads(line)
+    except RecursionError:
+        raise ValueError("nested too deep; a request is one flat JSON object") from None
+    if not isinstance(request, dict):
+        raise ValueError(f"a request is a JSON object, got {type(request).__name__}")
+    return cast(Request, request)
 
 
 def _recv_line(conn: socket.socket, limit: int | None = None) -> str:

@@ -49,10 +49,12 @@ SCHEDULE: tuple[Step, ...] = (
     Step(12.0, Mode.REMOTE),
     Step(17.0, Mode.DAMPING),
 )
-# Where the arms are when the simulated robot powers up: raised forward, elbows bent.
+# Where the arms are when the simulated robot powers up: raised forward, elbows bent. Raised high enough that each
+# joint alone can sweep its whole range with the arm clear of the torso by more than the collision margin (the
+# hands-free calibration starts here): lower, shoulder_roll's inner stop would put the upper arm into the torso.
 START_POSE: dict[str, float] = {
-    "left_shoulder_pitch": -0.8, "left_shoulder_roll": 0.15, "left_elbow_pitch": -0.9,
-    "right_shoulder_pitch": -0.8, "right_shoulder_roll": -0.15, "right_elbow_pitch": -0.9,
+    "left_shoulder_pitch": -1.0, "left_shoulder_roll": 0.15, "left_elbow_pitch": -0.9,
+    "right_shoulder_pitch": -1.0, "right_shoulder_roll": -0.15, "right_elbow_pitch": -0.9,
 }
 
 # The remote stream: a slow wave around the locomotion default pose, the arms in opposite phase.
@@ -207,6 +209,7 @@ class Simulation:
             "tick_us": stats["tick_us"],
             "overruns": stats["overruns"],
             "fallbacks": list(manager.fallbacks),
+            "refused": manager.gate.refused.as_dict(),
             "update_rate": system.update_rate,
             "physics_rate": system.physics_rate,
             "stages": [{"stage": name, "seconds": round(seconds, 6)} for name, seconds in manager.stages],

@@ -41,7 +41,7 @@ class DdsSource:
     def __init__(self, robot: Robot, domain: int | None) -> None:
         from humanoid_prime.control.topics import CONTROL_MODE, JOINT_STATES, SAFETY_STATUS
         from humanoid_prime.dds import messages as msg
-        from humanoid_prime.dds.bridge import MODE_REQUEST
+        from humanoid_prime.dds.graph import MODE_REQUEST
         from humanoid_prime.dds.node import DdsNode
 
         self._msg = msg

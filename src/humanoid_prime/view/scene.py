@@ -8,8 +8,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from humanoid_prime.config.model import load_model
 from humanoid_prime.config.robot import Robot
-from humanoid_prime.drivers.mujoco.system import load_model
 
 ROOT = "/prime"
 

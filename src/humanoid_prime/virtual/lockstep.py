@@ -48,8 +48,10 @@ from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob import objects as obj
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.ethercat.errors import SdoError
-from humanoid_prime.drivers.ethercat.master import AL_OP, AL_PRE_OP, AL_SAFE_OP, EthercatMaster, SlaveInfo
+from humanoid_prime.drivers.ethercat.master import EthercatMaster
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.drivers.ethercat.wire import AlState
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.drivers.sito.protocol import (
     FrameType,
@@ -65,8 +67,8 @@ from humanoid_prime.sim.demo import START_POSE
 from humanoid_prime.virtual.operator import WatchingOperator
 from humanoid_prime.virtual.plant import Plant
 from humanoid_prime.virtual.ring.drive import ErobDrive
-from humanoid_prime.virtual.ring.firmware import PdoCodec
 from humanoid_prime.virtual.ring.od import SdoAbort
+from humanoid_prime.virtual.ring.pdo import PdoCodec
 from humanoid_prime.virtual.sito import SitoEmulator, SitoMotor
 
 NEAR_STOP_RAD = 0.02
@@ -105,13 +107,13 @@ class LockstepRing(EthercatMaster):
         n = len(self.drives)
         self.q, self.qd = np.zeros(n), np.zeros(n)
         self.lock = threading.Lock()
-        self._states = [AL_PRE_OP] * n
+        self._states = [AlState.PRE_OP] * n
         self._rx = [_codec(drive, obj.RXPDO) for drive in self.drives]
         self._tx = [_codec(drive, obj.TXPDO) for drive in self.drives]
 
     def _discover(self) -> Sequence[SlaveInfo]:
         return [SlaveInfo(k, "eRob (lockstep)", int(drive.od.value(obj.IDENTITY, 1)),
-                          int(drive.od.value(obj.IDENTITY, 2)), int(drive.od.value(obj.IDENTITY, 3)), AL_PRE_OP)
+                          int(drive.od.value(obj.IDENTITY, 2)), int(drive.od.value(obj.IDENTITY, 3)), AlState.PRE_OP)
                 for k, drive in enumerate(self.drives)]
 
     def _configure(self) -> None:
@@ -121,10 +123,10 @@ class LockstepRing(EthercatMaster):
         self.expected_wkc = 3 * n
         for k, drive in enumerate(self.drives):  # read in PRE-OP, as SoemMaster does
             self.store_rated_torque(k, drive.od.upload(obj.RATED_TORQUE, 0))
-        self._states = [AL_SAFE_OP] * n
+        self._states = [AlState.SAFE_OP] * n
 
     def _request_op(self) -> None:
-        self._states = [AL_OP] * len(self.drives)
+        self._states = [AlState.OP] * len(self.drives)
 
     def _read_states(self) -> list[tuple[int, int]]:
         return [(state, 0) for state in self._states]
@@ -136,7 +138,7 @@ class LockstepRing(EthercatMaster):
         image = bytearray(self.outputs.tobytes())
         with self.lock:
             for k, (drive, codec, state) in enumerate(zip(self.drives, self._rx, self._states, strict=True)):
-                if state == AL_OP:
+                if state == AlState.OP:
                     codec.unpack(image, k * codec.size)
                     drive.process_outputs()
 
@@ -166,7 +168,7 @@ class LockstepRing(EthercatMaster):
                     from None
 
     def _close(self) -> None:
-        self._states = [AL_PRE_OP] * len(self.drives)
+        self._states = [AlState.PRE_OP] * len(self.drives)
 
 
 def _codec(drive: ErobDrive, layout: Sequence[obj.PdoEntry]) -> PdoCodec:

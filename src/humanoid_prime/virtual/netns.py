@@ -35,9 +35,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from humanoid_prime.drivers.ethercat.wire import ETHERTYPE, Command
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.virtual.ring.control import ControlError, RingControl
-from humanoid_prime.virtual.ring.frames import ETHERTYPE_ECAT, Command, Datagram, build_frame, parse_frame
+from humanoid_prime.virtual.ring.frames import Datagram, build_frame, parse_frame
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.server import disable_ipv6
 
@@ -197,8 +198,8 @@ class EmulatedRing:
 
     def _wait_for_frames(self, deadline: float) -> None:
         """Send a broadcast read on the master end until the ring answers with every slave counted."""
-        with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT)) as raw:
-            raw.bind((self.master_interface, ETHERTYPE_ECAT))
+        with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE)) as raw:
+            raw.bind((self.master_interface, ETHERTYPE))
             probe = build_frame([Datagram(Command.BRD, b"\x00\x00", index=0xA5)])
             while True:
                 raw.send(probe)

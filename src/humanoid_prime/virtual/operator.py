@@ -4,7 +4,8 @@ as a person's hand does during calibration, so the whole workflow runs unattende
 An eRob joint is made damped-limp first (the same procedure as ``prime limp``: gate, position gain 0,
 integral 0, damping kept, restored afterwards) with its CSP target following the joint; a Sito wrist is
 limp already. The hand moves the joint slowly toward the lower stop and presses it there (at most a fraction of the
-joint's effort limit), waits until it rests, does the same at the upper stop, then lets go.
+joint's effort limit), waits until it rests, does the same at the upper stop, brings the joint back to where it was
+and holds it there until its drive holds it again, then lets go.
 
 ``WatchingOperator`` is the operator of the hands-free calibration: it lets every joint move and answers the
 direction question from what the virtual robot's joint really did.
@@ -36,6 +37,9 @@ PUSH_FRACTION = 0.5  # of the joint's effort limit: the most the hand pushes; ov
 HAND_SPEED_RAD_S = 1.0  # how fast the hand moves a joint toward a stop, as a person does
 REST_SPEED_RAD_S = 0.005  # a joint slower than this for REST_S is resting against its stop
 REST_S = 0.3
+RETURN_TOLERANCE_RAD = 0.01  # a joint brought back within this of where it was is there
+RETURN_GAIN = 3.0  # 1/s: the hand slows down as the joint nears where it was,
+RETURN_SPEED_MIN_RAD_S = 0.05  # never below this
 
 
 class ScriptedOperator:
@@ -88,7 +92,6 @@ class ScriptedOperator:
         try:
             with DampedLimp(ethercat.master, hw.erob_slaves[joint], vel_reg):
                 yield
-                self.let_go(joint)
                 self._wait_at_rest(self.robot.index(joint))
         finally:
             self.session.mark_limp(joint, False)
@@ -131,20 +134,50 @@ class ScriptedOperator:
         if errors:
             raise errors[0]
 
+    def bring_back(self, joint: str, angle: float) -> None:
+        """Move ``joint`` back to ``angle`` (its true angle: where the person sees it) and keep holding it there."""
+        spec = self.robot.joints[self.robot.index(joint)]
+        force, manager = PUSH_FRACTION * spec.effort_limit, self.manager
+        last_tick = manager.tick_count + round(((spec.upper - spec.lower) / HAND_SPEED_RAD_S + self.timeout_s)
+                                               * manager.update_rate)
+        seen = manager.tick_count
+        while manager.tick_count < last_tick and not self.stop.is_set():
+            if manager.tick_count == seen:
+                time.sleep(0.25 * manager.period)
+                continue
+            seen = manager.tick_count
+            error = angle - float(self.control.call("joints")[joint])
+            if abs(error) < RETURN_TOLERANCE_RAD:
+                break
+            speed = min(HAND_SPEED_RAD_S, max(RETURN_SPEED_MIN_RAD_S, RETURN_GAIN * abs(error)))
+            self.control.call("hand", joint=joint, speed_rad_s=math.copysign(speed, error), force_nm=force)
+        self.control.call("hand", joint=joint, speed_rad_s=0.0, force_nm=force)
+
+    def stops(self, joint: str) -> tuple[float, float]:
+        """The joint's readings at its lower and its upper stop; then, as a person returns a swept joint near where
+        it was before its drive takes it again, it is brought back and held there by hand until its drive holds it,
+        and let go. Every joint is swept from where the robot started, so no sweep folds an arm into the other or
+        the torso that another sweep left somewhere else."""
+        start = float(self.control.call("joints")[joint])
+        try:
+            with self.limp(joint):
+                readings = self.push_to(joint, -1), self.push_to(joint, +1)
+                self.bring_back(joint, start)
+        finally:
+            self.let_go(joint)
+        return readings
+
     def sweep(self, joint: str) -> None:
-        """Both stops, then let go."""
-        with self.limp(joint):
-            try:
-                self.push_to(joint, -1)
-                self.push_to(joint, +1)
-            finally:
-                self.let_go(joint)
+        """Both stops, then back to where it was (``stops``)."""
+        self.stops(joint)
 
 
 class WatchingOperator:
     """The virtual robot's operator for the hands-free calibration (``calibration.auto.Operator``): lets every joint
     move, and answers the direction question as a person watching the robot does, from the joint's true motion
     (``true_angles()``: every joint's true angle, description frame) seen along the axis the question names."""
+
+    answered_by = "the simulated operator's answer (it saw the joint's true motion; no one was asked)"
 
     def __init__(self, robot: Robot, true_angles: Callable[[], Mapping[str, float]],
                  model: GravityModel | None = None) -> None:

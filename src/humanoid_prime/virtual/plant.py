@@ -25,8 +25,8 @@ import mujoco
 import numpy as np
 
 from humanoid_prime.config.calibration import Calibration, JointCalibration, load_calibration
+from humanoid_prime.config.model import load_model
 from humanoid_prime.config.robot import Robot, load_robot
-from humanoid_prime.drivers.mujoco.system import load_model
 from humanoid_prime.errors import PrimeError
 
 STOP_STIFFNESS_NM_PER_RAD = 2000.0

@@ -50,10 +50,13 @@ def _out_of_range(value):
 # Keys a file may leave out, by design, each with the default that stands for it.
 OPTIONAL = {
     ("hardware", "buses.ethercat.master"): "0, the first master",
+    ("hardware", "buses.ethercat.mailbox"): "prime, Prime's own CoE layer",
     ("hardware", "buses.can.interface"): "socketcan",
     ("hardware", "torque_efficiency"): "1.0",
     **{("hardware", f"command_limits.{family}.{name}"): "the bundled template's limit"
        for family in ("sito", "erob") for name in ("stiffness", "damping", "velocity")},
+    **{("hardware", f"safety.{name}"): "the bundled template's value"
+       for name in ("collision_margin", "stopping_time")},
     ("calibration", "joints.left_elbow_pitch.bus"): "a note for people, checked when given",
     ("calibration", "joints.left_elbow_pitch.address"): "a note for people, checked when given",
     ("calibration", "joints.left_wrist_roll.bus"): "a note for people, checked when given",

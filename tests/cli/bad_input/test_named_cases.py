@@ -28,12 +28,18 @@ def _duplicate_top_key(path: Path, source: Path) -> None:
     path.write_text(text + "\n" + first + "\n")
 
 
+def _nul_bytes(path: Path, source: Path) -> None:
+    first, rest = source.read_bytes().split(b"\n", 1)
+    path.write_bytes(first + b"\n\x00\x00" + rest)  # as a crash can leave a file: a run of NULs
+
+
 CORRUPTIONS = {  # kind -> (how to make the file, what the error line must contain)
     "binary": (lambda p, s: p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe\x00garbage"), "not UTF-8 text"),
     "empty": (lambda p, s: _text(p, ""), "empty"),
     "a list": (lambda p, s: _text(p, "- a\n- b\n"), "expected a mapping"),
     "bad syntax": (lambda p, s: _text(p, "joints: [\n  - a\n"), "malformed YAML"),
     "duplicate key": (_duplicate_top_key, "duplicate key"),
+    "NUL bytes": (_nul_bytes, "line 2, column 1: a NUL byte"),
     "missing": (lambda p, s: None, "file not found"),
     "a folder": (lambda p, s: p.mkdir(), "is a folder"),
 }
@@ -145,6 +151,7 @@ ARGUMENT_CASES = [  # (id, arguments, what the line must contain)
     ("can ids open range", ["can", "discover", "--ids", "1-", "--interface", "virtual"], "--ids"),
     ("can ids out of range", ["can", "discover", "--ids", "300", "--interface", "virtual"], "--ids"),
     ("can seconds inf", ["can", "monitor", "--seconds", "inf", "--interface", "virtual"], "--seconds"),
+    ("emulate on a NIC that does not exist", ["emulate", "ec", "--interface", "nonexistent0"], "nonexistent0"),
     ("sdo write of a negative untyped value", ["ec", "sdo", "write", "3", "0x2382:01", "-5",
                                                "--interface", "nonexistent0"], "-5"),
     ("sdo address garbage", ["ec", "sdo", "read", "3", "0x23zz:01", "--interface", "nonexistent0"], "0x23zz"),

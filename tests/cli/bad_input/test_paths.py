@@ -1,9 +1,12 @@
 """Bad paths, for every output of every command: a folder, a path under a regular file, a file inside the installed
-package, a place the system will not let anyone write, an input of the same command, another output of the same
-run; and the control socket: a regular file, a folder, a path too long for a UNIX socket, nothing listening.
-Each is refused with one line before anything starts, and every file the paths named is as it was."""
+package, a place the system will not let anyone write or create a file in, an input of the same command, another
+output of the same run; and the control socket: a regular file, a folder, a path too long for a UNIX socket,
+nothing listening. Each is refused with one line before anything starts, and every file the paths named is as it
+was."""
 
 from __future__ import annotations
+
+import subprocess
 
 import pytest
 
@@ -36,6 +39,10 @@ PLACES = {  # what the path is -> (the path, what the line must say)
     "under a regular file": ("{tmp}/keep.txt/x", "keep.txt"),
     "inside the package": (str(bundled("prime_hardware.yaml").parent / "x"), "installed package"),
     "where nobody may write": ("/proc/1/x", "/proc/1"),
+    # root may write /proc by its permission bits, yet nothing can be created there: the write's temporary file
+    # is tried before the run
+    "where nothing can be created": ("/proc/x", "in /proc"),
+    "under folders nothing can create": ("/proc/a/b/x", "in /proc"),
 }
 
 
@@ -132,3 +139,31 @@ def test_an_output_that_is_an_input_or_another_output_is_refused(folder, monkeyp
 @pytest.mark.parametrize("argv, says", _socket_cases())
 def test_a_control_socket_path_that_is_not_one_is_refused(folder, monkeypatch, argv, says):
     check(argv, folder, monkeypatch, needles=(says,))
+
+
+@pytest.mark.parametrize("argv", [["calibrate"], ["calibrate", "--auto", "--sim"], ["calibrate", "--emulate"]],
+                         ids=" ".join)
+def test_a_calibration_whose_own_file_cannot_be_written_is_refused_before_it_moves_a_joint(folder, monkeypatch,
+                                                                                            argv):
+    # no --output: the result goes to the robot's own file, in a folder where nothing can be created
+    monkeypatch.setenv("PRIME_CONFIG_DIR", "/proc")
+    check(argv, folder, monkeypatch, needles=("the calibration", "in /proc", "--output"))
+
+
+@pytest.fixture
+def immutable(folder):
+    """A folder of the case's whose files can be read and replaced by nobody, root included (chattr +i)."""
+    place = folder / "immutable"
+    place.mkdir()
+    (place / "prime_hardware.yaml").write_bytes(bundled("prime_hardware.yaml").read_bytes())
+    if subprocess.run(["chattr", "+i", str(place)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available on this file system")
+    yield place
+    subprocess.run(["chattr", "-i", str(place)], check=True)
+
+
+def test_apply_into_a_hardware_file_that_cannot_be_replaced_is_refused_before_it_moves_a_joint(folder, immutable,
+                                                                                               monkeypatch):
+    hardware = immutable / "prime_hardware.yaml"
+    check(["calibrate", "--auto", "--sim", "--apply", "--hardware", str(hardware), "--output", "{tmp}/cal.yaml"],
+          folder, monkeypatch, needles=("--apply's hardware file", f"in {immutable}"))

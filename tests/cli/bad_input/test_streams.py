@@ -38,6 +38,8 @@ REQUESTS = {  # what a peer sends -> what the error must say
     "sdo without a master": (b'{"op": "sdo_read", "position": -1, "index": 0, "sub_index": 0}\n', "EtherCAT"),
     "reset without hardware": (b'{"op": "reset"}\n', "latches faults"),
     "a request too long": (b"{" + b" " * (MAX_REQUEST_BYTES + 10), "at most"),
+    "nested 60,000 deep": (b"[" * 60000 + b"\n", "nested too deep"),
+    "an op nested 9,000 deep": (b'{"op": ' + b'{"a": ' * 9000 + b"1" + b"}" * 9001 + b"\n", "nested too deep"),
 }
 
 

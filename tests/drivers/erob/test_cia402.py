@@ -1,11 +1,10 @@
-"""CiA402 statusword decoding, the enable sequence, and the error / AL status tables."""
+"""CiA402 statusword decoding, the enable sequence, and the error table."""
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from humanoid_prime.drivers.erob.cia402 import (
-    AL_STATUS_CODES,
     DISABLE_VOLTAGE,
     ENABLE_OPERATION,
     FAULT_RESET,
@@ -13,8 +12,6 @@ from humanoid_prime.drivers.erob.cia402 import (
     SHUTDOWN,
     SWITCH_ON,
     DriveState,
-    describe_al_state,
-    describe_al_status_code,
     describe_error,
     drive_state,
     enable_step,
@@ -133,33 +130,3 @@ def test_erob_error_codes(code, meaning):
 
 def test_unknown_error_code_is_named_not_raised():
     assert describe_error(0x1234) == "unknown eRob error 0x1234"
-
-
-@pytest.mark.parametrize("code, meaning", [
-    (0x0000, "no error"),
-    (0x0011, "invalid requested state change"),
-    (0x0012, "unknown requested state"),
-    (0x001A, "synchronization error"),
-    (0x001B, "sync manager watchdog"),
-    (0x001D, "invalid output configuration"),
-    (0x001E, "invalid input configuration"),
-    (0x002C, "fatal sync error"),
-    (0x002D, "no sync error"),
-    (0x0030, "invalid DC SYNC configuration"),
-    (0x0032, "PLL error"),
-    (0x0035, "DC invalid sync cycle time"),
-    (0x0036, "DC invalid SYNC0 cycle time"),
-])
-def test_al_status_codes(code, meaning):
-    assert describe_al_status_code(code) == meaning
-
-
-def test_unknown_al_status_code_is_named():
-    assert describe_al_status_code(0x0099) == "unknown AL status code 0x0099"
-    assert 0x0099 not in AL_STATUS_CODES
-
-
-@pytest.mark.parametrize("value, name", [(1, "INIT"), (2, "PRE-OP"), (3, "BOOT"), (4, "SAFE-OP"), (8, "OP"),
-                                         (0x14, "SAFE-OP + ERROR"), (0x12, "PRE-OP + ERROR")])
-def test_al_states(value, name):
-    assert describe_al_state(value) == name

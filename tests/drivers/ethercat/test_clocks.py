@@ -51,9 +51,8 @@ def now_ns(ring: Ring) -> int:
 
 def restart_clock(esc, now: int) -> None:
     """What a power cycle does to an ESC's clock: local time from 0, offset and delay cleared."""
-    esc.clock_origin_ns = now
-    esc.mem[0x0920:0x092C] = bytes(12)
-    esc._update_dc()
+    esc.clock.origin_ns = now
+    esc.write(0x0920, bytes(12), 0, 12)
 
 
 @pytest.mark.parametrize("reversed_sign", [False, True])
@@ -61,15 +60,14 @@ def test_a_clock_250_us_behind_is_corrected_by_the_difference_its_esc_measures_e
         reversed_sign):
     ring, hub, clocks = make()
     esc = ring.slaves[2].esc
-    esc.difference_reversed = reversed_sign
+    esc.clock.difference_reversed = reversed_sign
     offset = struct.unpack_from("<Q", esc.mem, 0x0920)[0]
-    struct.pack_into("<Q", esc.mem, 0x0920, (offset - 250_000) % (1 << 64))
-    esc._update_dc()
+    esc.write(0x0920, struct.pack("<Q", (offset - 250_000) % (1 << 64)), 0, 8)
     assert clocks.set_clock(2, lambda j: True) is None
     written = [(value - offset + (1 << 63)) % (1 << 64) - (1 << 63) for value in offsets_written(hub, 2)]
     # the ESC that reads bit 31 the other way: the first correction doubles the difference, so it is turned round
     assert written == pytest.approx([1_400] if not reversed_sign else [-501_400, 1_400], abs=1)
-    assert esc.system_time(now_ns(ring)) == ring.slaves[0].esc.system_time(now_ns(ring))
+    assert esc.clock.system_time(now_ns(ring)) == ring.slaves[0].esc.clock.system_time(now_ns(ring))
 
 
 def test_a_clock_back_from_a_power_cycle_is_stepped_onto_the_reference_s_time_with_the_delay_measured_before():
@@ -80,19 +78,19 @@ def test_a_clock_back_from_a_power_cycle_is_stepped_onto_the_reference_s_time_wi
     (first, *_rest) = [frame for frame in hub.sent if frame[16] == 0x05 and frame[20:22] == b"\x20\x09"]
     assert struct.unpack_from("<H", first, 22)[0] & 0x7FF == 12  # offset and delay in one write, as IgH does
     assert struct.unpack_from("<I", first, 34)[0] == 2_100  # the delay config_dc measured for ring 3
-    assert esc.system_time(now_ns(ring)) == ring.slaves[0].esc.system_time(now_ns(ring))
+    assert esc.clock.system_time(now_ns(ring)) == ring.slaves[0].esc.clock.system_time(now_ns(ring))
 
 
 def test_the_reference_clock_is_set_to_the_time_of_a_slave_that_kept_its_clock():
     ring, _hub, clocks = make()
     restart_clock(ring.slaves[0].esc, now_ns(ring))
     assert clocks.set_clock(0, lambda j: j != 0) is None
-    assert ring.slaves[0].esc.system_time(now_ns(ring)) == ring.slaves[1].esc.system_time(now_ns(ring))
+    assert ring.slaves[0].esc.clock.system_time(now_ns(ring)) == ring.slaves[1].esc.clock.system_time(now_ns(ring))
 
 
 def test_a_clock_that_will_not_come_into_step_says_so():
     ring, _hub, clocks = make()
-    ring.slaves[1].esc.difference_error_ns = 50_000
+    ring.slaves[1].esc.clock.difference_error_ns = 50_000
     assert clocks.set_clock(1, lambda j: True) == (
         "its clock did not come into step with the ring's: 50000 ns off after 4 corrections (SYNC0 needs it within "
         "10000 ns)")
@@ -102,6 +100,6 @@ def test_sync0_is_armed_on_a_cycle_boundary_at_least_100_ms_ahead_of_the_slave_s
     ring, _hub, clocks = make()
     esc = ring.slaves[1].esc
     clocks.arm_sync0(1, CYCLE_NS)
-    start = esc.sync0_start_ns
-    assert esc.sync_activation == 0x03 and esc.sync0_cycle_ns == CYCLE_NS
-    assert start % CYCLE_NS == 0 and 100_000_000 <= start - esc.system_time(now_ns(ring)) <= 110_000_000
+    start = esc.clock.sync0_start_ns
+    assert esc.clock.activation == 0x03 and esc.clock.sync0_cycle_ns == CYCLE_NS
+    assert start % CYCLE_NS == 0 and 100_000_000 <= start - esc.clock.system_time(now_ns(ring)) <= 110_000_000

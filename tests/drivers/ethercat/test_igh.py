@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from doubles.igh import FakeIgh
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoError, SdoRefused
 from humanoid_prime.drivers.ethercat.igh import IghSdo, parse_upload
-from humanoid_prime.drivers.ethercat.master import RingError, SdoError, SdoRefused
 
 
 @pytest.fixture

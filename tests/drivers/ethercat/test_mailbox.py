@@ -11,10 +11,10 @@ import pytest
 from doubles.link import EmulatedClock, RingHub
 from doubles.wire import MAILBOX_IN, MAILBOX_OUT, STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.objects import RATED_TORQUE, TXPDO_MAP
-from humanoid_prime.drivers.ethercat.errors import SdoError
+from humanoid_prime.drivers.ethercat.errors import SdoError, SdoTimeout
 from humanoid_prime.drivers.ethercat.link import FIRST_INDEX, Channel
 from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
-from humanoid_prime.virtual.ring.mailbox import mailbox_message
+from humanoid_prime.drivers.ethercat.wire import mailbox_message
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
 
@@ -80,8 +80,9 @@ def test_a_reply_that_came_after_its_request_was_given_up_on_is_not_the_answer_t
         mailbox.upload(RATED_TORQUE, 0, timeout_s=0.010)
     hub.clock.sleep(0.030)  # the late reply waits in the read mailbox now
     assert mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.1) == struct.pack("<I", 0x5A65726F)
-    (dropped,) = mailbox.dropped
-    assert "an upload reply for 0x6076:00" in dropped.what
+    (dropped,) = mailbox.log.records
+    assert dropped.reason == "late" and "an upload reply for 0x6076:00" in dropped.what
+    assert 0.030 <= dropped.late_s <= 0.045  # from the request it answers
 
 
 def test_a_late_write_reply_is_not_read_as_an_empty_value_of_the_same_object():
@@ -92,7 +93,7 @@ def test_a_late_write_reply_is_not_read_as_an_empty_value_of_the_same_object():
         mailbox.download(TXPDO_MAP, 0, b"\x00", timeout_s=0.010)
     assert mailbox.upload(TXPDO_MAP, 0, timeout_s=0.1) == b"\x00"  # the value, not the late "written"
     assert mailbox.upload(TXPDO_MAP, 1, timeout_s=0.1) == struct.pack("<I", 0x60640020)
-    assert "a download reply for 0x1A00:00" in mailbox.dropped[0].what
+    assert mailbox.log.records[0].reason == "late" and "a download reply for 0x1A00:00" in mailbox.log.records[0].what
 
 
 def test_a_reply_read_out_but_lost_on_its_way_back_is_asked_for_again_never_by_a_syncmanager_write():
@@ -120,16 +121,41 @@ def test_a_reply_held_back_by_a_slow_host_is_waited_for_within_the_timeout():
     assert mailbox.requests_again == 0
 
 
-def test_the_first_request_after_another_master_used_the_mailbox_carries_counter_0_and_none_carries_1():
+def test_a_reply_that_never_comes_is_told_from_a_host_too_slow_to_look_for_it():
+    ring, hub, mailbox = make(mailbox_latency_s=0.0005)
+    ring.latency.script(2, 1.0)
+    with pytest.raises(SdoTimeout) as error:
+        mailbox.upload(RATED_TORQUE, 0, timeout_s=0.1)
+    assert error.value.delivered and error.value.looks > 10 and not error.value.host_slow
+    assert error.value.verdict == "the drive did not answer"
+    mailbox.sleep = lambda _s: hub.clock.sleep(0.040)  # every pause between two looks lasts 40 ms: a loaded host
+    with pytest.raises(SdoTimeout) as error:
+        mailbox.upload(RATED_TORQUE, 0, timeout_s=0.1)
+    assert error.value.host_slow and error.value.verdict == "this host did not look in time"
+    assert "this process went 40 ms without a look (a loaded host)" in error.value.problem
+
+
+def request_counters(hub: RingHub) -> list[int]:
+    """The mailbox counter of every request we wrote (the FPWR after the flush in each request frame)."""
+    return [frame[16 + 10 + 128 + 2 + 10 + 5] >> 4 for frame in hub.sent
+            if len(frame) > 200 and frame[16 + 10 + 128 + 2] == 0x05]
+
+
+def test_requests_count_from_0_after_a_reset_then_1_to_7_and_round_again():
     _ring, hub, mailbox = make()
-    mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.1)
-    mailbox.shared()
-    for _ in range(8):
+    for _ in range(9):
         mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.1)
-    counters = [frame[16 + 10 + 128 + 2 + 10 + 5] >> 4 for frame in hub.sent
-                if len(frame) > 200 and frame[16 + 10 + 128 + 2] == 0x05]  # the FPWR after the flush
-    assert counters[:2] == [0, 0] and 1 not in counters
-    assert all(a != b for a, b in zip(counters[1:], counters[2:], strict=False))
+    mailbox.reset_counter()  # another master used the mailbox (or is about to)
+    mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.1)
+    assert request_counters(hub) == [0, 1, 2, 3, 4, 5, 6, 7, 1, 0]
+
+
+def test_replies_that_repeat_the_last_reply_s_counter_are_each_taken():
+    # the slave's counter is its own sequence (ETG.1000.4): two replies in a row with one counter are two replies
+    _ring, _hub, mailbox = make(quirks="counter")
+    values = [mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.1) for _ in range(4)]
+    assert values == [struct.pack("<I", 0x5A65726F)] * 4
+    assert mailbox.log.snapshot() == {"late": 0, "other object": 0, "unrecognised": 0, "malformed": 0}
 
 
 def test_a_slave_that_repeats_the_counter_of_the_last_request_does_not_serve_it_again():

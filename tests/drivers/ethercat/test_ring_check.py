@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from doubles.master import FakeMaster, erob_ring
-from humanoid_prime.drivers.ethercat.master import RingError, SlaveInfo, check_ring, expected_ring
+from humanoid_prime.drivers.ethercat.errors import RingError
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo, check_ring, expected_ring
 
 
 def test_the_bundled_ring_expects_ten_erob_with_wrist_yaw_at_positions_4_and_9(robot):

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
-import os
-import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -16,12 +15,15 @@ from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
-from humanoid_prime.drivers.ethercat import soem_master
-from humanoid_prime.drivers.ethercat.master import SdoRefused, expected_ring
-from humanoid_prime.drivers.ethercat.sdo import SizedSdo
-from humanoid_prime.drivers.ethercat.soem_master import SoemMaster, packet_sockets, threaded_receive
+from humanoid_prime.drivers.ethercat.errors import SdoError, SdoRefused
+from humanoid_prime.drivers.ethercat.link import Channel, SocketWire
+from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
+from humanoid_prime.drivers.ethercat.ring import expected_ring
+from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
+from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
+from humanoid_prime.virtual.ring.firmware import MAILBOX_IN_START, MAILBOX_OUT_START
 
 REASON = netns_unavailable_reason()
 pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"no emulated ring: {REASON}")]
@@ -96,76 +98,20 @@ def test_ten_emulated_erob_reach_op_and_operation_enabled(system, ring):
     assert system.master.expected_wkc == 30
 
 
-def test_soems_socket_is_slept_on_through_bring_up_and_polled_only_when_asked(system, ring):
-    """Polling is for a real-time owner of the cycle; bring-up runs at normal priority and sleeps in recv."""
+def test_soem_drops_prime_s_replies_in_its_socket_and_reads_it_before_they_could_fill_it(system, ring):
+    """SOEM's socket gets a copy of every reply to Prime's frames; SOEM drops them when it reads its socket, and the
+    master has it read before QUEUE_LIMIT of them queue there: no cycle frame is lost to a full queue."""
     master = system.master
-    fd = master.soem_socket
-    assert fd in packet_sockets(ring.master_interface)
-    assert os.get_blocking(fd)
-    assert master.poll_frames(True)
-    assert not os.get_blocking(fd)
-    assert master.exchange() == master.expected_wkc  # a polled receive still collects its frame
-    assert not master.poll_frames(False)
-    assert os.get_blocking(fd)
-
-
-def test_a_master_that_cannot_tell_soems_socket_from_another_never_polls(robot, ring, monkeypatch):
-    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as other:
-        other.bind((ring.master_interface, 0x88A4))
-        looks = []
-
-        def found(interface: str) -> set[int]:  # the first look, before SOEM opens, misses ``other``
-            looks.append(interface)
-            return set() if len(looks) == 1 else packet_sockets(interface)
-
-        monkeypatch.setattr(soem_master, "packet_sockets", found)
-        master = make_system(robot, ring).master
-        master.open()
-        try:
-            assert len(looks) == 2
-            assert not master.poll_frames(True)
-            assert os.get_blocking(other.fileno())
-        finally:
-            master.close()
-
-
-def test_a_master_whose_nic_delivers_frames_from_a_kernel_thread_never_polls(system, ring):
-    fd = system.master.soem_socket
-    system.master.threaded_receive = "a PREEMPT_RT kernel runs the NIC's interrupts in threads"
-    assert not system.master.poll_frames(True)
-    assert os.get_blocking(fd)
-
-
-def kernel_files(root, *, realtime: str | None = None, cmdline: str = "quiet", threaded: str | None = None):
-    (root / "proc").mkdir()
-    (root / "proc/cmdline").write_text(cmdline + "\n")
-    if realtime is not None:
-        (root / "sys/kernel").mkdir(parents=True)
-        (root / "sys/kernel/realtime").write_text(realtime + "\n")
-    if threaded is not None:
-        (root / "sys/class/net/eth1").mkdir(parents=True)
-        (root / "sys/class/net/eth1/threaded").write_text(threaded + "\n")
-    return root
-
-
-@pytest.mark.parametrize(("version", "files", "why"), [
-    ("#1 SMP PREEMPT_DYNAMIC", {}, None),
-    ("#1 SMP PREEMPT_DYNAMIC", {"realtime": "0", "threaded": "0"}, None),
-    ("#1 SMP PREEMPT_RT Debian 6.1.0-rt", {}, "a PREEMPT_RT kernel runs the NIC's interrupts in threads"),
-    ("#1 SMP PREEMPT", {"realtime": "1"}, "a PREEMPT_RT kernel runs the NIC's interrupts in threads"),
-    ("#1 SMP PREEMPT", {"cmdline": "quiet threadirqs"}, "the kernel was booted with threadirqs"),
-    ("#1 SMP PREEMPT", {"threaded": "1"}, "eth1 runs NAPI in a kernel thread"),
-])
-def test_frames_come_through_a_kernel_thread_on_rt_kernels_threadirqs_and_threaded_napi(tmp_path, version, files,
-                                                                                         why):
-    assert threaded_receive("eth1", kernel_version=version, root=kernel_files(tmp_path, **files)) == why
-
-
-def test_packet_sockets_are_found_by_the_interface_they_are_bound_to(ring):
-    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4)) as bound:
-        bound.bind((ring.master_interface, 0x88A4))
-        assert packet_sockets(ring.master_interface) == {bound.fileno()}
-        assert packet_sockets("lo") == set()
+    with Loop(system, 10) as loop:
+        wait_for(lambda: loop.ticks >= 5, what="the loop ticking")
+        before, drains = system.wkc_errors, master.queue.drains
+        with ThreadPoolExecutor(10) as pool:
+            list(pool.map(lambda k: [master.sdo_read(k, ERROR_CODE, 0) for _ in range(30)], range(10)))
+        ticks = loop.ticks
+        wait_for(lambda: loop.ticks >= ticks + 5, what="more ticks")
+    assert master.queue.drains > drains  # 300 transfers, several frames each: SOEM was made to read its socket
+    assert system.wkc_errors == before
+    assert master.mailbox_drops() == {"late": 0, "other object": 0, "unrecognised": 0, "malformed": 0}
 
 
 def test_each_joint_commands_and_reads_its_own_ring_position(system, ring, robot):
@@ -235,25 +181,34 @@ def test_an_sdo_before_op_is_refused_by_the_master(robot, ring):
     assert [s["mailbox_faults"] for s in ring.control.status()] == [0] * 10
 
 
-def test_an_sdo_forced_during_activation_faults_the_drive_with_0xa000(robot, ring):
-    master = SoemMaster(ring.master_interface, update_rate=UPDATE_RATE, bringup_rate=1000.0)
-    cycles = []
-
-    def sdo_during_activation(m: SoemMaster) -> None:
-        cycles.append(1)
-        if len(cycles) == 20:  # SAFE-OP, SYNC0 armed, DC not locked: the activation phase
-            m.sdo_read(2, ERROR_CODE, 0, unsafe_before_op=True)
-
-    with master:
-        master.start(expected_ring(robot.hardware.erob_slaves), on_cycle=sdo_during_activation)
-        for _ in range(3):  # the drive reports CSP (bit 12 of 4616) once it has seen mode 8 in OP
-            master.exchange()
-        slave = ring.control.slave(2)
-        assert slave["mailbox_faults"] == 1
-        assert slave["drive"]["error_code"] == 0xA000
-        assert int(master.inputs["statusword"][2]) == 4616
-        assert int(master.inputs["error_code"][2]) == 0xA000
-        assert [s["mailbox_faults"] for s in ring.control.status() if s["position"] != 2] == [0] * 9
+def test_an_sdo_during_dc_activation_faults_the_drive_with_0xa000(robot):
+    """The reason the master refuses SDOs before OP: another master's request, straight into a drive's mailbox while
+    its DC locks, faults it with 0xA000."""
+    with EmulatedRing(slaves=10, dc_lock_cycles=3000) as ring:  # 3 s at 1 kHz to lock: a wide window
+        master = SoemMaster(ring.master_interface, update_rate=UPDATE_RATE, bringup_rate=1000.0)
+        with master:
+            bringup = threading.Thread(target=master.start, args=(expected_ring(robot.hardware.erob_slaves),))
+            bringup.start()
+            wait_for(lambda: (slave := ring.control.slave(2))["al_state"] == "SAFE-OP" and slave["dc"]["sync0_running"],
+                     timeout_s=20, what="SYNC0 running on ring 2 in SAFE-OP")
+            other = Channel(SocketWire(ring.master_interface, 0xF8, 0xFF), range(0xF8, 0x100))
+            try:
+                mailbox = CoeMailbox(other, 2, 0x1003, MailboxLayout(MAILBOX_OUT_START, 128, MAILBOX_IN_START, 128))
+                with contextlib.suppress(SdoError):
+                    mailbox.upload(ERROR_CODE, 0, 0.1)
+            finally:
+                other.close()
+            bringup.join(30)
+            for _ in range(200):  # the drive reports CSP (bit 12 of 4616) once it has seen mode 8 in OP
+                master.exchange()
+                if int(master.inputs["statusword"][2]) == 4616:
+                    break
+            slave = ring.control.slave(2)
+            assert slave["mailbox_faults"] == 1
+            assert slave["drive"]["error_code"] == 0xA000
+            assert int(master.inputs["statusword"][2]) == 4616
+            assert int(master.inputs["error_code"][2]) == 0xA000
+            assert [s["mailbox_faults"] for s in ring.control.status() if s["position"] != 2] == [0] * 9
 
 
 def test_a_sync0_that_differs_from_the_loop_is_refused_before_the_ring_is_touched(ring):
@@ -357,7 +312,7 @@ def test_a_reference_clock_back_from_a_power_cycle_is_set_to_the_ring_s_time_aga
         wait_for(lambda: "ethercat/wkc" in system.flags, what="working-counter flag")
         assert system.flags["ethercat/wkc"].startswith("no EtherCAT drive answered")
         assert "the power of ring 0 (left_shoulder_pitch)" in system.flags["ethercat/wkc"]
-        wait_for(lambda: ring.control.slave(9)["al_state"] == "SAFEOP", what="the others' watchdogs ran out")
+        wait_for(lambda: ring.control.slave(9)["al_state"] == "SAFE-OP", what="the others' watchdogs ran out")
         ring.control.restore_slave(0)
         try:
             wait_for(all_in_op, timeout_s=20.0, what="the whole ring back in OP")

@@ -19,9 +19,9 @@ from doubles.link import EmulatedClock, RingHub
 from doubles.soem import FakeSoemMaster
 from humanoid_prime.drivers.erob.objects import MAPPING_WRITES, RATED_TORQUE, RXPDO, TXPDO
 from humanoid_prime.drivers.ethercat.errors import RingError
-from humanoid_prime.drivers.ethercat.master import expected_ring
+from humanoid_prime.drivers.ethercat.ring import expected_ring
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
-from humanoid_prime.virtual.ring.firmware import AlState
+from humanoid_prime.drivers.ethercat.wire import AL_STATE_NAMES, AlState
 from humanoid_prime.virtual.ring.od import SdoAbort
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
@@ -40,7 +40,8 @@ class Rig:
     def master(self, **options) -> SoemMaster:
         hub = self.hub
         return SoemMaster(INTERFACE, update_rate=100.0, bringup_rate=1000.0, clock=self.clock,
-                          sleep=self.clock.sleep, wire=lambda interface, indices: hub.port(indices), **options)
+                          sleep=self.clock.sleep, wire=lambda interface, indices: hub.port(indices),
+                          watch=lambda interface: hub.watch(), **options)
 
     def started(self, **options) -> SoemMaster:
         """A master in OP, its supervision thread stopped: passes run when the test asks (``check_ring``)."""
@@ -51,7 +52,7 @@ class Rig:
 
     def state(self, k: int) -> tuple[str, int]:
         slave = self.ring.slaves[k]
-        return AlState(slave.state).name, slave.esc.al_status_code
+        return AL_STATE_NAMES[slave.state], slave.esc.al_status_code
 
 
 @pytest.fixture
@@ -63,6 +64,7 @@ def rig(monkeypatch):
     FakeSoemMaster.ring = {INTERFACE: (hub, clock)}
     yield Rig(ring, hub, clock)
     FakeSoemMaster.ring = {}
+    FakeSoemMaster.misread = {}
 
 
 def mailbox_request(frame: bytes, k: int, index: int, sub: int) -> bool:
@@ -161,9 +163,9 @@ def test_a_drive_that_never_answers_its_mapping_fails_the_bring_up_after_fresh_a
     with master, pytest.raises(RingError) as error:
         master.start(EXPECTED)
     text = str(error.value)
-    assert text.startswith("configuring the EtherCAT ring on lo failed 3 times: attempt 1: mapping the PDOs failed: "
-                           "ring 6: PDO mapping write 0x1C12:00: no reply within 50 ms (mailbox timeout) (the drive "
-                           "did not answer)")
+    assert re.match(r"configuring the EtherCAT ring on lo failed 3 times: attempt 1: mapping the PDOs failed: ring 6: "
+                    r"PDO mapping write 0x1C12:00: no reply within 50 ms \(mailbox timeout; the request was delivered, "
+                    r"its read mailbox looked at \d+ times\) \(the drive did not answer\)", text), text
     assert text.count("the drive did not answer") == 3
 
 
@@ -332,8 +334,8 @@ def test_a_power_cycled_slave_s_clock_is_back_on_the_ring_s_time_before_sync0_st
         master.check_ring()
         slave, reference = rig.ring.slaves[5].esc, rig.ring.slaves[0].esc
         now = round(rig.clock.now * 1e9)
-        assert abs(slave.system_time(now) - reference.system_time(now)) < 10_000
-        assert slave.sync_activation == 0x03 and not master.recovery_problems
+        assert abs(slave.clock.system_time(now) - reference.clock.system_time(now)) < 10_000
+        assert slave.clock.activation == 0x03 and not master.recovery_problems
 
 
 def test_a_slow_state_change_is_polled_with_the_cycle_going_on(rig):
@@ -353,7 +355,7 @@ def test_a_slave_that_refuses_pre_op_is_not_waited_out(rig):
     with rig.started() as master:
         rig.ring.lose(7)
         rig.ring.restore(7)
-        rig.ring.slaves[7]._mailbox_config_ok = lambda: False  # it will refuse PRE-OP: 0x0016
+        rig.ring.slaves[7].refusals[AlState.PRE_OP] = 0x0016  # invalid mailbox configuration
         master.check_ring()
         began = rig.clock.now
         master.check_ring()
@@ -395,3 +397,53 @@ def wait_until(condition, what: str, timeout_s: float = 10.0) -> None:
         if time.monotonic() > deadline:
             raise AssertionError(f"{what} not reached within {timeout_s} s")
         time.sleep(0.005)
+
+
+# ---- SOEM's scan, and what Prime's frames beside SOEM's rest on ---------------------------------------------------
+def test_a_pysoem_other_than_the_tested_one_is_refused_in_one_line_before_the_nic_is_opened(rig, monkeypatch):
+    monkeypatch.setattr(pysoem, "__version__", "1.1.14")
+    master = rig.master()
+    with master, pytest.raises(RingError) as error:
+        master.open()
+    assert str(error.value) == (
+        "refusing the EtherCAT ring on lo: pysoem 1.1.14 is installed, but Prime's EtherCAT layer was verified against "
+        "pysoem 1.1.13 (the frame indices and mailbox use of the SOEM it bundles); install it with "
+        "`pip install pysoem==1.1.13`")
+    assert rig.hub.sent == []
+
+
+def test_a_soem_whose_frames_leave_its_16_indices_is_refused(rig, monkeypatch):
+    monkeypatch.setattr(FakeSoemMaster, "index_base", 0x40)
+    master = rig.master()
+    with master, pytest.raises(RingError, match=r"SOEM sent frames with index 0x40, 0x41, 0x42, 0x43 inside the range "
+                                                r"Prime keeps for its own frames, not 0..15"):
+        master.open()
+
+
+def test_an_identity_soem_failed_to_read_from_a_slow_eeprom_is_read_again_and_the_ring_scanned_again(rig):
+    FakeSoemMaster.misread = {3: 1}
+    rig.ring.options.quirks = "slow-sii"
+    with rig.started() as master:
+        (reason,) = master.scan_reasons
+        assert reason == ("scan 1: ring 3: SOEM read vendor 0x00000000 product 0x00000000 revision 0x00000001 from the "
+                          "SII, which holds vendor 0x5A65726F product 0x00029252 revision 0x00000001 (a failed or slow "
+                          "EEPROM read)")
+        assert master.slaves[3].is_erob
+
+
+def test_a_ring_found_changed_when_configured_again_says_which_slave_changed_and_how(rig):
+    rig.ring.latency.script(1, 5.0, position=6)  # ring 6's first mapping write goes unanswered: configured again
+    image = rig.ring.slaves[4].esc.eeprom.image
+    master = rig.master(sdo_timeout_s=0.05)
+
+    def swap_ring_4(frame: bytes, took_reply: bool) -> bool:  # once the first configuration has begun
+        if mailbox_request(frame, 6, 0x1C12, 0):
+            struct.pack_into("<I", image, 2 * 0x0A, 0x00012345)  # another device at ring 4 (its SII's product)
+        return False
+
+    rig.hub.lose_next(swap_ring_4)
+    with master, pytest.raises(RingError) as error:
+        master.start(EXPECTED)
+    assert str(error.value) == (
+        "the EtherCAT ring on lo changed while it was being configured again: ring 4 was vendor 0x5A65726F product "
+        "0x00029252 revision 0x00000001, now vendor 0x5A65726F product 0x00012345 revision 0x00000001")

@@ -15,18 +15,10 @@ from humanoid_prime.control.flags import Level
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, RATED_TORQUE_NM
 from humanoid_prime.drivers.ethercat._tick import layouts
-from humanoid_prime.drivers.ethercat.master import (
-    AL_ERROR,
-    AL_OP,
-    AL_PRE_OP,
-    AL_SAFE_OP,
-    OP_REQUEST_REPEAT_S,
-    RX_DTYPE,
-    TX_DTYPE,
-    EthercatMaster,
-    SdoRefused,
-)
+from humanoid_prime.drivers.ethercat.errors import SdoRefused
+from humanoid_prime.drivers.ethercat.master import OP_REQUEST_REPEAT_S, RX_DTYPE, TX_DTYPE, next_op_requests
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, AlState
 
 C = COUNTS_PER_RAD
 
@@ -291,22 +283,21 @@ def test_a_drive_fault_latches_until_the_operator_resets_it(rig):
 def test_a_reset_is_one_rising_edge_and_a_drive_whose_cause_persists_stays_latched(rig):
     rig.master.fault(3, 0x730F)
     rig.master.fault(5, 0x8500)
-    step = rig.master._step_drives
-    rig.master._step_drives = lambda cw: None  # the drives refuse the reset (the cause persists)
+    rig.master.drives_follow = False  # the drives refuse the reset (the cause persists)
     rig.tick()
     rig.system.reset_faults()
     controlwords = []
     for _ in range(4):
         rig.tick()
         controlwords.append((int(rig.master.sent["controlword"][3]), int(rig.master.sent["controlword"][5])))
-    rig.master._step_drives = step
+    rig.master.drives_follow = True
     assert controlwords == [(0x80, 0x80), (0x00, 0x00), (0x00, 0x00), (0x00, 0x00)]
     assert {int(rig.master.sent["controlword"][k]) for k in (0, 1, 2, 4)} == {0x0F}  # the others stay enabled
 
 
 def test_a_lost_slave_raises_a_flag_naming_the_joint_and_its_state(rig):
     rig.master.slave_ok[2] = False
-    rig.master.al_state[2] = AL_SAFE_OP | AL_ERROR
+    rig.master.al_state[2] = AlState.SAFE_OP | AL_ERROR
     rig.master.health_version += 1
     rig.tick()
     assert rig.system.flags["ethercat/ring2/lost"] == ("left_shoulder_yaw (ring 2): slave lost "
@@ -317,9 +308,21 @@ def test_a_lost_slave_raises_a_flag_naming_the_joint_and_its_state(rig):
     assert "ethercat/ring2/lost" not in rig.system.flags
 
 
+def test_a_lost_slave_s_flag_keeps_why_it_left_once_its_error_is_acknowledged(rig):
+    rig.master.slave_ok[2] = False
+    rig.master.left_op[2] += 1
+    rig.master.left_op_code[2] = 0x001A
+    rig.master.al_state[2] = AlState.SAFE_OP  # the recovery acknowledged the error: the flag and code are gone
+    rig.master.health_version += 1
+    rig.tick()
+    assert rig.system.flags["ethercat/ring2/lost"] == (
+        "left_shoulder_yaw (ring 2): slave lost (in SAFE-OP; it left OP with AL status 0x001A synchronization "
+        "error); recovering")
+
+
 def test_a_lost_slave_s_flag_says_why_its_recovery_cannot_go_on(rig):
     rig.master.slave_ok[2] = False
-    rig.master.al_state[2] = AL_SAFE_OP
+    rig.master.al_state[2] = AlState.SAFE_OP
     rig.master.recovery_problems[2] = "its clock did not come into step with the ring's: 50000 ns off"
     rig.master.health_version += 1
     rig.tick()
@@ -345,7 +348,7 @@ def test_a_deactivated_system_enables_again_without_a_second_bringup(rig):
 
 
 def test_a_ring_that_does_not_match_fails_configure_and_releases_the_master(robot, tmp_path):
-    from humanoid_prime.drivers.ethercat.master import RingError
+    from humanoid_prime.drivers.ethercat.errors import RingError
 
     r = Rig(robot, tmp_path, master=FakeMaster(erob_ring(9)))
     with pytest.raises(RingError, match="found 9 slaves, expected 10"):
@@ -405,34 +408,24 @@ def test_the_master_says_why_sdos_are_not_yet_allowed(robot, tmp_path, rig):
 def test_the_bring_up_loop_asks_a_waiting_slave_for_op_again_only_every_half_second():
     # every AL control write is a frame round trip the next cycle waits behind: asking ten waiting slaves every
     # 10 ms at 1 kHz delayed a frame past the drives' sync tolerance each time and kept restarting their DC lock
-    to_push = EthercatMaster._to_push
-    waiting = [(AL_SAFE_OP, 0)] * 3
+    to_push = next_op_requests
+    waiting = [(AlState.SAFE_OP, 0)] * 3
     asked = np.zeros(3)  # the broadcast OP request at t = 0
     assert to_push(waiting, asked, 0.01) == []
     assert to_push(waiting, asked, OP_REQUEST_REPEAT_S - 0.001) == []
-    assert to_push(waiting, asked, OP_REQUEST_REPEAT_S) == [(0, AL_SAFE_OP), (1, AL_SAFE_OP), (2, AL_SAFE_OP)]
+    assert to_push(waiting, asked, OP_REQUEST_REPEAT_S) == [(k, AlState.SAFE_OP) for k in range(3)]
     assert asked.tolist() == [OP_REQUEST_REPEAT_S] * 3
     # an error is acknowledged at once, and OP asked for at the next look, however recently it was asked before
-    states = [(AL_OP, 0), (AL_SAFE_OP | AL_ERROR, 0x001A), (AL_PRE_OP, 0)]
-    assert to_push(states, asked, 0.6) == [(1, AL_SAFE_OP | AL_ERROR)]
-    assert to_push([(AL_OP, 0), (AL_SAFE_OP, 0), (AL_PRE_OP, 0)], asked, 0.61) == [(1, AL_SAFE_OP)]
-    assert to_push([(AL_OP, 0), (AL_SAFE_OP, 0), (AL_PRE_OP, 0)], asked, 0.62) == []
-
-
-def test_the_unsafe_path_lets_an_sdo_through_before_op(robot, tmp_path):
-    r = Rig(robot, tmp_path)
-    r.system.configure()
-    r.master.sdo_write(0, 0x2383, 0, b"\x01", unsafe_before_op=True)
-    assert r.master.sdo_log == [("write", 0, 0x2383, 0)]
+    states = [(AlState.OP, 0), (AlState.SAFE_OP | AL_ERROR, 0x001A), (AlState.PRE_OP, 0)]
+    assert to_push(states, asked, 0.6) == [(1, AlState.SAFE_OP | AL_ERROR)]
+    assert to_push([(AlState.OP, 0), (AlState.SAFE_OP, 0), (AlState.PRE_OP, 0)], asked, 0.61) == [(1, AlState.SAFE_OP)]
+    assert to_push([(AlState.OP, 0), (AlState.SAFE_OP, 0), (AlState.PRE_OP, 0)], asked, 0.62) == []
 
 
 def test_read_and_write_keep_no_memory_per_tick(rig):
     rig.command.stiffness[:] = 20.0
     rig.command.position[:] = 0.1
     rig.tick()
-    rig.master._stop_keeping.set()
-    rig.master.send = lambda: None  # freeze the double itself: only the component's own work is measured
-    rig.master.receive = lambda: 30
     for _ in range(10):
         rig.tick()
     tracemalloc.start()
@@ -448,7 +441,7 @@ def test_read_and_write_keep_no_memory_per_tick(rig):
 
 def test_a_drive_that_never_enables_fails_activation_with_its_state(robot, tmp_path):
     master = FakeMaster()
-    master._step_drives = lambda cw: None  # drives ignore every controlword
+    master.drives_follow = False  # drives ignore every controlword
     r = Rig(robot, tmp_path, master=master)
     r.system.enable_timeout_s = 0.05
     r.system.configure()
@@ -674,14 +667,7 @@ def test_the_compiled_tick_refuses_a_process_image_of_another_layout(robot, tmp_
     before anything is written at the wrong offset."""
     narrow = np.dtype([(name, "<i2" if name == "position_actual" else TX_DTYPE.fields[name][0])
                        for name in TX_DTYPE.names])
-    r = Rig(robot, tmp_path)
-    configure_ring = r.master._configure
-
-    def inputs_with_a_16_bit_position():
-        configure_ring()
-        r.master.inputs = np.zeros(len(r.master.inputs), narrow)
-
-    r.master._configure = inputs_with_a_16_bit_position
+    r = Rig(robot, tmp_path, master=FakeMaster(input_dtype=narrow))
     r.system.configure()
     with pytest.raises(ValueError, match="dtype mismatch"):
         r.system.activate()

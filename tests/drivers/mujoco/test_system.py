@@ -7,8 +7,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from humanoid_prime.config.model import MODEL_FILE, load_model
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
-from humanoid_prime.drivers.mujoco.system import MODEL_FILE, MujocoSystem, load_model
+from humanoid_prime.drivers.mujoco.system import MujocoSystem
 from humanoid_prime.errors import ConfigError, PrimeError
 from humanoid_prime.files import bundled
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import gc
 import math
 
 import can
@@ -109,3 +110,11 @@ def test_open_bus_takes_interface_and_channel_overrides(robot):
         assert bus.channel_info == "Virtual bus channel sito-open-bus-test"
     finally:
         bus.shutdown()
+
+
+def test_a_bus_whose_constructor_fails_is_shut_down_not_left_to_its_finaliser(robot, caplog):
+    # udp_multicast opens its socket after python-can's base counted the bus open; an unknown group fails there
+    with pytest.raises(PrimeError, match="cannot open CAN channel 'notanip' \\(udp_multicast\\)"):
+        open_bus(robot.hardware, interface="udp_multicast", channel="notanip")
+    gc.collect()
+    assert "not properly shut down" not in caplog.text

@@ -28,6 +28,7 @@ from humanoid_prime.drivers.sito.protocol import (
     current_mA_to_torque,
     firmware_to_kd,
     firmware_to_kp,
+    framing_problem,
     kd_to_firmware,
     kp_to_firmware,
     pack,
@@ -157,6 +158,22 @@ def test_parse_feedback2():
 def test_parse_refuses_wrong_length():
     with pytest.raises(InvalidFrame, match="5 data bytes"):
         parse(0xB2, bytes(5))
+
+
+@pytest.mark.parametrize("length, kind, says", [
+    (3, {}, "3 data bytes, every Sito frame has 8"),
+    (64, {"fd": True}, "a CAN FD frame"),
+    (8, {"fd": True}, "a CAN FD frame"),
+    (0, {"remote": True}, "a remote frame"),
+])
+def test_a_frame_that_is_no_classic_8_byte_data_frame_is_invalid_whatever_its_type(length, kind, says):
+    assert framing_problem(length, **kind).startswith(says)
+    with pytest.raises(InvalidFrame, match=says):
+        parse(0xB2, bytes(length), **kind)
+
+
+def test_a_classic_8_byte_data_frame_is_left_to_its_type_to_judge():
+    assert framing_problem(8) is None
 
 
 @pytest.mark.parametrize("frame_type", [0xB0, 0xB3])

@@ -9,6 +9,7 @@ import pytest
 
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.gains import gains_to_registers
+from humanoid_prime.drivers.ethercat.wire import ABORT_LENGTH
 from humanoid_prime.virtual.plant import InertiaPlant
 from humanoid_prime.virtual.ring.drive import (
     ERROR_COMMUNICATION,
@@ -18,7 +19,7 @@ from humanoid_prime.virtual.ring.drive import (
     Cia402State,
     ErobDrive,
 )
-from humanoid_prime.virtual.ring.od import ABORT_LENGTH, SdoAbort
+from humanoid_prime.virtual.ring.od import SdoAbort
 
 
 def command(drive: ErobDrive, controlword: int, mode: int = 8) -> None:

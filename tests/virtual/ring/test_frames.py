@@ -4,14 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from humanoid_prime.virtual.ring.frames import (
-    Command,
-    Datagram,
-    FrameError,
-    build_frame,
-    iter_datagrams,
-    parse_frame,
-)
+from humanoid_prime.drivers.ethercat.wire import Command
+from humanoid_prime.virtual.ring.frames import Datagram, FrameError, build_frame, iter_datagrams, parse_frame
 
 # A frame as SOEM sends it for ecx_BRD(port, 0x0000, ECT_REG_TYPE, 2, ...): broadcast destination,
 # source 01:01:01:01:01:01, EtherType 88A4, EtherCAT header 0x100E (type 1, 14 bytes), BRD index 5.

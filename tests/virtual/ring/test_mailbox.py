@@ -6,9 +6,7 @@ import struct
 
 import pytest
 
-from humanoid_prime.virtual.ring.drive import FACTORY_POS_REG, ErobDrive
-from humanoid_prime.virtual.ring.mailbox import CoeServer, mailbox_message, sdo_abort_code
-from humanoid_prime.virtual.ring.od import (
+from humanoid_prime.drivers.ethercat.wire import (
     ABORT_LENGTH,
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,
@@ -16,9 +14,11 @@ from humanoid_prime.virtual.ring.od import (
     ABORT_TOGGLE,
     ABORT_UNSUPPORTED_ACCESS,
     ABORT_VALUE_RANGE,
-    READ_ONLY,
-    Entry,
+    mailbox_message,
 )
+from humanoid_prime.virtual.ring.drive import FACTORY_POS_REG, ErobDrive
+from humanoid_prime.virtual.ring.mailbox import CoeServer, sdo_abort_code
+from humanoid_prime.virtual.ring.od import READ_ONLY, Entry
 
 LONG_TEXT = "".join(chr(ord("a") + i % 26) for i in range(300))
 MAILBOX = 128

@@ -10,7 +10,8 @@ import pytest
 from doubles.wire import STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import POWER_UP_RXPDO, POWER_UP_TXPDO, RXPDO_STRUCT, TXPDO_STRUCT
-from humanoid_prime.virtual.ring.frames import Command, Datagram, build_frame, parse_frame
+from humanoid_prime.drivers.ethercat.wire import Command
+from humanoid_prime.virtual.ring.frames import Datagram, build_frame, parse_frame
 from humanoid_prime.virtual.ring.mailbox import sdo_abort_code
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring

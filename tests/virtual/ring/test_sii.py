@@ -8,6 +8,7 @@ import pytest
 
 from humanoid_prime.drivers.erob.constants import PRODUCT_CODE, VENDOR_ID
 from humanoid_prime.drivers.erob.objects import POWER_UP_RXPDO, POWER_UP_TXPDO
+from humanoid_prime.drivers.ethercat.wire import COE_DETAIL_COMPLETE_ACCESS, COE_DETAIL_SDO, MAILBOX_PROTOCOL_COE
 from humanoid_prime.virtual.ring import sii
 from humanoid_prime.virtual.ring.firmware import sii_content
 from humanoid_prime.virtual.ring.options import RingOptions
@@ -29,7 +30,7 @@ def test_identity_words_carry_the_erob_vendor_and_product(image):
 
 
 def test_mailbox_words_give_offsets_and_sizes_and_coe(image):
-    assert struct.unpack_from("<HHHHH", image, 2 * 0x18) == (0x1000, 128, 0x1080, 128, sii.MAILBOX_PROTOCOL_COE)
+    assert struct.unpack_from("<HHHHH", image, 2 * 0x18) == (0x1000, 128, 0x1080, 128, MAILBOX_PROTOCOL_COE)
 
 
 def test_header_checksum_is_crc8_of_words_0_to_6(image):
@@ -50,8 +51,8 @@ def test_string_one_is_the_slave_name(image):
 def test_general_category_does_not_advertise_complete_access(image):
     general = sii.find_category(image, sii.CATEGORY_GENERAL)
     coe_details = general[5]
-    assert coe_details & sii.COE_DETAIL_SDO
-    assert not coe_details & sii.COE_DETAIL_COMPLETE_ACCESS
+    assert coe_details & COE_DETAIL_SDO
+    assert not coe_details & COE_DETAIL_COMPLETE_ACCESS
     assert not general[11] & 0x02  # LRW allowed
 
 

@@ -26,6 +26,8 @@ from types import ModuleType
 from typing import Any, Protocol
 
 from humanoid_prime.control.manager import ControllerManager
+from humanoid_prime.modes import Mode
+from humanoid_prime.runtime.switching import SwitchAnswer
 
 Summary = Callable[[], dict[str, Any]]
 
@@ -37,6 +39,8 @@ class Run:
     manager: ControllerManager
     report: Callable[[str], None]  # a startup line ("view: URL"), where the command prints them
     request_mode: Callable[[str], Any] | None = None  # an operator's mode request (None: the manager's own)
+    switch: Callable[[Mode, float], SwitchAnswer] | None = None  # a switch followed to its outcome (None: the
+    # manager's own, as runtime.switching.mode_switcher makes it)
     epoch_offset: float = 0.0  # added to the loop's monotonic stamps for the system clock, as on the robot
     sim_clock: bool = False  # stamps are simulated time, published on /clock for ROS 2's use_sim_time
     wait: bool = False  # no real-time deadline (--fast): a writer makes the loop wait rather than drop a tick

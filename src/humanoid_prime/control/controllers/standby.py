@@ -1,5 +1,6 @@
 """STANDBY: hold a named pose with kp 20, kd 2 (DESIGN §2), reached by a smooth trajectory that starts
-at the pose measured on entry, so entering from a moving or limp arm never steps the target."""
+at the pose measured on entry, so entering from a moving or limp arm never steps the target. The trajectory is a
+straight line in joint space, planned on entry (``planned``): the gate checks it against the body once, then."""
 
 from __future__ import annotations
 
@@ -54,6 +55,9 @@ class StandbyController(Controller):
         capture_position(self.names, state, self.start, "cannot start the trajectory: ")
         np.subtract(self.poses[self.pose], self.start, out=self.delta)
         self.t0 = now
+
+    def planned(self) -> tuple[npt.NDArray[np.float64], float]:
+        return np.stack((self.start, self.poses[self.pose])), self.kp
 
     def update(self, now: float, dt: float, state: StateArrays, command: CommandArrays) -> None:
         blend, rate = min_jerk((now - self.t0) / self.duration)

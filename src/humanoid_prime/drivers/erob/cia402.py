@@ -1,4 +1,4 @@
-"""CiA402 drive states, controlword commands, eRob error codes and EtherCAT AL status (DESIGN §2).
+"""CiA402 drive states, controlword commands and eRob error codes (DESIGN §2).
 
 Decoding only; no bus access. Every lookup answers for any integer: an unknown code is named as unknown,
 never an exception.
@@ -87,67 +87,6 @@ ERROR_HINTS: dict[int, str] = {
     0x730F: "replace the multi-turn encoder battery, then clear the latched error",
 }
 
-# EtherCAT AL status codes (register 0x0134), as the EtherCAT specification and SOEM name them.
-AL_STATUS_CODES: dict[int, str] = {
-    0x0000: "no error",
-    0x0001: "unspecified error",
-    0x0002: "no memory",
-    0x0011: "invalid requested state change",
-    0x0012: "unknown requested state",
-    0x0013: "bootstrap not supported",
-    0x0014: "no valid firmware",
-    0x0015: "invalid mailbox configuration (bootstrap)",
-    0x0016: "invalid mailbox configuration",
-    0x0017: "invalid sync manager configuration",
-    0x0018: "no valid inputs available",
-    0x0019: "no valid outputs",
-    0x001A: "synchronization error",
-    0x001B: "sync manager watchdog",
-    0x001C: "invalid sync manager types",
-    0x001D: "invalid output configuration",
-    0x001E: "invalid input configuration",
-    0x001F: "invalid watchdog configuration",
-    0x0020: "slave needs cold start",
-    0x0021: "slave needs INIT",
-    0x0022: "slave needs PRE-OP",
-    0x0023: "slave needs SAFE-OP",
-    0x0024: "invalid input mapping",
-    0x0025: "invalid output mapping",
-    0x0026: "inconsistent settings",
-    0x0027: "free run not supported",
-    0x0028: "synchronization not supported",
-    0x0029: "free run needs 3-buffer mode",
-    0x002A: "background watchdog",
-    0x002B: "no valid inputs and outputs",
-    0x002C: "fatal sync error",
-    0x002D: "no sync error",
-    0x002E: "invalid input FMMU configuration",
-    0x0030: "invalid DC SYNC configuration",
-    0x0031: "invalid DC latch configuration",
-    0x0032: "PLL error",
-    0x0033: "DC sync IO error",
-    0x0034: "DC sync timeout error",
-    0x0035: "DC invalid sync cycle time",
-    0x0036: "DC invalid SYNC0 cycle time",
-    0x0037: "DC invalid SYNC1 cycle time",
-    0x0041: "mailbox AoE error",
-    0x0042: "mailbox EoE error",
-    0x0043: "mailbox CoE error",
-    0x0044: "mailbox FoE error",
-    0x0045: "mailbox SoE error",
-    0x004F: "mailbox VoE error",
-    0x0050: "EEPROM no access",
-    0x0051: "EEPROM error",
-    0x0060: "slave restarted locally",
-    0x0061: "device identification value updated",
-    0x00F0: "application controller available",
-}
-
-# EtherCAT AL states (low nibble of register 0x0130) and the error indication flag.
-AL_STATES: dict[int, str] = {1: "INIT", 2: "PRE-OP", 3: "BOOT", 4: "SAFE-OP", 8: "OP"}
-AL_ERROR_FLAG = 0x10
-
-
 def drive_state(statusword: int) -> DriveState:
     """The CiA402 state a statusword reports (UNDEFINED for a bit pattern no state has)."""
     for mask, value, state in _STATE_PATTERNS:
@@ -181,14 +120,3 @@ def enable_step(statusword: int) -> int:
 def describe_error(code: int) -> str:
     """Meaning of an eRob error code (0x603F); unknown codes are named as such."""
     return ERROR_CODES.get(code, f"unknown eRob error 0x{code:04X}")
-
-
-def describe_al_status_code(code: int) -> str:
-    """Meaning of an EtherCAT AL status code (0x0134); unknown codes are named as such."""
-    return AL_STATUS_CODES.get(code, f"unknown AL status code 0x{code:04X}")
-
-
-def describe_al_state(state: int) -> str:
-    """Name of an AL state register value, e.g. 0x14 -> 'SAFE-OP + ERROR'."""
-    name = AL_STATES.get(state & 0x0F, f"unknown state 0x{state & 0x0F:X}")
-    return f"{name} + ERROR" if state & AL_ERROR_FLAG else name

@@ -24,6 +24,8 @@ TORQUE_OFFSET = 0x60B2
 ERROR_CODE = 0x603F
 ERROR_HISTORY = 0x1003
 FOLLOWING_ERROR_WINDOW = 0x6065
+# CiA402 max torque, u16 per mille of 0x6076. ZeroErr's EDS V1.5 does not list it: a host probes for it.
+MAX_TORQUE = 0x6072
 DIGITAL_INPUTS = 0x60FD
 # a VAR, mapped as 0x60FE:00: the drive's own dictionary as SOEM's slaveinfo lists it (0x1600 = 607A0020 60FE0020
 # 60400010 in a public ZeroErr CSP example), and the public IgH eRob example maps 0x60FE, 0

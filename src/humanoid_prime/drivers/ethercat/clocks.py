@@ -13,26 +13,24 @@ import struct
 from collections.abc import Callable, Sequence
 
 from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
+from humanoid_prime.drivers.ethercat.wire import (
+    DC_CYCLIC_SYNC0,
+    DC_DIFFERENCE_MASK,
+    DC_LOCAL_SMALLER,
+    REG_DC_ACTIVATION,
+    REG_DC_CYCLE_UNIT,
+    REG_DC_DIFFERENCE,
+    REG_DC_OFFSET,
+    REG_DC_SPEED_START,
+    REG_DC_SYNC0_CYCLE,
+    REG_DC_SYNC0_START,
+    REG_DC_SYSTEM_TIME,
+)
 
-# Distributed clock registers (ETG.1000.4): the system time, its offset (u64) and the propagation delay (u32) after
-# it, the difference to the reference clock's time the frames bring (0x092C: received minus local in bits 0-30,
-# bit 31 set when the local copy is the smaller), the speed counter start (0x0930: a write resets the difference's
-# filter, ESC datasheet section I 9.1.3.6), cycle unit control, activation, SYNC0 start time and cycle time
-REG_DC_SYSTEM_TIME = 0x0910
-REG_DC_OFFSET = 0x0920
-REG_DC_DELAY = 0x0928
-REG_DC_DIFFERENCE = 0x092C
-REG_DC_SPEED_START = 0x0930
-REG_DC_CYCLE_UNIT = 0x0980
-REG_DC_ACTIVATION = 0x0981
-REG_DC_SYNC0_START = 0x0990
-REG_DC_SYNC0_CYCLE = 0x09A0
-DC_LOCAL_SMALLER = 0x80000000
-DC_DIFFERENCE_SATURATED = 0x7FFFFFFF
-DC_STEP_NS = 1_000_000  # a clock further off than this gets a new offset at once (IgH's EC_SYSTEM_TIME_TOLERANCE_NS)
-DC_SYNC_WINDOW_NS = 10_000  # in step with the ring (IgH waits for this before starting SYNC0: EC_DC_MAX_SYNC_DIFF_NS)
-DC_FILTER_FRAMES = 16  # time distributions to let through after a filter reset before the difference is read
-DC_CORRECTIONS = 4  # offset corrections by the measured difference before a clock counts as not coming into step
+CLOCK_STEP_NS = 1_000_000  # a clock further off than this gets a new offset at once (IgH's EC_SYSTEM_TIME_TOLERANCE_NS)
+CLOCK_SYNC_WINDOW_NS = 10_000  # in step with the ring (IgH waits for it before starting SYNC0: EC_DC_MAX_SYNC_DIFF_NS)
+CLOCK_FILTER_FRAMES = 16  # time distributions to let through after a filter reset before the difference is read
+CLOCK_CORRECTIONS = 4  # offset corrections by the measured difference before a clock counts as not coming into step
 SYNC0_START_DELAY_NS = 100_000_000  # the first SYNC0 this long after now, on a cycle boundary (SOEM's SyncDelay)
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -63,17 +61,17 @@ class RingClocks:
         start = ((now + SYNC0_START_DELAY_NS) // cycle_ns) * cycle_ns + cycle_ns
         registers.write(k, REG_DC_SYNC0_START, _U64.pack(start & 0xFFFFFFFFFFFFFFFF))
         registers.write(k, REG_DC_SYNC0_CYCLE, _U32.pack(cycle_ns))
-        registers.write(k, REG_DC_ACTIVATION, b"\x03")  # cyclic operation and SYNC0
+        registers.write(k, REG_DC_ACTIVATION, bytes((DC_CYCLIC_SYNC0,)))
 
     def set_clock(self, k: int, in_step: Callable[[int], bool]) -> str | None:
-        """Bring ring ``k``'s system time back onto the ring's; None once it is within ``DC_SYNC_WINDOW_NS``, else
+        """Bring ring ``k``'s system time back onto the ring's; None once it is within ``CLOCK_SYNC_WINDOW_NS``, else
         why not. ``in_step(j)``: slave ``j`` kept its clock (it is in SAFE-OP or OP and was not reconfigured).
 
-        A clock more than ``DC_STEP_NS`` off gets a new offset at once, written with the delay measured at
+        A clock more than ``CLOCK_STEP_NS`` off gets a new offset at once, written with the delay measured at
         bring-up; the time it is compared with is another clock's, read in the next frame (the reference clock's,
         or for the reference clock itself that of the first slave that kept its own). Then the difference the ESC
-        measures against the time distribution (0x092C) is read, after a filter reset and ``DC_FILTER_FRAMES``
-        cycles, and taken off the offset until it is within ``DC_SYNC_WINDOW_NS``, at most ``DC_CORRECTIONS``
+        measures against the time distribution (0x092C) is read, after a filter reset and ``CLOCK_FILTER_FRAMES``
+        cycles, and taken off the offset until it is within ``CLOCK_SYNC_WINDOW_NS``, at most ``CLOCK_CORRECTIONS``
         times."""
         reference = self.reference
         if not self.has_dc[k] or reference is None:
@@ -89,16 +87,16 @@ class RingClocks:
         try:
             own, _received, offset = _CLOCK.unpack(registers.read(k, REG_DC_SYSTEM_TIME, _CLOCK.size))
             step = _signed64(_U64.unpack(registers.read(other, REG_DC_SYSTEM_TIME, 8))[0] - own)
-            if abs(step) > DC_STEP_NS:
+            if abs(step) > CLOCK_STEP_NS:
                 offset = (offset + step) & 0xFFFFFFFFFFFFFFFF
                 registers.write(k, REG_DC_OFFSET, _OFFSET_DELAY.pack(offset, self.delays[k]))
             before = None
-            for _ in range(DC_CORRECTIONS + 1):
+            for _ in range(CLOCK_CORRECTIONS + 1):
                 difference = self._difference(measured)
                 if difference is None:
                     return "its clock could not be compared with the ring's: no time distribution reached it"
                 difference *= sign
-                if abs(difference) <= DC_SYNC_WINDOW_NS:
+                if abs(difference) <= CLOCK_SYNC_WINDOW_NS:
                     return None
                 if before is not None and abs(difference) > abs(before):
                     # the correction made it worse: this ESC reads bit 31 the other way round (ESC documents
@@ -109,18 +107,18 @@ class RingClocks:
                 registers.write(k, REG_DC_OFFSET, _U64.pack(offset))
         except NoReply:
             return "its clock registers did not answer"
-        return (f"its clock did not come into step with the ring's: {difference} ns off after {DC_CORRECTIONS} "
-                f"corrections (SYNC0 needs it within {DC_SYNC_WINDOW_NS} ns)")
+        return (f"its clock did not come into step with the ring's: {difference} ns off after {CLOCK_CORRECTIONS} "
+                f"corrections (SYNC0 needs it within {CLOCK_SYNC_WINDOW_NS} ns)")
 
     def _difference(self, k: int) -> int | None:
         """Ring ``k``'s 0x092C as signed ns (the reference clock's time minus its own) over the time distributions
-        of ``DC_FILTER_FRAMES`` cycles after a filter reset; None when the cycle brought none in time."""
+        of ``CLOCK_FILTER_FRAMES`` cycles after a filter reset; None when the cycle brought none in time."""
         registers = self.registers
         registers.write(k, REG_DC_SPEED_START, registers.read(k, REG_DC_SPEED_START, 2))
-        if not self.cycles(DC_FILTER_FRAMES):
+        if not self.cycles(CLOCK_FILTER_FRAMES):
             return None
         raw: int = _U32.unpack(registers.read(k, REG_DC_DIFFERENCE, 4))[0]
-        magnitude = raw & DC_DIFFERENCE_SATURATED
+        magnitude = raw & DC_DIFFERENCE_MASK
         return magnitude if raw & DC_LOCAL_SMALLER else -magnitude
 
 

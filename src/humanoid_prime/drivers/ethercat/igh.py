@@ -18,8 +18,9 @@ import subprocess
 import threading
 
 from humanoid_prime.drivers.ethercat.errors import RingError, SdoError, SdoRefused
-from humanoid_prime.drivers.ethercat.master import AL_ERROR, AL_OP, AL_PRE_OP, SlaveInfo
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo
 from humanoid_prime.drivers.ethercat.slave_config import PDO_TYPES
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, AL_STATE_MASK, AlState
 
 # IgH data type names: (bytes, signed). The short names are what `prime ec sdo --type` accepts.
 IGH_TYPES: dict[str, tuple[int, bool]] = {
@@ -28,7 +29,8 @@ IGH_TYPES: dict[str, tuple[int, bool]] = {
 }
 SHORT_TYPES = {"u8": "uint8", "u16": "uint16", "u32": "uint32", "i8": "int8", "i16": "int16", "i32": "int32"}
 _UNSIGNED_BY_SIZE = {1: "uint8", 2: "uint16", 4: "uint32"}
-_AL_STATES = {"INIT": 0x01, "PREOP": 0x02, "BOOT": 0x03, "SAFEOP": 0x04, "OP": 0x08}
+_AL_STATES: dict[str, int] = {"INIT": AlState.INIT, "PREOP": AlState.PRE_OP, "BOOT": AlState.BOOT,  # as `ethercat
+                              "SAFEOP": AlState.SAFE_OP, "OP": AlState.OP}  # slaves` names them
 _VALUE = re.compile(r"^0x([0-9a-fA-F]+)\s+(-?\d+)\s*$")
 _ABORT = re.compile(r"aborted with code 0x([0-9a-fA-F]{8})")
 
@@ -125,7 +127,7 @@ class IghSdo:
             if self._settled:
                 return
             states = {s.al_state for s in self.slaves()}
-            if states == {AL_OP} or states == {AL_PRE_OP}:
+            if states == {AlState.OP} or states == {AlState.PRE_OP}:
                 self._settled = True
                 return
         names = ", ".join(sorted(_state_name(s) for s in states)) or "no slaves"
@@ -170,5 +172,5 @@ class IghSdo:
 
 def _state_name(state: int) -> str:
     names = {v: k for k, v in _AL_STATES.items()}
-    text = names.get(state & 0x0F, f"0x{state & 0x0F:X}")
+    text = names.get(state & AL_STATE_MASK, f"0x{state & AL_STATE_MASK:X}")
     return f"{text}+ERROR" if state & AL_ERROR else text

@@ -1,4 +1,4 @@
-"""Register frames of our own on the ring's NIC, beside SOEM's, each reply matched to its request.
+"""Register frames of Prime's own on the ring's NIC, beside SOEM's, each reply matched to its request.
 
 Why not SOEM's: SOEM files a reply by the index of its frame buffer alone, one of the 16 it cycles through
 (``ecx_inframe``, oshw/linux/nicdrv.c), and checks nothing else. A frame that comes back after SOEM gave up on it
@@ -9,13 +9,13 @@ stale word back to 0x080D-0x080E with the mailbox's enable bit cleared, and the 
 the frame. This belongs fixed in SOEM's frame layer; until it is, Prime sends its register and mailbox frames
 here instead.
 
-Frames here carry datagram indices SOEM never uses (``FIRST_INDEX`` and up; SOEM's are 0..15, ``EC_MAXBUF``).
-Each ``Channel`` owns a range of them and its own raw socket, whose kernel filter passes only replies in that
-range: no other thread's reply is ever read, and none reaches SOEM's socket (``filter_soem_socket`` keeps ours
-out of its queue). A reply is taken only if its index is outstanding and every datagram's command, address and
-length are the request's. An index whose reply did not come in time is not used again until that late reply
-has come (it is counted, with how late it was) or ``QUARANTINE_S`` has passed. Waiting releases the
-interpreter lock.
+The split of frame indices: SOEM's are 0..15 (``EC_MAXBUF``), Prime's ``FIRST_INDEX``..0xFF, and each drops the
+other's replies (``soem_contract.py`` says what that rests on and checks it). Each ``Channel`` owns a range of
+Prime's indices and its own raw socket, whose kernel filter passes only replies in that range: no other thread's
+reply is ever read. A reply is taken only if its index is outstanding and every datagram's command, address and
+length are the request's. An index whose reply did not come in time is not used again until that late reply has
+come (it is counted, with how late it was) or ``QUARANTINE_S`` has passed. Waiting releases the interpreter lock.
+``on_sent`` is told of every frame a channel sends (SOEM's socket gets a copy of its reply).
 
 The socket is one implementation of ``Wire``; the test doubles pass the same frames through the emulated ring
 in-process.
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import collections
 import ctypes
-import os
 import socket
 import struct
 import threading
@@ -34,25 +33,33 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-ETHERTYPE_ECAT = 0x88A4
+from humanoid_prime.drivers.ethercat.wire import (
+    BROADCAST_MAC,
+    DATAGRAM_HEADER,
+    DATAGRAM_HEADER_SIZE,
+    ECAT_HEADER_SIZE,
+    ETH_HEADER_SIZE,
+    ETHERTYPE,
+    FIRST_INDEX_OFFSET,
+    FRAME_TYPE_COMMANDS,
+    LENGTH_MASK,
+    MASTER_MAC,
+    MORE_FOLLOWS,
+    WKC_SIZE,
+    Command,
+)
+
 FIRST_INDEX = 0x40  # our datagram indices: FIRST_INDEX..0xFF; SOEM cycles through 0..15
 LAST_INDEX = 0xFF
 RETRY_S = 0.002  # a frame not back by then is sent again under a new index (SOEM's EC_TIMEOUTRET)
 QUARANTINE_S = 0.25  # an index whose reply never came is used again after this (a stalled host holds frames < 0.1 s)
 LATE_KEPT = 64  # late replies remembered (when, how late, what)
 
-# datagram commands (ETG.1000.4)
-APRD, APWR, FPRD, FPWR, BRD, BWR = 0x01, 0x02, 0x04, 0x05, 0x07, 0x08
-_AUTO_OR_BROADCAST = {APRD, APWR, BRD, BWR}  # slaves change ADP on the way: not compared
-_READS = {APRD, FPRD, BRD}
-
-_HEADER = struct.Struct("<BBHHHH")  # command, index, ADP, ADO, length (bit 15: more follow), IRQ
-_ETH = b"\xff" * 6 + b"\x01\x01\x01\x01\x01\x01" + struct.pack(">H", ETHERTYPE_ECAT)  # as SOEM addresses its frames
+_AUTO_OR_BROADCAST = {Command.APRD, Command.APWR, Command.BRD, Command.BWR}  # slaves change ADP on the way
+_READS = {Command.APRD, Command.FPRD, Command.BRD}
+_ETH = BROADCAST_MAC + MASTER_MAC + struct.pack(">H", ETHERTYPE)  # as SOEM addresses its frames
+_ETHERTYPE_BYTES = struct.pack(">H", ETHERTYPE)
 _U16 = struct.Struct("<H")
-MORE_FOLLOWS = 0x8000
-LENGTH_MASK = 0x07FF
-_ETH_SIZE, _ECAT_SIZE, _DG_SIZE = 14, 2, 10
-_INDEX_OFFSET = _ETH_SIZE + _ECAT_SIZE + 1  # the first datagram's index byte
 
 
 @dataclass(frozen=True)
@@ -84,62 +91,62 @@ class LateReply:
 
 
 def fprd(station: int, address: int, size: int) -> Request:
-    return Request(FPRD, station, address, size=size)
+    return Request(Command.FPRD, station, address, size=size)
 
 
 def fpwr(station: int, address: int, data: bytes) -> Request:
-    return Request(FPWR, station, address, data=bytes(data))
+    return Request(Command.FPWR, station, address, data=bytes(data))
 
 
 def aprd(position: int, address: int, size: int) -> Request:
-    return Request(APRD, (-position) & 0xFFFF, address, size=size)
+    return Request(Command.APRD, (-position) & 0xFFFF, address, size=size)
 
 
 def apwr(position: int, address: int, data: bytes) -> Request:
-    return Request(APWR, (-position) & 0xFFFF, address, data=bytes(data))
+    return Request(Command.APWR, (-position) & 0xFFFF, address, data=bytes(data))
 
 
 def brd(address: int, size: int) -> Request:
-    return Request(BRD, 0, address, size=size)
+    return Request(Command.BRD, 0, address, size=size)
 
 
 def build_frame(index: int, requests: Sequence[Request]) -> bytes:
     body = bytearray()
     for k, request in enumerate(requests):
         more = MORE_FOLLOWS if k < len(requests) - 1 else 0
-        body += _HEADER.pack(request.command, index, request.adp, request.ado, request.length | more, 0)
+        body += DATAGRAM_HEADER.pack(request.command, index, request.adp, request.ado, request.length | more, 0)
         body += request.data if request.command not in _READS else bytes(request.size)
         body += b"\x00\x00"
-    return _ETH + _U16.pack(0x1000 | len(body)) + bytes(body)
+    return _ETH + _U16.pack(FRAME_TYPE_COMMANDS << 12 | len(body)) + bytes(body)
 
 
 def parse_reply(frame: bytes, requests: Sequence[Request]) -> tuple[int, list[Reply]] | None:
     """(index, replies) when ``frame`` has exactly the datagrams of ``requests`` (same command, address and length
     each, same index throughout); None otherwise."""
-    if len(frame) < _ETH_SIZE + _ECAT_SIZE or frame[12:14] != b"\x88\xa4":
+    if len(frame) < ETH_HEADER_SIZE + ECAT_HEADER_SIZE or frame[12:14] != _ETHERTYPE_BYTES:
         return None
-    offset, index, replies = _ETH_SIZE + _ECAT_SIZE, None, []
+    offset, index, replies = ETH_HEADER_SIZE + ECAT_HEADER_SIZE, None, []
     for k, request in enumerate(requests):
-        if offset + _DG_SIZE + 2 > len(frame):
+        if offset + DATAGRAM_HEADER_SIZE + WKC_SIZE > len(frame):
             return None
-        command, dg_index, adp, ado, length_field, _irq = _HEADER.unpack_from(frame, offset)
+        command, dg_index, adp, ado, length_field, _irq = DATAGRAM_HEADER.unpack_from(frame, offset)
         length = length_field & LENGTH_MASK
         more = bool(length_field & MORE_FOLLOWS)
         if (command != request.command or ado != request.ado or length != request.length
                 or (request.command not in _AUTO_OR_BROADCAST and adp != request.adp)
                 or more != (k < len(requests) - 1) or index not in (None, dg_index)
-                or offset + _DG_SIZE + length + 2 > len(frame)):
+                or offset + DATAGRAM_HEADER_SIZE + length + WKC_SIZE > len(frame)):
             return None
         index = dg_index
-        data_at = offset + _DG_SIZE
+        data_at = offset + DATAGRAM_HEADER_SIZE
         replies.append(Reply(bytes(frame[data_at:data_at + length]), _U16.unpack_from(frame, data_at + length)[0]))
-        offset = data_at + length + 2
+        offset = data_at + length + WKC_SIZE
     return (index if index is not None else -1), replies
 
 
 def frame_index(frame: bytes) -> int | None:
     """The index of a frame's first datagram (None for a frame too short to say)."""
-    return frame[_INDEX_OFFSET] if len(frame) > _INDEX_OFFSET else None
+    return frame[FIRST_INDEX_OFFSET] if len(frame) > FIRST_INDEX_OFFSET else None
 
 
 class Wire(Protocol):
@@ -158,7 +165,8 @@ class Channel:
     """Request/reply exchanges over ``wire`` with datagram indices ``indices``, one exchange at a time."""
 
     def __init__(self, wire: Wire, indices: Sequence[int], *, clock: Callable[[], float] = time.monotonic,
-                 retry_s: float = RETRY_S, quarantine_s: float = QUARANTINE_S) -> None:
+                 retry_s: float = RETRY_S, quarantine_s: float = QUARANTINE_S,
+                 on_sent: Callable[[], None] | None = None) -> None:
         if len(indices) < 2:
             raise ValueError(f"a channel needs at least 2 datagram indices, got {len(indices)}")
         self.wire = wire
@@ -166,6 +174,7 @@ class Channel:
         self.clock = clock
         self.retry_s = retry_s
         self.quarantine_s = quarantine_s
+        self.on_sent = on_sent
         self.exchanges = 0
         self.resent = 0  # frames sent again because the first was not back within ``retry_s``
         self.unanswered = 0  # exchanges that got no reply at all in their time
@@ -181,7 +190,7 @@ class Channel:
         ``timeout_s``. With ``repeat`` (requests that may be carried out twice: reads that change nothing,
         writes of a value) the frame is sent again under a new index every ``retry_s`` meanwhile, and the reply
         to any of the copies is taken."""
-        what = ", ".join(f"{_NAMES.get(r.command, r.command)} 0x{r.adp:04X}:0x{r.ado:04X}" for r in requests)
+        what = ", ".join(f"{Command(r.command).name} 0x{r.adp:04X}:0x{r.ado:04X}" for r in requests)
         with self._lock:
             self.exchanges += 1
             deadline = self.clock() + timeout_s
@@ -197,6 +206,8 @@ class Channel:
                         self.resent += 1
                     mine.add(index)
                     self._outstanding[index] = (self.clock(), what, requests)
+                    if self.on_sent is not None:
+                        self.on_sent()
                     self.wire.send(build_frame(index, requests))
                     resend_at = self.clock() + self.retry_s
                 now = self.clock()
@@ -258,9 +269,6 @@ class Channel:
         self.wire.close()
 
 
-_NAMES = {APRD: "APRD", APWR: "APWR", FPRD: "FPRD", FPWR: "FPWR", BRD: "BRD", BWR: "BWR"}
-
-
 # ---------------------------------------------------------------------------------------------- the raw socket
 SO_ATTACH_FILTER = 26
 _FILTER = struct.Struct("HBBI")  # struct sock_filter: code, jt, jf, k
@@ -272,8 +280,8 @@ def index_filter(first: int, last: int) -> bytes:
     """A socket filter passing EtherCAT frames whose first datagram's index is in ``first..last``."""
     program = [
         (_LDH_ABS, 0, 0, 12),
-        (_JEQ, 0, 4, ETHERTYPE_ECAT),
-        (_LDB_ABS, 0, 0, _INDEX_OFFSET),
+        (_JEQ, 0, 4, ETHERTYPE),
+        (_LDB_ABS, 0, 0, FIRST_INDEX_OFFSET),
         (_JGE, 0, 2, first),
         (_JGT, 1, 0, last),
         (_RET, 0, 0, 0x40000),
@@ -289,21 +297,14 @@ def attach_filter(sock: socket.socket, program: bytes) -> None:
     sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
 
 
-def filter_soem_socket(fd: int) -> None:
-    """Let SOEM's socket (``fd``) receive only frames with SOEM's indices, so replies to our frames never queue
-    there (SOEM reads its socket only while it waits for a frame of its own)."""
-    with socket.socket(fileno=os.dup(fd)) as sock:
-        attach_filter(sock, index_filter(0, FIRST_INDEX - 1))
-
-
 class SocketWire:
     """A raw socket on ``interface`` that receives only frames with indices ``first..last``."""
 
     def __init__(self, interface: str, first: int, last: int) -> None:
-        self._sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
+        self._sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
         try:
             attach_filter(self._sock, index_filter(first, last))
-            self._sock.bind((interface, ETHERTYPE_ECAT))
+            self._sock.bind((interface, ETHERTYPE))
             self._sock.setblocking(False)
             while True:  # frames that came in before the filter was attached
                 try:

@@ -27,24 +27,28 @@ from humanoid_prime.drivers.erob.objects import (
     TXPDO_ASSIGN,
     TXPDO_STRUCT,
 )
-from humanoid_prime.drivers.ethercat.errors import SdoError
-from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox
+from humanoid_prime.drivers.ethercat.errors import SdoError, SdoTimeout
+from humanoid_prime.drivers.ethercat.mailbox import SdoMailbox
 from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
+from humanoid_prime.drivers.ethercat.wire import (
+    ESC_FEATURE_DC,
+    FMMU_SIZE,
+    REG_DC_DELAY,
+    REG_ESC_FEATURES,
+    REG_FMMU,
+    REG_FMMU_SM_COUNT,
+    REG_SM,
+    SM_ENABLE,
+    SM_LAYOUT,
+    SM_MODE_MAILBOX,
+    SM_MODE_MASK,
+    SM_REPEAT,
+    SM_SIZE,
+)
 
-# ESC registers (ETG.1000.4): the FMMUs (16 bytes each) and SyncManagers (8 each), how many the ESC has, its
-# features (bit 2: DC, SOEM's hasdc) and DC propagation delay
-REG_FMMU = 0x0600
-REG_SM = 0x0800
-REG_FMMU_SM_COUNT = 0x0004  # u8 FMMUs, u8 SyncManagers the ESC has
-REG_ESC_FEATURES = 0x0008
-ESC_FEATURE_DC = 0x04
-REG_DC_DELAY = 0x0928
 SOEM_MAXSM, SOEM_MAXFMMU = 8, 4  # what SOEM configures at most (EC_MAXSM, EC_MAXFMMU in ethercatmain.h)
-SM_REPEAT = 0x02  # SyncManager activate bit 1: the mailbox repeat request; a fresh ESC has it clear
-SM_MODE_MAILBOX = 0x02
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
-_SM = struct.Struct("<HHBBBB")
 EXPECTED_BYTES = (RXPDO_STRUCT.size, TXPDO_STRUCT.size)
 
 
@@ -64,25 +68,29 @@ def read_esc_setup(registers: RingRegisters, k: int) -> EscSetup:
     """Ring ``k``'s SyncManagers (those with a start address), FMMUs (those SOEM set) and distributed clock, each
     read until two reads agree; NoReply when they would not."""
     fmmu_count, sm_count = registers.read_agreed(k, REG_FMMU_SM_COUNT, 2)
-    sms = registers.read_agreed(k, REG_SM, 8 * min(sm_count, SOEM_MAXSM))
-    fmmus = registers.read_agreed(k, REG_FMMU, 16 * min(fmmu_count, SOEM_MAXFMMU))
+    sms = registers.read_agreed(k, REG_SM, SM_SIZE * min(sm_count, SOEM_MAXSM))
+    fmmus = registers.read_agreed(k, REG_FMMU, FMMU_SIZE * min(fmmu_count, SOEM_MAXFMMU))
     dc = bool(_U16.unpack(registers.read_agreed(k, REG_ESC_FEATURES, 2))[0] & ESC_FEATURE_DC)
     delay = _U32.unpack(registers.read_agreed(k, REG_DC_DELAY, 4))[0] if dc else 0
-    sync_managers = tuple((REG_SM + 8 * n, sms[8 * n:8 * n + 5] + bytes((0, sms[8 * n + 6] & ~SM_REPEAT & 0xFF, 0)))
-                          for n in range(len(sms) // 8) if _U16.unpack_from(sms, 8 * n)[0])
-    return EscSetup(sync_managers=sync_managers,
-                    fmmus=tuple((REG_FMMU + 16 * n, fmmus[16 * n:16 * n + 16])
-                                for n in range(len(fmmus) // 16) if any(fmmus[16 * n:16 * n + 16])),
+    sync_managers = []
+    for n in range(len(sms) // SM_SIZE):
+        start, length, control, _status, activate, _pdi = SM_LAYOUT.unpack_from(sms, SM_SIZE * n)
+        if start:
+            sync_managers.append((REG_SM + SM_SIZE * n,
+                                  SM_LAYOUT.pack(start, length, control, 0, activate & ~SM_REPEAT & 0xFF, 0)))
+    return EscSetup(sync_managers=tuple(sync_managers),
+                    fmmus=tuple((REG_FMMU + FMMU_SIZE * n, fmmu) for n in range(len(fmmus) // FMMU_SIZE)
+                                if any(fmmu := fmmus[FMMU_SIZE * n:FMMU_SIZE * (n + 1)])),
                     dc=dc, dc_delay=delay)
 
 
 def mailbox_sync_managers(registers: RingRegisters, k: int) -> tuple[int, int, int, int]:
     """(write start, write size, read start, read size) of slave ``k``'s mailboxes, from SM0 and SM1."""
-    sms = registers.read_agreed(k, REG_SM, 16)
-    out_start, out_size, out_control, _s, out_active, _p = _SM.unpack_from(sms, 0)
-    in_start, in_size, in_control, _s, in_active, _p = _SM.unpack_from(sms, 8)
-    if not (out_control & 0x03 == SM_MODE_MAILBOX and in_control & 0x03 == SM_MODE_MAILBOX
-            and out_active & 0x01 and in_active & 0x01 and out_size >= 16 and in_size >= 16):
+    sms = registers.read_agreed(k, REG_SM, 2 * SM_SIZE)
+    out_start, out_size, out_control, _s, out_active, _p = SM_LAYOUT.unpack_from(sms, 0)
+    in_start, in_size, in_control, _s, in_active, _p = SM_LAYOUT.unpack_from(sms, SM_SIZE)
+    if not (out_control & SM_MODE_MASK == SM_MODE_MAILBOX and in_control & SM_MODE_MASK == SM_MODE_MAILBOX
+            and out_active & SM_ENABLE and in_active & SM_ENABLE and out_size >= 16 and in_size >= 16):
         raise NoReply(f"ring {k}: SM0/SM1 hold no mailbox (control 0x{out_control:02X}/0x{in_control:02X})")
     return out_start, out_size, in_start, in_size
 
@@ -91,7 +99,7 @@ class PdoMapping:
     """The PRE-OP work on each drive, through its mailbox (``mailboxes[k]``), each transfer with ``timeout_s``.
     ``on_rated_torque(k, raw or None, problem)`` gets what 0x6076 answered."""
 
-    def __init__(self, mailboxes: Sequence[CoeMailbox], timeout_s: float,
+    def __init__(self, mailboxes: Sequence[SdoMailbox], timeout_s: float,
                  on_rated_torque: Callable[[int, bytes | None, str], None]) -> None:
         self.mailboxes = mailboxes
         self.timeout_s = timeout_s
@@ -106,11 +114,13 @@ class PdoMapping:
             for index, sub_index, data in MAPPING_WRITES:
                 mailbox.download(index, sub_index, data, self.timeout_s)
         except SdoError as exc:
-            verdict = "the drive refused it" if exc.abort_code is not None else "the drive did not answer"
+            verdict = ("the drive refused it" if exc.abort_code is not None else
+                       exc.verdict if isinstance(exc, SdoTimeout) else "the drive did not answer")
             self.problems[k] = (f"ring {k}: PDO mapping write 0x{exc.index:04X}:{exc.sub_index:02X}: {exc.problem} "
                                 f"({verdict})")
             raise
         self.problems.pop(k, None)
+        mailbox.reset_counter()  # the last request before SOEM reads the mapping back through this mailbox
         try:
             self.on_rated_torque(k, mailbox.upload(RATED_TORQUE, 0, self.timeout_s), "")
         except SdoError as exc:

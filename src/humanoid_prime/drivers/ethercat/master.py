@@ -17,91 +17,29 @@ master -> drive) and ``inputs`` (TxPDO, drive -> master), laid out exactly as ``
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import struct
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from humanoid_prime.control.rate import Rate
-from humanoid_prime.drivers.erob.cia402 import AL_ERROR_FLAG, describe_al_state, describe_al_status_code
-from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP, PRODUCT_CODE, VENDOR_ID
-from humanoid_prime.drivers.erob.objects import ERROR_CODE, ERROR_HISTORY, RXPDO, TXPDO
-from humanoid_prime.drivers.ethercat.errors import RingError, SdoRefused
-from humanoid_prime.drivers.ethercat.errors import SdoError as SdoError  # re-exported for older imports
-from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
+from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, MODE_CSP
+from humanoid_prime.drivers.erob.objects import RXPDO, TXPDO
+from humanoid_prime.drivers.ethercat.errors import RingError, SdoError, SdoRefused
+from humanoid_prime.drivers.ethercat.priority import feeding_priority
+from humanoid_prime.drivers.ethercat.ring import ExpectedSlave, SlaveInfo, check_ring, describe_states
+from humanoid_prime.drivers.ethercat.sdo_client import read_error_history, read_live_error
+from humanoid_prime.drivers.ethercat.wire import AL_ERROR, AlState, describe_al_state
 from humanoid_prime.errors import PrimeError
 
 RX_DTYPE = np.dtype([(e.name, e.dtype) for e in RXPDO])  # 14 bytes per slave, packed
 TX_DTYPE = np.dtype([(e.name, e.dtype) for e in TXPDO])  # 16 bytes per slave, packed
-
-# AL states (register 0x0130, low nibble) and the error indication / acknowledge bit.
-AL_INIT = 0x01
-AL_PRE_OP = 0x02
-AL_SAFE_OP = 0x04
-AL_OP = 0x08
-AL_ERROR = AL_ERROR_FLAG
 OP_REQUEST_REPEAT_S = 0.5  # a slave left in SAFE-OP after OP was asked for is asked again this often
-# SCHED_FIFO of the threads that feed the drives' output watchdogs before and beside the control loop (the bring-up
-# loop, the drives' enabling, the keeper), where permitted: below the virtual Prime's 70 and the control loop's 80.
-# At normal priority a busy host kept them off the CPU past the drives' 100 ms watchdog.
-FEEDING_PRIORITY = 60
-# SCHED_FIFO of the ring's helper threads (supervision, SDO workers): below the kernel's threaded interrupts (50).
-# Preempted by a host's other work while holding Python's interpreter lock, a helper kept the control loop and the
-# keeper waiting for that lock past the drives' watchdog; as real-time threads they block, never spin.
-HELPER_PRIORITY = 40
-
-HARDWARE_KEY = "prime_hardware.yaml joints.erob_slaves"
-
-
-@dataclass(frozen=True)
-class ExpectedSlave:
-    """What the hardware file says sits at one ring position."""
-
-    position: int
-    joint: str
-    vendor_id: int = VENDOR_ID
-    product_code: int = PRODUCT_CODE
-
-    @property
-    def identity(self) -> str:
-        return _identity(self.vendor_id, self.product_code)
-
-
-@dataclass(frozen=True)
-class SlaveInfo:
-    """One slave as found on the ring: identity from its SII, AL state and AL status code."""
-
-    position: int
-    name: str
-    vendor_id: int
-    product_code: int
-    revision: int = 0
-    al_state: int = 0
-    al_status_code: int = 0
-
-    @property
-    def identity(self) -> str:
-        return _identity(self.vendor_id, self.product_code)
-
-    @property
-    def is_erob(self) -> bool:
-        return self.vendor_id == VENDOR_ID and self.product_code == PRODUCT_CODE
-
-    @property
-    def state_text(self) -> str:
-        return describe_al_state(self.al_state)
-
-    def describe(self) -> str:
-        text = f"'{self.name}' ({self.identity})" if self.name else self.identity
-        return text
 
 
 @dataclass(frozen=True)
@@ -116,57 +54,6 @@ class BringupReport:
     def as_dict(self) -> dict[str, object]:
         return {"seconds": self.seconds, "cycles": self.cycles, "bringup_rate": self.bringup_rate,
                 "sync0_period_ns": self.sync0_period_ns}
-
-
-def _identity(vendor_id: int, product_code: int) -> str:
-    kind = "eRob " if (vendor_id, product_code) == (VENDOR_ID, PRODUCT_CODE) else ""
-    return f"{kind}vendor 0x{vendor_id:08X} product 0x{product_code:08X}"
-
-
-def describe_states(slaves: Sequence[SlaveInfo], want: int) -> str:
-    """The slaves not in AL state ``want``, with their state and AL status code, for an error message."""
-    parts = []
-    for slave in slaves:
-        if slave.al_state != want:
-            text = f"ring {slave.position} {slave.state_text}"
-            if slave.al_status_code:
-                code = slave.al_status_code
-                text += f" (AL status 0x{code:04X} {describe_al_status_code(code)})"
-            parts.append(text)
-    return "; ".join(parts) or f"every slave reports {describe_al_state(want)}"
-
-
-def expected_ring(erob_slaves: Mapping[str, int]) -> tuple[ExpectedSlave, ...]:
-    """The expected ring of a hardware file's ``joints.erob_slaves`` (joint -> ring position), by position."""
-    return tuple(sorted((ExpectedSlave(pos, joint) for joint, pos in erob_slaves.items()), key=lambda e: e.position))
-
-
-def check_ring(found: Sequence[SlaveInfo], expected: Sequence[ExpectedSlave], interface: str) -> None:
-    """Raise one RingError listing found versus expected unless every ring position holds the expected slave."""
-    by_position = {e.position: e for e in expected}
-    problems = []
-    if len(found) != len(expected):
-        problems.append(f"found {len(found)} slaves, expected {len(expected)}")
-    for position in sorted(set(by_position) | {s.position for s in found}):
-        want = by_position.get(position)
-        have = found[position] if position < len(found) else None
-        if want is None and have is not None:
-            problems.append(f"ring {position}: found {have.describe()}, expected no slave")
-        elif want is not None and have is None:
-            problems.append(f"ring {position}: expected {want.joint} ({want.identity}), found nothing")
-        elif want is not None and have is not None and (have.vendor_id, have.product_code) != (
-                want.vendor_id, want.product_code):
-            problems.append(f"ring {position}: expected {want.joint} ({want.identity}), found {have.describe()}")
-    if problems:
-        runs: list[tuple[int, int, str]] = []  # consecutive positions holding the same device, e.g. "0-8 'eRob' (...)"
-        for slave in found:
-            if runs and runs[-1][2] == slave.describe():
-                runs[-1] = (runs[-1][0], slave.position, runs[-1][2])
-            else:
-                runs.append((slave.position, slave.position, slave.describe()))
-        seen = ", ".join(f"{a}-{b} {what}" if b > a else f"{a} {what}" for a, b, what in runs) or "none"
-        raise RingError(f"EtherCAT ring on {interface} does not match {HARDWARE_KEY}: " + "; ".join(problems)
-                        + f" (found ring: {seen}); fix the cabling order or the ring positions in the hardware file")
 
 
 def sync0_period_ns(update_rate: float, *, sync0_period_s: float | None = None) -> int:
@@ -194,45 +81,26 @@ def sync0_period_ns(update_rate: float, *, sync0_period_s: float | None = None) 
     return period_ns
 
 
-def raise_thread(priority: int) -> tuple[int, os.sched_param] | None:
-    """The calling thread at ``priority`` (SCHED_FIFO) where permitted and it runs lower; its scheduling before
-    (None: left as it was)."""
-    try:
-        previous = os.sched_getscheduler(0), os.sched_getparam(0)
-        if previous[0] in (os.SCHED_FIFO, os.SCHED_RR) and previous[1].sched_priority >= priority:
-            return None
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        return previous
-    except (OSError, AttributeError):
-        return None
+def next_op_requests(states: Sequence[tuple[int, int]], op_asked: npt.NDArray[np.float64],
+                     now: float) -> list[tuple[int, int]]:
+    """(ring position, AL state) of the slaves the bring-up loop pushes toward OP at ``now``; ``op_asked``
+    is updated.
 
-
-@contextlib.contextmanager
-def feeding_priority(priority: int = FEEDING_PRIORITY) -> Iterator[None]:
-    """The calling thread at ``priority`` (``raise_thread``) while it feeds the drives, its scheduling back after."""
-    previous = raise_thread(priority)
-    try:
-        yield
-    finally:
-        if previous is not None:
-            with contextlib.suppress(OSError):
-                os.sched_setscheduler(0, *previous)
-
-
-def read_live_error(sdo: SdoClient, position: int) -> int:
-    """The drive's current error code (0x603F), through any SDO client."""
-    code: int = struct.unpack("<H", sdo.sdo_read(position, ERROR_CODE, 0)[:2].ljust(2, b"\0"))[0]
-    return code
-
-
-def read_error_history(sdo: SdoClient, position: int) -> list[int]:
-    """The drive's stored error codes (0x1003, newest first; the low 16 bits of each entry)."""
-    count = sdo.sdo_read(position, ERROR_HISTORY, 0)[0]
-    codes = []
-    for sub in range(1, count + 1):
-        raw = sdo.sdo_read(position, ERROR_HISTORY, sub)[:4].ljust(4, b"\0")
-        codes.append(struct.unpack("<I", raw)[0] & 0xFFFF)
-    return codes
+    An error in SAFE-OP is acknowledged at once, and OP is asked for at the next look. A slave in SAFE-OP
+    that was asked is asked again only every ``OP_REQUEST_REPEAT_S``: it waits there for its DC lock, and
+    every AL control write is a frame round trip the loop's next cycle waits behind. At 1 kHz, asking all
+    ten every 10 ms delayed a frame past the drives' sync tolerance each time and restarted their lock.
+    """
+    push = []
+    for k, (state, _) in enumerate(states):
+        if state == AlState.SAFE_OP | AL_ERROR:
+            op_asked[k] = -math.inf
+        elif state == AlState.SAFE_OP and now - op_asked[k] >= OP_REQUEST_REPEAT_S:
+            op_asked[k] = now
+        else:
+            continue
+        push.append((k, state))
+    return push
 
 
 class EthercatMaster(ABC):
@@ -269,6 +137,7 @@ class EthercatMaster(ABC):
         # torque that 0x6077 and 0x60B2 count in per mille; why a drive's could not be read.
         self.rated_torque_nm = np.zeros(0)
         self.rated_torque_problems: dict[int, str] = {}
+        self.mailbox = "prime"  # who works the slaves' mailboxes (buses.ethercat.mailbox): Prime's layer, or SOEM's
         self.kept_cycles = 0  # frames the keeper sent while the owner of the cycle was quiet
         self.cycles_answered = 0  # cycle frames that came back answered (each carried the ring's time)
         self._io = threading.Lock()  # one send or receive at a time: the owner's and the keeper's
@@ -304,13 +173,12 @@ class EthercatMaster(ABC):
         self.rated_torque_nm[position] = milli / 1000.0
         self.rated_torque_problems.pop(position, None)
 
-    def start(self, expected: Sequence[ExpectedSlave], *,
-              on_cycle: Callable[[EthercatMaster], None] | None = None) -> BringupReport:
+    def start(self, expected: Sequence[ExpectedSlave]) -> BringupReport:
         """Check the ring, map the PDOs, configure DC/SYNC0 and bring every slave to OP.
 
         The bring-up loop runs at ``bringup_rate`` (independent of the control rate) and keeps every
         slave's outputs fed while the others join: each cycle the CSP target follows the actual position
-        and the controlword keeps the drive disabled. ``on_cycle`` may adjust ``outputs`` before each send.
+        and the controlword keeps the drive disabled.
         """
         if self.operational:
             raise RingError(f"EtherCAT ring on {self.interface} is already in OP; close the master to start again")
@@ -324,7 +192,7 @@ class EthercatMaster(ABC):
         self.outputs[:] = 0
         self.outputs["mode_of_operation"] = MODE_CSP
         with feeding_priority():
-            cycles = self._bring_to_op(on_cycle, t0)
+            cycles = self._bring_to_op(t0)
         self.operational = True
         self.slave_ok[:] = True
         self.health_version += 1
@@ -334,7 +202,7 @@ class EthercatMaster(ABC):
         self._keeper.start()
         return BringupReport(self.clock() - t0, cycles, self.bringup_rate, self.sync0_ns)
 
-    def _bring_to_op(self, on_cycle: Callable[[EthercatMaster], None] | None, t0: float) -> int:
+    def _bring_to_op(self, t0: float) -> int:
         """The fast loop of ``start`` until every slave is in OP; the cycles it took."""
         n = len(self.slaves)
         deadline = t0 + self.bringup_timeout_s
@@ -346,8 +214,6 @@ class EthercatMaster(ABC):
             rate.wait()
             np.copyto(self.outputs["target_position"], self.inputs["position_actual"])
             self.outputs["controlword"] = 0
-            if on_cycle is not None:
-                on_cycle(self)
             wkc = self.exchange()
             cycles += 1
             if cycles == 1:  # one valid frame first, so the outputs are defined when OP is asked for
@@ -356,9 +222,9 @@ class EthercatMaster(ABC):
             if wkc == self.expected_wkc or cycles % check_every == 0:
                 states = self._read_states()
                 self._store_states(states)
-                if all(state == AL_OP for state, _ in states):
+                if all(state == AlState.OP for state, _ in states):
                     break
-                self._advance(self._to_push(states, op_asked, self.clock()))
+                self._advance(next_op_requests(states, op_asked, self.clock()))
             if self.clock() > deadline:
                 raise RingError(self._not_op_message(f"did not reach OP within {self.bringup_timeout_s:g} s"))
         return cycles
@@ -418,6 +284,17 @@ class EthercatMaster(ABC):
             self._wkc_mismatch()
         return wkc
 
+    def refresh(self) -> None:
+        """One cycle frame now, between the owner's: a frame in flight is collected first and another sent in its
+        place, for the owner to collect."""
+        with self._io:
+            if self._in_flight:
+                self._receive_now()
+                self._send_now()
+            else:
+                self._send_now()
+                self._receive_now()
+
     def _keep(self) -> None:
         """Once in OP, every cycle period: when the owner of the cycle has been quiet for two periods, send the
         current outputs, and go on every period until it ticks again, so no slave's output watchdog runs out
@@ -458,11 +335,11 @@ class EthercatMaster(ABC):
         return (f"EtherCAT ring on {self.interface}: process data is not flowing (working counter {self.wkc}, "
                 f"expected {self.expected_wkc})")
 
-    def _gate(self, position: int, index: int, sub_index: int, unsafe_before_op: bool) -> None:
+    def _gate(self, position: int, index: int, sub_index: int) -> None:
         if not 0 <= position < len(self.slaves):
             raise SdoError(position, index, sub_index,
                            f"no slave at that ring position (the ring has {len(self.slaves)} slaves)")
-        if self.sdo_ready or unsafe_before_op:
+        if self.sdo_ready:
             return
         if self.operational and self.flowing and self.slave_ok[position]:
             return  # another slave is recovering; this one is in OP, its mailbox traffic disturbs no DC lock
@@ -476,21 +353,23 @@ class EthercatMaster(ABC):
                          f"refused: {why}; mailbox traffic before every slave is in OP with joint states flowing "
                          "faults a drive with 0xA000; retry once bring-up has finished")
 
-    def sdo_read(self, position: int, index: int, sub_index: int, *, unsafe_before_op: bool = False) -> bytes:
+    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
         """Upload one object entry from the slave at ``position``.
 
         Safe to call from several threads at once for different slaves while the cycle runs. Before the
-        ring is in OP with process data flowing it raises SdoRefused; ``unsafe_before_op`` skips that check
-        and exists only to reproduce the 0xA000 fault in tests.
+        ring is in OP with process data flowing it raises SdoRefused.
         """
-        self._gate(position, index, sub_index, unsafe_before_op)
+        self._gate(position, index, sub_index)
         return self._sdo_read(position, index, sub_index)
 
-    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes, *,
-                  unsafe_before_op: bool = False) -> None:
+    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
         """Download ``data`` (little-endian bytes) to one object entry; same rules as ``sdo_read``."""
-        self._gate(position, index, sub_index, unsafe_before_op)
+        self._gate(position, index, sub_index)
         self._sdo_write(position, index, sub_index, bytes(data))
+
+    def mailbox_drops(self) -> dict[str, int]:
+        """The mailbox messages dropped so far, by why (``coe.DROP_REASONS``; empty where none are counted)."""
+        return {}
 
     def live_error(self, position: int) -> int:
         return read_live_error(self, position)
@@ -513,7 +392,7 @@ class EthercatMaster(ABC):
             self.al_state[k] = state
             self.al_status_code[k] = code
 
-    def _not_op_message(self, what: str, want: int = AL_OP) -> str:
+    def _not_op_message(self, what: str, want: int = AlState.OP) -> str:
         current = [SlaveInfo(s.position, s.name, s.vendor_id, s.product_code, s.revision, int(self.al_state[k]),
                              int(self.al_status_code[k])) for k, s in enumerate(self.slaves)]
         return (f"EtherCAT ring on {self.interface} {what}: {describe_states(current, want)}; "
@@ -539,28 +418,6 @@ class EthercatMaster(ABC):
     def _read_states(self) -> list[tuple[int, int]]:
         """(AL state, AL status code) of every slave, ring order."""
 
-    @staticmethod
-    def _to_push(states: Sequence[tuple[int, int]], op_asked: npt.NDArray[np.float64],
-                 now: float) -> list[tuple[int, int]]:
-        """(ring position, AL state) of the slaves the bring-up loop pushes toward OP at ``now``; ``op_asked``
-        is updated.
-
-        An error in SAFE-OP is acknowledged at once, and OP is asked for at the next look. A slave in SAFE-OP
-        that was asked is asked again only every ``OP_REQUEST_REPEAT_S``: it waits there for its DC lock, and
-        every AL control write is a frame round trip the loop's next cycle waits behind. At 1 kHz, asking all
-        ten every 10 ms delayed a frame past the drives' sync tolerance each time and restarted their lock.
-        """
-        push = []
-        for k, (state, _) in enumerate(states):
-            if state == AL_SAFE_OP | AL_ERROR:
-                op_asked[k] = -math.inf
-            elif state == AL_SAFE_OP and now - op_asked[k] >= OP_REQUEST_REPEAT_S:
-                op_asked[k] = now
-            else:
-                continue
-            push.append((k, state))
-        return push
-
     @abstractmethod
     def _advance(self, slaves: Sequence[tuple[int, int]]) -> None:
         """One step toward OP for each (ring position, AL state) given: acknowledge an error in SAFE-OP, else
@@ -568,14 +425,6 @@ class EthercatMaster(ABC):
 
     def _started(self) -> None:
         """Called once every slave is in OP (e.g. to start ring supervision)."""
-
-    def poll_frames(self, poll: bool) -> bool:
-        """Have every thread that waits for a frame poll the NIC (True) or sleep until a frame arrives (False);
-        returns whether frames are now polled. Polling is for a ring whose cycle a real-time thread owns: a
-        thread of normal priority that polls uses up its share and is put behind the machine's other work.
-        A master without a socket of its own to poll never polls, nor one whose NIC delivers frames from a kernel
-        thread that a polling real-time thread could starve."""
-        return False
 
     @abstractmethod
     def _send(self) -> None:

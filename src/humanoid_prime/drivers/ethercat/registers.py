@@ -12,7 +12,6 @@ import time
 from collections.abc import Callable, Sequence
 
 from humanoid_prime.drivers.ethercat.link import (
-    BWR,
     FIRST_INDEX,
     LAST_INDEX,
     Channel,
@@ -27,20 +26,28 @@ from humanoid_prime.drivers.ethercat.link import (
     fpwr,
     index_ranges,
 )
+from humanoid_prime.drivers.ethercat.wire import (
+    AL_ERROR,
+    AL_STATE_MASK,
+    EEPROM_BUSY,
+    EEPROM_COMMAND_READ,
+    EEPROM_COMMAND_SHIFT,
+    EEPROM_TO_PDI,
+    REG_AL_CONTROL,
+    REG_AL_STATUS,
+    REG_EEPROM_CONFIG,
+    REG_EEPROM_CONTROL,
+    REG_EEPROM_DATA,
+    REG_STATION_ADDRESS,
+    SII_IDENTITY,
+    AlState,
+    Command,
+)
 
 STATION_BASE = 0x1001
 REGISTER_TIMEOUT_S = 0.05  # a register frame: microseconds on a ring, tens of ms behind a stalled host
-REG_STATION_ADDRESS = 0x0010
-REG_EEPROM_CONFIG = 0x0500
-REG_EEPROM_CONTROL = 0x0502  # u16 control/status, then u32 word address
-REG_EEPROM_DATA = 0x0508
-EEPROM_READ = 0x0100
-EEPROM_BUSY = 0x8000
-SII_IDENTITY = (0x08, 0x0A, 0x0C)  # SII words: vendor, product code, revision (u32 each)
-_EEPROM_READ = struct.Struct("<HI")
-REG_AL_CONTROL = 0x0120
-REG_AL_STATUS = 0x0130  # u16 status, u16 reserved, u16 AL status code (0x0134)
-_AL_STATUS = struct.Struct("<HxxH")
+_EEPROM_READ = struct.Struct("<HI")  # 0x0502 control, 0x0504 word address
+_AL_STATUS = struct.Struct("<HxxH")  # 0x0130 status, reserved, 0x0134 AL status code
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 MAX_CHANNELS = (LAST_INDEX - FIRST_INDEX + 1) // 2
@@ -58,12 +65,12 @@ class RingRegisters:
     """The ring's slaves by ring position, over channels whose wires ``make_wire`` opens (one per index range)."""
 
     def __init__(self, make_wire: Callable[[range], Wire], slaves: int, *,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, on_sent: Callable[[], None] | None = None) -> None:
         self.slaves = slaves
         self.clock = clock
         ranges = index_ranges(min(slaves, MAX_CHANNELS - 1) + 1)
-        self.ring = Channel(make_wire(ranges[0]), ranges[0], clock=clock)
-        self._channels = [Channel(make_wire(r), r, clock=clock) for r in ranges[1:]]
+        self.ring = Channel(make_wire(ranges[0]), ranges[0], clock=clock, on_sent=on_sent)
+        self._channels = [Channel(make_wire(r), r, clock=clock, on_sent=on_sent) for r in ranges[1:]]
         self.stations = [STATION_BASE + k for k in range(slaves)]
 
     def channel(self, k: int) -> Channel:
@@ -97,13 +104,26 @@ class RingRegisters:
 
     def sii_read(self, k: int, word: int, timeout_s: float = 0.02) -> int:
         """Word ``word`` (and the next) of slave ``k``'s SII EEPROM, as a u32, through its EEPROM interface."""
-        self.write(k, REG_EEPROM_CONTROL, _EEPROM_READ.pack(EEPROM_READ, word))
+        self.write(k, REG_EEPROM_CONTROL, _EEPROM_READ.pack(EEPROM_COMMAND_READ << EEPROM_COMMAND_SHIFT, word))
         deadline = self.clock() + timeout_s
         while _U16.unpack(self.read(k, REG_EEPROM_CONTROL, 2))[0] & EEPROM_BUSY:
             if self.clock() > deadline:
                 raise NoReply(f"ring {k}: its EEPROM stayed busy")
         data: int = _U32.unpack(self.read(k, REG_EEPROM_DATA, 4))[0]
         return data
+
+    def sii_identity(self, k: int) -> tuple[int, int, int]:
+        """(vendor, product code, revision) as slave ``k``'s SII holds them, read over our frames; the EEPROM goes back
+        to the slave's firmware afterwards if it had it (a slave needs it in INIT -> PRE-OP)."""
+        pdi = self.read(k, REG_EEPROM_CONFIG, 1)[0] & EEPROM_TO_PDI
+        if pdi:
+            self.write(k, REG_EEPROM_CONFIG, b"\x00")
+        try:
+            vendor, product, revision = (self.sii_read(k, word) for word in SII_IDENTITY)
+            return vendor, product, revision
+        finally:
+            if pdi:
+                self.write(k, REG_EEPROM_CONFIG, bytes((EEPROM_TO_PDI,)))
 
     def readdress(self, k: int, identity: tuple[int, int, int]) -> bool:
         """Slave ``k`` answers at its station address again: True at once if it does; one that answers at its
@@ -117,8 +137,7 @@ class RingRegisters:
             return address == self.stations[k]  # another address is another slave's to keep
         self.ring.exchange([apwr(k, REG_STATION_ADDRESS, _U16.pack(self.stations[k]))], timeout_s=REGISTER_TIMEOUT_S)
         try:
-            self.write(k, REG_EEPROM_CONFIG, b"\x00")  # the EEPROM to the master
-            found = tuple(self.sii_read(k, word) for word in SII_IDENTITY)
+            found: tuple[int, ...] | None = self.sii_identity(k)
         except NoReply:
             found = None
         if found == tuple(identity):
@@ -152,18 +171,17 @@ class RingRegisters:
         if replies is None:
             return None
         together = _U16.unpack(replies[0].data)[0]
-        if replies[0].wkc == self.slaves and together in (0x01, 0x02, 0x04, 0x08):
+        if replies[0].wkc == self.slaves and together in (AlState.INIT, AlState.PRE_OP, AlState.SAFE_OP, AlState.OP):
             return [(together, 0)] * self.slaves
         requests = [fprd(station, REG_AL_STATUS, _AL_STATUS.size) for station in self.stations]
         replies = self._exchange_all(requests, timeout_s)
         if replies is None:
             return None
-        return [(_AL_STATUS.unpack(r.data)[0] & 0x1F, _AL_STATUS.unpack(r.data)[1]) if r.wkc == 1 else None
-                for r in replies]
+        return [_al_status(r.data) if r.wkc == 1 else None for r in replies]
 
     def request_all(self, state: int) -> int:
         """Write AL control of every slave in one broadcast; how many took it (0 when the frame was lost)."""
-        replies = self.ring.exchange([Request(BWR, 0, REG_AL_CONTROL, data=_U16.pack(state))],
+        replies = self.ring.exchange([Request(Command.BWR, 0, REG_AL_CONTROL, data=_U16.pack(state))],
                                      timeout_s=REGISTER_TIMEOUT_S)
         return 0 if replies is None else replies[0].wkc
 
@@ -198,3 +216,9 @@ class RingRegisters:
     def close(self) -> None:
         for channel in (self.ring, *self._channels):
             channel.close()
+
+
+def _al_status(data: bytes) -> tuple[int, int]:
+    """(AL state with its error indication, AL status code) from 0x0130-0x0135."""
+    status, code = _AL_STATUS.unpack(data)
+    return status & (AL_ERROR | AL_STATE_MASK), code

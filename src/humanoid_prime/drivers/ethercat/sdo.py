@@ -14,9 +14,8 @@ from contextlib import contextmanager
 
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.drivers.ethercat.errors import RingError
-from humanoid_prime.drivers.ethercat.master import expected_ring
+from humanoid_prime.drivers.ethercat.ring import expected_ring
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
-from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo as SizedSdo  # re-exported for older imports
 from humanoid_prime.errors import PrimeError
 
 SDO_BACKENDS = ("soem", "igh")
@@ -30,8 +29,10 @@ def check_backend(name: str) -> str:
 
 @contextmanager
 def open_sdo(backend: str, robot: Robot, *, interface: str | None = None, update_rate: float = 50.0,
-             bringup_rate: float = 1000.0, ready_timeout_s: float = 2.0) -> Iterator[SdoClient]:
-    """An SDO client for ``robot``'s ring on ``backend``; the ring must match the hardware file."""
+             bringup_rate: float = 1000.0, ready_timeout_s: float = 2.0,
+             mailbox: str | None = None) -> Iterator[SdoClient]:
+    """An SDO client for ``robot``'s ring on ``backend``; the ring must match the hardware file. ``mailbox``: who
+    works the mailboxes on the SOEM backend (default: ``buses.ethercat.mailbox``)."""
     hw = robot.hardware
     if check_backend(backend) == "igh":
         from humanoid_prime.drivers.ethercat.igh import IghSdo
@@ -41,7 +42,7 @@ def open_sdo(backend: str, robot: Robot, *, interface: str | None = None, update
     from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 
     master = SoemMaster(interface or hw.ethercat.interface, update_rate=update_rate,
-                        bringup_rate=bringup_rate)
+                        bringup_rate=bringup_rate, mailbox=mailbox or hw.ethercat.mailbox)
     with master:
         master.start(expected_ring(hw.erob_slaves))
         master.exchange()  # process data flows; from here the master's keeper sends it every period

@@ -31,15 +31,21 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.ethercat.clocks import RingClocks
 from humanoid_prime.drivers.ethercat.errors import SdoError
 from humanoid_prime.drivers.ethercat.mapping import EscSetup
-from humanoid_prime.drivers.ethercat.master import HELPER_PRIORITY, feeding_priority
-from humanoid_prime.drivers.ethercat.registers import REG_AL_CONTROL, REG_AL_STATUS, NoReply, RingRegisters
+from humanoid_prime.drivers.ethercat.priority import HELPER_PRIORITY, feeding_priority
+from humanoid_prime.drivers.ethercat.registers import NoReply, RingRegisters
+from humanoid_prime.drivers.ethercat.states import change_timeout
+from humanoid_prime.drivers.ethercat.wire import (
+    AL_ERROR,
+    AL_STATE_MASK,
+    EEPROM_TO_PDI,
+    REG_AL_CONTROL,
+    REG_AL_STATUS,
+    REG_EEPROM_CONFIG,
+    AlState,
+)
 
-AL_INIT, AL_PRE_OP, AL_SAFE_OP, AL_OP, AL_ERROR = 0x01, 0x02, 0x04, 0x08, 0x10
 STATE_READS = 3  # AL-state reads in a pass while no slave answers them (their frames lost)
-STATE_CHANGE_TIMEOUT_S = 2.0  # a returning slave's state changes, as SOEM's ecx_statecheck waits for them
 STATE_POLL_S = 0.001
-REG_EEPROM_CONFIG = 0x0500
-EEPROM_TO_PDI = b"\x01"
 _U16 = struct.Struct("<H")
 
 
@@ -153,11 +159,11 @@ class RingSupervisor:
         self._record(reported)
         for k, reported_state in enumerate(reported):
             state = 0 if reported_state is None else reported_state[0]
-            if state == AL_OP:
+            if state == AlState.OP:
                 self.lost[k] = False
-            elif state == AL_SAFE_OP and k in self._clock_pending:
+            elif state == AlState.SAFE_OP and k in self._clock_pending:
                 self._start_clock(k)
-            elif state in (AL_SAFE_OP, AL_SAFE_OP | AL_ERROR):
+            elif state in (AlState.SAFE_OP, AlState.SAFE_OP | AL_ERROR):
                 self._push_toward_op(k, state)
             elif state:
                 self.lost[k] = False
@@ -170,11 +176,11 @@ class RingSupervisor:
         for k, reported_state in enumerate(reported):
             state, code = (0, int(health.al_status_code[k])) if reported_state is None else reported_state
             if (bool(health.slave_ok[k]), int(health.al_state[k]), int(health.al_status_code[k])) != (
-                    state == AL_OP, state, code):
-                if health.slave_ok[k] and state != AL_OP:
+                    state == AlState.OP, state, code):
+                if health.slave_ok[k] and state != AlState.OP:
                     health.left_op[k] += 1
-                    health.left_op_code[k] = code
-                health.slave_ok[k] = state == AL_OP
+                    health.left_op_code[k] = code if state & AL_ERROR else 0  # a code counts with its error
+                health.slave_ok[k] = state == AlState.OP
                 health.al_state[k] = state
                 health.al_status_code[k] = code
                 changed = True
@@ -184,7 +190,7 @@ class RingSupervisor:
     def _push_toward_op(self, k: int, state: int) -> None:
         """Acknowledge an error in SAFE-OP, else request OP."""
         with contextlib.suppress(NoReply):  # the next pass looks again
-            self.registers.request_state(k, AL_SAFE_OP | AL_ERROR if state & AL_ERROR else AL_OP)
+            self.registers.request_state(k, AlState.SAFE_OP | AL_ERROR if state & AL_ERROR else AlState.OP)
 
     # ------------------------------------------------------------------------------------- reconfiguration
     def reconfigure(self, k: int) -> int:
@@ -195,23 +201,23 @@ class RingSupervisor:
         SOEM's function."""
         registers, setup = self.registers, self.setups[k]
         try:
-            registers.request_state(k, AL_INIT | AL_ERROR)
-            registers.write(k, REG_EEPROM_CONFIG, EEPROM_TO_PDI)
-            state = self._await_state(k, AL_INIT)
-            if state != AL_INIT:
+            registers.request_state(k, AlState.INIT | AL_ERROR)
+            registers.write(k, REG_EEPROM_CONFIG, bytes((EEPROM_TO_PDI,)))
+            state = self._await_state(k, AlState.INIT)
+            if state != AlState.INIT:
                 return state
             for address, data in setup.sync_managers:
                 registers.write(k, address, data)
-            registers.request_state(k, AL_PRE_OP)
-            state = self._await_state(k, AL_PRE_OP)
-            if state != AL_PRE_OP:
+            registers.request_state(k, AlState.PRE_OP)
+            state = self._await_state(k, AlState.PRE_OP)
+            if state != AlState.PRE_OP:
                 return state
             try:
                 self.remap(k)
             except SdoError:  # it stays in PRE-OP (flagged, "in PRE-OP") and the next pass tries again
                 return state
-            registers.request_state(k, AL_SAFE_OP)
-            state = self._await_state(k, AL_SAFE_OP)
+            registers.request_state(k, AlState.SAFE_OP)
+            state = self._await_state(k, AlState.SAFE_OP)
             for address, data in setup.fmmus:
                 registers.write(k, address, data)
             return state
@@ -221,18 +227,18 @@ class RingSupervisor:
     def _await_state(self, k: int, wanted: int) -> int:
         """Poll slave ``k``'s AL status until it shows ``wanted``, refuses (error flag), the wait runs out or the
         master closes; returns the state (without the error flag)."""
-        deadline = self.clock() + STATE_CHANGE_TIMEOUT_S
+        deadline = self.clock() + change_timeout(wanted)[0]
         while True:
             try:
                 status: int = _U16.unpack(self.registers.read(k, REG_AL_STATUS, 2))[0]
             except NoReply:
                 status = 0
-            state = status & 0x0F
+            state = status & AL_STATE_MASK
             if state == wanted or status & AL_ERROR or self.clock() > deadline or self.pause(STATE_POLL_S):
                 return state
 
     def _reconfigure(self, k: int) -> None:
-        if self.reconfigure(k) == AL_SAFE_OP:
+        if self.reconfigure(k) == AlState.SAFE_OP:
             self._clock_pending.add(k)
             self._start_clock(k)
 
@@ -245,7 +251,7 @@ class RingSupervisor:
         if problem is None:
             try:
                 self.clocks.arm_sync0(k, self.sync0_ns)
-                self.registers.write(k, REG_AL_CONTROL, _U16.pack(AL_OP))
+                self.registers.write(k, REG_AL_CONTROL, _U16.pack(AlState.OP))
             except NoReply as exc:
                 problem = f"SYNC0 could not be armed ({exc.what})"
         if problem is not None:
@@ -259,4 +265,5 @@ class RingSupervisor:
         self.recoveries += 1
 
     def _kept_clock(self, j: int) -> bool:
-        return j not in self._clock_pending and int(self.health.al_state[j]) & 0x0F in (AL_SAFE_OP, AL_OP)
+        kept = int(self.health.al_state[j]) & AL_STATE_MASK in (AlState.SAFE_OP, AlState.OP)
+        return kept and j not in self._clock_pending

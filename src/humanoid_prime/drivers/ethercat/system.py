@@ -12,10 +12,11 @@ the drive keeps its last target and holds there with its own gains (e.g. the joi
 calibration). Both are one compiled call each (``_tick.pyx``) on arrays preallocated here, and the
 process image is reached through views bound once.
 
-Safety flags: ``ethercat/wkc`` (working counter mismatch for ``wkc_tolerance_cycles`` cycles in a row),
-``ethercat/ring<N>/lost`` (slave not in OP or not answering), ``ethercat/ring<N>/fault`` (drive fault:
-decoded statusword and error code), and the warning ``ethercat/ring<N>/rated_torque`` (the drive's
-0x6076 could not be read at bring-up, so its efforts use the nominal rated torque).
+Safety flags (worded in ``system_flags.py``): ``ethercat/wkc`` (working counter mismatch for
+``wkc_tolerance_cycles`` cycles in a row), ``ethercat/ring<N>/lost`` (slave not in OP or not answering),
+``ethercat/ring<N>/fault`` (drive fault: decoded statusword and error code), and the warning
+``ethercat/ring<N>/rated_torque`` (the drive's 0x6076 could not be read at bring-up, so its efforts use the nominal
+rated torque).
 
 Efforts are per mille of each drive's rated torque, read from 0x6076 in PRE-OP: the fold's factors assume
 the nominal figure (the C++ stack cannot read it), and are rescaled here once the drive has said its own.
@@ -36,20 +37,15 @@ from humanoid_prime.config.calibration import Calibration
 from humanoid_prime.config.description import ETHERCAT_BLOCK
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.flags import Level
-from humanoid_prime.control.hardware import DriveStatus, HardwareComponent
+from humanoid_prime.control.hardware import DriveStatus
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.cia402 import (
     BRINGUP_TRANSIENT_FAULT,
     DISABLE_VOLTAGE,
-    ERROR_HINTS,
     FAULT_PATTERN,
     FAULT_RESET,
     OPERATION_ENABLED_PATTERN,
-    describe_al_state,
-    describe_al_status_code,
-    describe_error,
-    drive_state,
     enable_step,
 )
 from humanoid_prime.drivers.erob.constants import MODE_CSP, RATED_TORQUE_NM
@@ -65,16 +61,11 @@ from humanoid_prime.drivers.erob.objects import (
 )
 from humanoid_prime.drivers.ethercat._tick import EcTick
 from humanoid_prime.drivers.ethercat.fold import check_foldable, fold_slave_config, write_folded_configs
-from humanoid_prime.drivers.ethercat.master import (
-    RX_DTYPE,
-    TX_DTYPE,
-    BringupReport,
-    EthercatMaster,
-    ExpectedSlave,
-    check_ring,
-    feeding_priority,
-)
+from humanoid_prime.drivers.ethercat.master import RX_DTYPE, TX_DTYPE, BringupReport, EthercatMaster
+from humanoid_prime.drivers.ethercat.priority import feeding_priority
+from humanoid_prime.drivers.ethercat.ring import ExpectedSlave, check_ring
 from humanoid_prime.drivers.ethercat.slave_config import Channel, SlaveConfig, parse_slave_config
+from humanoid_prime.drivers.ethercat.system_flags import EthercatFlags
 from humanoid_prime.errors import ConfigError, PrimeError
 
 
@@ -102,7 +93,7 @@ def _controlword_table(auto_fault_reset: bool) -> npt.NDArray[np.uint16]:
     return table
 
 
-class EthercatSystem(HardwareComponent):
+class EthercatSystem(EthercatFlags):
     """The eRob joints of ``robot`` (canonical order), each bound to its ring position."""
 
     def __init__(self, robot: Robot, calibration: Calibration, *, update_rate: float,
@@ -259,11 +250,6 @@ class EthercatSystem(HardwareComponent):
     def bus_ready(self) -> bool:
         """True once every slave is in OP and joint states flow: SDOs (gains) may go out."""
         return self.master is not None and self.master.sdo_ready
-
-    def _master(self) -> EthercatMaster:
-        if self.master is None:
-            raise PrimeError(f"{self.name}: not configured")
-        return self.master
 
     def _bound_tick(self) -> EcTick:
         if self._tick is None:
@@ -435,107 +421,6 @@ class EthercatSystem(HardwareComponent):
         began = time.perf_counter()
         master.send()
         self.io_s += time.perf_counter() - began
-
-    # ------------------------------------------------------------------------------- flags
-    def _update_wkc_flag(self, wkc: int) -> None:
-        master = self._master()
-        self._wkc_flagged = self._wkc_bad_cycles >= self.wkc_tolerance_cycles
-        self._wkc_silent = wkc <= 0
-        if not self._wkc_flagged:
-            self.clear_flag("ethercat/wkc")
-        elif self._wkc_silent:
-            # the supervision cannot name a slave then (every state read goes unanswered too)
-            first = next((f"ring 0 ({joint})" for joint, position in zip(self.joints, self.ring, strict=True)
-                          if position == 0), "ring 0")
-            cause = ("the virtual Prime stopped answering or fell behind (a loaded machine)" if self.emulated else
-                     f"the line is cut before the first drive; check the cable from {master.interface} and the "
-                     f"power of {first}")
-            self.set_flag("ethercat/wkc", f"no EtherCAT drive answered on {master.interface} for "
-                                          f"{self._wkc_bad_cycles} cycles (working counter {wkc}): {cause}")
-        else:
-            self.set_flag("ethercat/wkc", f"EtherCAT working counter {wkc}, expected {master.expected_wkc} on "
-                                          f"{master.interface} for {self._wkc_bad_cycles} cycles: process data is "
-                                          "not reaching every drive")
-
-    def _update_health_flags(self) -> None:
-        master = self._master()
-        self._health_seen = master.health_version
-        lost = getattr(master, "lost", None)
-        left = master.left_op[self.ring]
-        again = left != self._left_op_seen
-        for k, joint in enumerate(self.joints):
-            position = int(self.ring[k])
-            key = f"ethercat/ring{position}/lost"
-            if master.slave_ok[position]:
-                if again[k] and key not in self.flags:
-                    # out of OP and back between two looks of the loop (a loop kept off the CPU while the keeper and
-                    # the supervision went on): said for one tick, with why it left, never passed over
-                    code = int(master.left_op_code[position])
-                    why = f" (AL status 0x{code:04X} {describe_al_status_code(code)})" if code else ""
-                    self.set_flag(key, f"{joint} (ring {position}): slave left OP{why} and came back")
-                    self._came_back.append(key)
-                else:
-                    self.clear_flag(key)
-                continue
-            state, code = int(master.al_state[position]), int(master.al_status_code[position])
-            why = "not answering" if lost is not None and lost[position] else f"in {describe_al_state(state)}"
-            if code and not (lost is not None and lost[position]):  # why it left OP, as its ESC says
-                why += f", AL status 0x{code:04X} {describe_al_status_code(code)}"
-            problem = master.recovery_problems.get(position)
-            if problem:
-                why += f"; {problem}"
-            self.set_flag(key, f"{joint} (ring {position}): slave lost ({why}); recovering")
-        # A held drive whose slave left OP again may have lost its settings again, restored or not: restore anew
-        np.copyto(self._left_op_seen, left)
-        if self.on_restore_needed is not None and again.any() and \
-                apply_event(self._state, Event.LEFT_OP, where=again).any():
-            self._update_held_flags()
-        if self.on_restore_needed is not None and (self._state == Drive.RESTORING).any():  # its slave may be back
-            self.on_restore_needed()
-
-    def _update_fault_flags(self) -> None:
-        faulted = tuple((k, int(self._rec_sw[k]), int(self._rec_err[k])) for k in np.flatnonzero(self._fault))
-        if faulted == self._fault_seen:
-            return
-        now_faulted = {k for k, _, _ in faulted}
-        for k, _, _ in self._fault_seen:
-            if k not in now_faulted:
-                self.clear_flag(f"ethercat/ring{int(self.ring[k])}/fault")
-        for k, _, _ in faulted:
-            self.set_flag(f"ethercat/ring{int(self.ring[k])}/fault",
-                          f"{self._describe_drive(k)} (latched: r in the live table, or `prime reset`)")
-        self._fault_seen = faulted
-
-    def _update_held_flags(self) -> None:
-        """The flags of the held drives, worded again (the loop's thread only). A drive newly held waits for its
-        settings (RESTORING) when somebody restores them, and that somebody is woken."""
-        held = self._state >= Drive.HELD
-        wake = self.on_restore_needed
-        if wake is not None:
-            apply_event(self._state, Event.RESTORE_NEEDED, where=held & ~self._held_seen)
-        for k in np.flatnonzero(held):
-            self.set_flag(f"ethercat/ring{int(self.ring[k])}/disabled", self._held_text(k))
-        for k in np.flatnonzero(self._held_seen & ~held):
-            self.clear_flag(f"ethercat/ring{int(self.ring[k])}/disabled")
-        np.copyto(self._held_seen, held)
-        if wake is not None and (self._state == Drive.RESTORING).any():
-            wake()
-
-    def _held_text(self, k: int | np.intp) -> str:
-        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): the drive dropped out (power or link: it left "
-                "operation, or its fault, by itself) and is held disabled, so it cannot snap to the target when it "
-                "comes back")
-        if self._state[k] == Drive.RESTORING:
-            return f"{text}; its impedance settings are restored once it is back in OP, then r in the live table, " \
-                   "or `prime reset`, enables it"
-        return f"{text} (latched: r in the live table, or `prime reset`, once it is in OP)"
-
-    def _describe_drive(self, k: int | np.intp) -> str:
-        sw, err = int(self._rec_sw[k]), int(self._rec_err[k])
-        text = (f"{self.joints[k]} (ring {int(self.ring[k])}): {drive_state(sw).value}, statusword {sw} "
-                f"(0x{sw:04X}), error 0x{err:04X} {describe_error(err)}")
-        hint = ERROR_HINTS.get(err)
-        return f"{text}: {hint}" if hint else text
 
 
 def _checked(config: SlaveConfig, channel: Channel, index: int) -> Channel:

@@ -4,6 +4,7 @@ fastest cycle the wrists' traffic fits on the bus (``bus_cycle``)."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import math
 
@@ -66,11 +67,28 @@ def open_bus(hardware: HardwareConfig, *, interface: str | None = None, channel:
     try:
         return can.Bus(interface=interface, channel=channel, bitrate=hardware.can.bitrate, can_filters=can_filters)
     except (OSError, can.CanError, ImportError, ValueError) as exc:
+        _shut_down_unfinished(exc)
         if interface == "socketcan":
             fix = f"bring it up with: sudo ip link set {channel} up type can bitrate {hardware.can.bitrate}"
         else:
             fix = f"check buses.can in {hardware.path.name} or the --interface/--channel options"
         raise PrimeError(f"cannot open CAN channel {channel!r} ({interface}): {exc}; {fix}") from None
+
+
+def _shut_down_unfinished(exc: BaseException) -> None:
+    """Shut down the bus whose constructor raised ``exc`` after python-can's base had counted it open
+    (udp_multicast opens its socket after ``BusABC.__init__``): otherwise its finaliser logs "... was not properly
+    shut down" after our one line. python-can gives no handle on it but the constructor's frame (its maintainers'
+    answer was that a shutdown must cope with a half-built bus: hardbyte/python-can#1519)."""
+    tb = exc.__traceback__
+    while tb is not None:
+        bus = tb.tb_frame.f_locals.get("self")
+        if isinstance(bus, can.BusABC):
+            with contextlib.suppress(Exception):
+                bus.shutdown()  # what the interface did open (a socket), if its shutdown copes
+            can.BusABC.shutdown(bus)  # and the base's own: the bus counts as shut down
+            return
+        tb = tb.tb_next
 
 
 def is_interface_down(exc: BaseException) -> bool:

@@ -284,10 +284,25 @@ def pack_frame(can_id: int, frame: Frame) -> tuple[int, bytes]:
     return arbitration_id(can_id, frame_type), data
 
 
-def parse(frame_type: int, data: bytes | bytearray) -> Frame:
-    """Decode the payload of a frame of ``frame_type``; InvalidFrame if it breaks the protocol."""
-    if len(data) != DATA_LENGTH:
-        raise InvalidFrame(f"{len(data)} data bytes, every Sito frame has {DATA_LENGTH}")
+def framing_problem(data_length: int, *, remote: bool = False, fd: bool = False) -> str | None:
+    """Why a frame in the Sito id range cannot be a Sito frame, whatever its type (None: it can be, and ``parse``
+    reads its payload): every Sito frame is a classic CAN data frame of DATA_LENGTH bytes. ``data_length``: the
+    bytes it carries (of a python-can message, ``min(dlc, len(data))``)."""
+    if remote:
+        return "a remote frame; every Sito frame is a data frame"
+    if fd:
+        return "a CAN FD frame; every Sito frame is classic CAN"
+    if data_length != DATA_LENGTH:
+        return f"{data_length} data bytes, every Sito frame has {DATA_LENGTH}"
+    return None
+
+
+def parse(frame_type: int, data: bytes | bytearray, *, remote: bool = False, fd: bool = False) -> Frame:
+    """Decode a frame of ``frame_type`` carrying ``data`` (``remote``, ``fd``: what kind of CAN frame it came in);
+    InvalidFrame if it breaks the protocol."""
+    problem = framing_problem(len(data), remote=remote, fd=fd)
+    if problem is not None:
+        raise InvalidFrame(problem)
     match frame_type:
         case FrameType.FEEDBACK1:
             return Feedback1(*FEEDBACK1.unpack(data))

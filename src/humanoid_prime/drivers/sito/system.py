@@ -63,6 +63,7 @@ from humanoid_prime.drivers.sito.protocol import (
     SitoModel,
     arbitration_id,
     field_range,
+    framing_problem,
     sito_model,
     wire_scales,
 )
@@ -119,8 +120,9 @@ class _FeedbackReceiver(can.Listener):
             return  # foreign traffic
         frame_type = ident & 0xFF
         data = msg.data
-        if msg.is_remote_frame or msg.is_fd or msg.dlc != DATA_LENGTH or len(data) != DATA_LENGTH:
-            self._invalid(msg, "wrong length or frame kind")
+        problem = framing_problem(min(msg.dlc, len(data)), remote=msg.is_remote_frame, fd=msg.is_fd)
+        if problem is not None:
+            self._invalid(msg, problem)
             return
         if frame_type in _HOST_TYPES:
             return  # a host frame: our own echo or another tool on the bus
@@ -150,8 +152,7 @@ class _FeedbackReceiver(can.Listener):
     def _invalid(self, msg: can.Message, why: str) -> None:
         self.invalid_frames += 1
         self.last_invalid_stamp = self._clock()
-        self.last_invalid = (f"id 0x{msg.arbitration_id:08X} dlc {msg.dlc}"
-                             f"{' remote' if msg.is_remote_frame else ''}: {why}")
+        self.last_invalid = f"id 0x{msg.arbitration_id:08X} dlc {msg.dlc}: {why}"
 
     def on_error(self, exc: Exception) -> None:
         if is_interface_down(exc):

@@ -131,6 +131,11 @@ class RingControl:
         AL requests and mailbox requests are ignored."""
         self.call("silence", position=position, silent=silent)
 
+    def set_identity(self, position: int, *, product_code: int | None = None, revision: int | None = None) -> None:
+        """From the next ring scan on, the slave presents this product code or revision (another model, or
+        another firmware)."""
+        self.call("identity", position=position, product_code=product_code, revision=revision)
+
     def inject_fault(self, position: int, code: int, latched: bool = False) -> None:
         """Fault the drive with ``code`` (0x603F); a latched fault survives fault resets until cleared."""
         self.call("fault", position=position, code=code, latched=latched)

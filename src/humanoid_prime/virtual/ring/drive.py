@@ -51,8 +51,8 @@ from humanoid_prime.drivers.erob.gains import (
     ErobRegisters,
     registers_to_gains,
 )
+from humanoid_prime.drivers.ethercat.wire import ABORT_VALUE_RANGE
 from humanoid_prime.virtual.ring.od import (
-    ABORT_VALUE_RANGE,
     OBJECT_ARRAY,
     OBJECT_RECORD,
     PDO_RX,

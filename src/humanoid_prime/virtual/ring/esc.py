@@ -1,5 +1,5 @@
-"""One EtherCAT slave controller (ESC): register space, SII EEPROM access, SyncManagers, FMMUs and the
-distributed-clock registers, as the master sees them over the wire.
+"""One EtherCAT slave controller (ESC): register space, SyncManagers (mailboxes among them) and FMMUs, as the master
+sees them over the wire; its SII EEPROM interface and its distributed clock are parts of their own.
 
 Register facts relied on (ETG.1000.4, Beckhoff ESC datasheet section II; read the same way by SOEM):
 
@@ -11,9 +11,7 @@ Register facts relied on (ETG.1000.4, Beckhoff ESC datasheet section II; read th
 - 0x0400 watchdog divider and 0x0420 SyncManager watchdog time: the output watchdog runs out after
   ``(divider + 2) * 40 ns * time`` without a write to an SM with bit 6 (watchdog trigger) in its
   control byte; the defaults 2498 and 1000 give 100 ms. 0 disables it.
-- 0x0500 EEPROM configuration; 0x0502 EEPROM control/status (command in bits 8-10: 1 read, 2 write;
-  bit 6 set = reads deliver 8 bytes; bit 15 busy; bits 11-14 errors); 0x0504 word address;
-  0x0508 data. Commands complete at once here, so busy is never seen set.
+- 0x0500-0x050F the SII EEPROM interface (``eeprom.py``).
 - FMMU n at 0x0600 + 16n: logical start u32, length u16, start bit, end bit, physical start u16,
   physical start bit, type (bit 0 read, bit 1 write), active. Mapping is byte-granular here; SOEM maps
   byte-oriented slaves with start bit 0 and end bit 7.
@@ -25,17 +23,7 @@ Register facts relied on (ETG.1000.4, Beckhoff ESC datasheet section II; read th
   only while full and empties when its last byte is read; a refused access does not count in the
   working counter. An SM the slave deactivated refuses all access (that is how SAFE-OP keeps outputs
   out of the working counter).
-- DC: 0x0900-0x090F receive times of ports 0-3 (latched by any write to 0x0900), 0x0910 system time
-  (u64, local time + 0x0920 offset; a write is a drift sample from the reference clock and does not
-  set the time), 0x0918 local time of the latching frame (u64), 0x0920 system time offset (u64),
-  0x0928 propagation delay, 0x092C system time difference (received minus local in bits 0-30, saturated; bit 31
-  set when the local copy is the smaller, as Infineon's XMC4300 register description spells it), 0x0930
-  speed counter start (0x1000 after power-on; a write resets the difference filter, as the clock initialisation
-  of Beckhoff's ESC datasheet, section I 9.1.3.6, uses it), 0x0980 cycle unit control,
-  0x0981 activation (bit 0 cyclic operation, bit 1 SYNC0, bit 2 SYNC1), 0x0990 SYNC0 start time
-  (u64 system time), 0x09A0 SYNC0 cycle time (u32 ns), 0x09A4 SYNC1 cycle time. The local clock starts at 0
-  at power-on and the offset is cleared, so a slave back from a power cycle is far off the ring's time until the
-  master sets its offset again. There is no time control loop: the difference stays as the master left it.
+- 0x0900-0x09A7 the distributed clock (``dc.py``).
 """
 
 from __future__ import annotations
@@ -43,58 +31,48 @@ from __future__ import annotations
 import struct
 from typing import Protocol
 
-from humanoid_prime.virtual.ring.frames import Command
+from humanoid_prime.drivers.ethercat.wire import (
+    AL_ERROR,
+    FMMU_LAYOUT,
+    FMMU_READ,
+    FMMU_SIZE,
+    FMMU_WRITE,
+    REG_AL_CONTROL,
+    REG_AL_STATUS,
+    REG_AL_STATUS_CODE,
+    REG_ALIAS,
+    REG_DC_RECEIVE_TIME,
+    REG_DC_SYSTEM_TIME,
+    REG_DL_STATUS,
+    REG_EEPROM_CONTROL,
+    REG_FMMU,
+    REG_PDI_CONTROL,
+    REG_SM,
+    REG_STATION_ADDRESS,
+    REG_WD_DIVIDER,
+    REG_WD_SM_TIME,
+    REG_WD_STATUS,
+    SII_WORD_ALIAS,
+    SM_DIRECTION_WRITE,
+    SM_ENABLE,
+    SM_LAYOUT,
+    SM_MODE_MAILBOX,
+    SM_MODE_MASK,
+    SM_PDI_DEACTIVATED,
+    SM_SIZE,
+    SM_STATUS_MAILBOX_FULL,
+    SM_WATCHDOG_TRIGGER,
+    AlState,
+    Command,
+)
+from humanoid_prime.virtual.ring.dc import EscClock
+from humanoid_prime.virtual.ring.eeprom import SiiEeprom
 
 MEMORY_SIZE = 0x3000  # 4 KiB registers + 8 KiB process RAM
 PROCESS_RAM = 0x1000
-
-REG_STATION_ADDRESS = 0x0010
-REG_ALIAS = 0x0012
-REG_DL_STATUS = 0x0110
-REG_AL_CONTROL = 0x0120
-REG_AL_STATUS = 0x0130
-REG_AL_STATUS_CODE = 0x0134
-REG_PDI_CONTROL = 0x0140
-REG_WD_DIVIDER = 0x0400
-REG_WD_SM_TIME = 0x0420
-REG_WD_STATUS = 0x0440
-REG_EEPROM_CONFIG = 0x0500
-REG_EEPROM_CONTROL = 0x0502
-REG_EEPROM_ADDRESS = 0x0504
-REG_EEPROM_DATA = 0x0508
-REG_FMMU = 0x0600
-REG_SM = 0x0800
-REG_DC_RECEIVE_TIME = 0x0900
-REG_DC_SYSTEM_TIME = 0x0910
-REG_DC_FRAME_TIME = 0x0918
-REG_DC_OFFSET = 0x0920
-REG_DC_DELAY = 0x0928
-REG_DC_DIFFERENCE = 0x092C
-REG_DC_SPEED_START = 0x0930
-DC_DIFFERENCE_LOCAL_SMALLER = 0x80000000
-REG_DC_ACTIVATION = 0x0981
-REG_DC_SYNC0_START = 0x0990
-REG_DC_SYNC0_CYCLE = 0x09A0
-
-EEPROM_STATUS_READ_8 = 0x0040
-EEPROM_COMMAND_READ = 0x01
-EEPROM_COMMAND_WRITE = 0x02
-EEPROM_STATUS_ERROR_MASK = 0x7800
-EEPROM_STATUS_NACK = 0x2000
-
 SM_COUNT = 8
 FMMU_COUNT = 8
-SM_MODE_MAILBOX = 0x02
-SM_DIRECTION_WRITE = 0x04
-SM_WATCHDOG_TRIGGER = 0x40
-SM_STATUS_MAILBOX_FULL = 0x08
-
 _U16 = struct.Struct("<H")
-_U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
-_I64 = struct.Struct("<q")
-_SM = struct.Struct("<HHBBBB")
-_FMMU = struct.Struct("<IHBBHBBB")
 
 # Bytes the master may write; everything else in 0x0000-0x0FFF is read only for EtherCAT.
 _WRITABLE_RANGES = (
@@ -119,36 +97,24 @@ class EscApplication(Protocol):
 
 class Esc:
     """Register memory and ESC mechanics of one slave. ``frame_time_ns`` (monotonic ns of the frame being
-    processed) and the port delays are set by the ring before each frame."""
+    processed) is set by the ring before each frame; ``clock`` is its distributed clock, ``eeprom`` its SII."""
 
-    def __init__(self, sii: bytes, app: EscApplication, *, clock_origin_ns: int) -> None:
+    def __init__(self, sii: bytes, app: EscApplication, *, clock_origin_ns: int, eeprom_busy_s: float = 0.0) -> None:
         self.mem = bytearray(MEMORY_SIZE)
-        self.sii = bytearray(sii)
         self.app = app
-        self.clock_origin_ns = clock_origin_ns
         self.frame_time_ns = clock_origin_ns
-        self.port0_delay_ns = 0
-        self.port1_delay_ns: int | None = None
+        self.clock = EscClock(self.mem, lambda: self.frame_time_ns, app.sync_activation_changed,
+                              origin_ns=clock_origin_ns)
+        self.eeprom = SiiEeprom(sii, self.mem, busy_s=eeprom_busy_s)
         self.last_output_write_ns: int | None = None
-        self.dc_samples = 0
-        self.dc_difference_ns: int | None = None  # received minus local system time at the last sample
-        self.dc_sample_ns: int | None = None  # frame time of that sample
-        self.sync0_missed = False
         self.output_watchdog_ns = 0  # SM watchdog period; 0 = disabled
-        self.dc_offset_ns = 0
-        # quirks of some ESCs: bit 31 of 0x092C read the other way round (ESC documents disagree on it), and a
-        # clock whose difference stays this far off whatever offset it is given (it never comes into step)
-        self.difference_reversed = False
-        self.difference_error_ns = 0
-        self.sync_activation = 0
-        self.sync0_start_ns = 0
-        self.sync0_cycle_ns = 0
         self._writable = bytearray(0x1000)
         for start, end in _WRITABLE_RANGES:
             self._writable[start:end] = b"\x01" * (end - start)
         for n in range(SM_COUNT):
-            self._writable[REG_SM + 8 * n + 5] = 0
-            self._writable[REG_SM + 8 * n + 7] = 0
+            self._writable[REG_SM + SM_SIZE * n + 5] = 0
+            self._writable[REG_SM + SM_SIZE * n + 7] = 0
+        self._writable[REG_DC_SYSTEM_TIME:REG_DC_SYSTEM_TIME + 8] = bytes(8)  # a write there is a time sample
         self._sms: list[tuple[int, int, int, int, int]] = []  # (index, start, end, control, pdi_disabled)
         self._fmmus: list[tuple[int, int, int, int]] = []  # (logical start, logical end, physical, type)
         self._last_mailbox_reply = b""
@@ -158,25 +124,22 @@ class Esc:
     def power_on(self, now_ns: int | None = None) -> None:
         """Registers as after power-up: INIT, no station address, SMs, FMMUs and the DC offset cleared; the local
         clock starts again from 0 at ``now_ns`` (when given)."""
-        if now_ns is not None:
-            self.clock_origin_ns = now_ns
-        self.dc_difference_ns = self.dc_sample_ns = None
         mem = self.mem
         mem[:] = bytes(MEMORY_SIZE)
+        # type, revision, build, FMMUs, SyncManagers, RAM (KiB), port descriptor, features (bit 2: DC)
         struct.pack_into("<BBHBBBBH", mem, 0, 0x11, 0x00, 0x0002, FMMU_COUNT, SM_COUNT, 8, 0x0F, 0x01FC)
-        _U16.pack_into(mem, REG_ALIAS, _U16.unpack_from(self.sii, 8)[0])
-        mem[REG_PDI_CONTROL] = self.sii[0]
-        _U16.pack_into(mem, REG_AL_STATUS, 0x0001)
-        _U16.pack_into(mem, REG_WD_DIVIDER, 2498)
+        image = self.eeprom.image
+        _U16.pack_into(mem, REG_ALIAS, _U16.unpack_from(image, 2 * SII_WORD_ALIAS)[0])
+        mem[REG_PDI_CONTROL] = image[0]
+        _U16.pack_into(mem, REG_AL_STATUS, AlState.INIT)
+        _U16.pack_into(mem, REG_WD_DIVIDER, 2498)  # with 1000 in 0x0420: a 100 ms output watchdog
         _U16.pack_into(mem, REG_WD_SM_TIME, 1000)
         _U16.pack_into(mem, REG_WD_STATUS, 0x0001)
-        _U16.pack_into(mem, REG_DC_SPEED_START, 0x1000)
-        _U16.pack_into(mem, REG_EEPROM_CONTROL, EEPROM_STATUS_READ_8)
+        self.eeprom.power_on()
+        self.clock.power_on(now_ns)
         self.last_output_write_ns = None
-        self.sync0_missed = False
         self._last_mailbox_reply = b""
         self._update_watchdog()
-        self._update_dc()
         self._rebuild_sms()
         self._rebuild_fmmus()
 
@@ -204,40 +167,40 @@ class Esc:
         return _U16.unpack_from(self.mem, REG_AL_STATUS_CODE)[0]
 
     def set_al_status(self, state: int, error: bool, code: int) -> None:
-        _U16.pack_into(self.mem, REG_AL_STATUS, state | (0x10 if error else 0))
+        _U16.pack_into(self.mem, REG_AL_STATUS, state | (AL_ERROR if error else 0))
         _U16.pack_into(self.mem, REG_AL_STATUS_CODE, code)
 
     # ---- SyncManagers -----------------------------------------------------------------------------------
     def sync_manager(self, n: int) -> tuple[int, int, int, int]:
         """(start, length, control, activate) as the master programmed SM ``n``."""
-        start, length, control, _status, activate, _pdi = _SM.unpack_from(self.mem, REG_SM + 8 * n)
+        start, length, control, _status, activate, _pdi = SM_LAYOUT.unpack_from(self.mem, REG_SM + SM_SIZE * n)
         return start, length, control, activate
 
     def set_sm_deactivated(self, n: int, deactivated: bool) -> None:
         """The slave (PDI) deactivates or re-enables SM ``n``."""
-        address = REG_SM + 8 * n + 7
-        self.mem[address] = (self.mem[address] & 0xFE) | int(deactivated)
+        address = REG_SM + SM_SIZE * n + 7
+        self.mem[address] = (self.mem[address] & ~SM_PDI_DEACTIVATED & 0xFF) | int(deactivated)
         self._rebuild_sms()
 
     def _rebuild_sms(self) -> None:
         sms = []
         for n in range(SM_COUNT):
-            start, length, control, _status, activate, pdi = _SM.unpack_from(self.mem, REG_SM + 8 * n)
-            if activate & 0x01 and length:
-                sms.append((n, start, start + length, control, pdi & 0x01))
+            start, length, control, _status, activate, pdi = SM_LAYOUT.unpack_from(self.mem, REG_SM + SM_SIZE * n)
+            if activate & SM_ENABLE and length:
+                sms.append((n, start, start + length, control, pdi & SM_PDI_DEACTIVATED))
         self._sms = sms
 
     def _mailbox_full(self, n: int) -> bool:
-        return bool(self.mem[REG_SM + 8 * n + 5] & SM_STATUS_MAILBOX_FULL)
+        return bool(self.mem[REG_SM + SM_SIZE * n + 5] & SM_STATUS_MAILBOX_FULL)
 
     def _set_mailbox_full(self, n: int, full: bool) -> None:
-        address = REG_SM + 8 * n + 5
+        address = REG_SM + SM_SIZE * n + 5
         self.mem[address] = (self.mem[address] & ~SM_STATUS_MAILBOX_FULL & 0xFF) | (SM_STATUS_MAILBOX_FULL * full)
 
     def _mailbox_sm(self, direction_write: bool) -> tuple[int, int, int, int, int] | None:
         for sm in self._sms:
             control = sm[3]
-            if control & 0x03 == SM_MODE_MAILBOX and bool(control & SM_DIRECTION_WRITE) == direction_write:
+            if control & SM_MODE_MASK == SM_MODE_MAILBOX and bool(control & SM_DIRECTION_WRITE) == direction_write:
                 return sm
         return None
 
@@ -271,7 +234,7 @@ class Esc:
         """Empty both mailboxes and forget the last reply (the slave went back to INIT): nothing of one master
         session is ever offered to the next."""
         for sm in self._sms:
-            if sm[3] & 0x03 == SM_MODE_MAILBOX:
+            if sm[3] & SM_MODE_MASK == SM_MODE_MAILBOX:
                 self._set_mailbox_full(sm[0], False)
         self._forget_reply()
 
@@ -280,7 +243,7 @@ class Esc:
         self._last_mailbox_reply = b""
         for n in range(SM_COUNT):
             _start, _length, control, activate = self.sync_manager(n)
-            if control & 0x03 == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE:
+            if control & SM_MODE_MASK == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE:
                 ack = REG_SM + 8 * n + 7
                 self.mem[ack] = (self.mem[ack] & ~0x02 & 0xFF) | (activate & 0x02)
 
@@ -299,104 +262,32 @@ class Esc:
     def _rebuild_fmmus(self) -> None:
         fmmus = []
         for n in range(FMMU_COUNT):
-            log_start, length, _sb, _eb, phys, _pb, kind, active = _FMMU.unpack_from(self.mem, REG_FMMU + 16 * n)
-            if active & 0x01 and length and kind & 0x03:
-                fmmus.append((log_start, log_start + length, phys, kind & 0x03))
+            address = REG_FMMU + FMMU_SIZE * n
+            log_start, length, _sb, _eb, phys, _pb, kind, active = FMMU_LAYOUT.unpack_from(self.mem, address)
+            if active & 0x01 and length and kind & (FMMU_READ | FMMU_WRITE):
+                fmmus.append((log_start, log_start + length, phys, kind & (FMMU_READ | FMMU_WRITE)))
         self._fmmus = fmmus
-
-    # ---- distributed clock ------------------------------------------------------------------------------
-    def local_time(self, now_ns: int) -> int:
-        return now_ns - self.clock_origin_ns
-
-    def system_time(self, now_ns: int) -> int:
-        return (now_ns - self.clock_origin_ns + self.dc_offset_ns) & 0xFFFFFFFFFFFFFFFF
-
-    def _update_dc(self) -> None:
-        mem = self.mem
-        self.dc_offset_ns = _I64.unpack_from(mem, REG_DC_OFFSET)[0]
-        self.sync_activation = mem[REG_DC_ACTIVATION]
-        self.sync0_start_ns = _U64.unpack_from(mem, REG_DC_SYNC0_START)[0]
-        self.sync0_cycle_ns = _U32.unpack_from(mem, REG_DC_SYNC0_CYCLE)[0]
-
-    def sync0_running(self, now_ns: int) -> bool:
-        """SYNC0 pulses are being generated: cyclic operation and SYNC0 on, start time reached."""
-        return (self.sync_activation & 0x03 == 0x03 and not self.sync0_missed
-                and self.system_time(now_ns) >= self.sync0_start_ns)
-
-    def _latch_receive_times(self) -> None:
-        local = self.local_time(self.frame_time_ns)
-        port0 = local + self.port0_delay_ns
-        port1 = 0 if self.port1_delay_ns is None else local + self.port1_delay_ns
-        struct.pack_into("<IIII", self.mem, REG_DC_RECEIVE_TIME, port0 & 0xFFFFFFFF, port1 & 0xFFFFFFFF, 0, 0)
-        _U64.pack_into(self.mem, REG_DC_FRAME_TIME, port0 & 0xFFFFFFFFFFFFFFFF)
-
-    def _drift_sample(self, written: bytes) -> None:
-        own = self.system_time(self.frame_time_ns)
-        width = len(written)
-        received = int.from_bytes(written, "little")
-        mask = (1 << (8 * width)) - 1
-        diff = (received - (own & mask)) & mask
-        if diff >= 1 << (8 * width - 1):
-            diff -= 1 << (8 * width)
-        diff = self.difference_error_ns or diff
-        magnitude = min(abs(diff), 0x7FFFFFFF)
-        smaller = (diff > 0) != self.difference_reversed
-        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, magnitude | (DC_DIFFERENCE_LOCAL_SMALLER if smaller else 0))
-        self.dc_difference_ns = diff
-        self.dc_sample_ns = self.frame_time_ns
-        self.dc_samples += 1
-
-    def _reset_time_filter(self) -> None:
-        _U32.pack_into(self.mem, REG_DC_DIFFERENCE, 0)
-        self.dc_difference_ns = self.dc_sample_ns = None
-
-    def _activation_written(self) -> None:
-        if self.sync_activation & 0x03 == 0x03:
-            self.sync0_missed = self.sync0_start_ns < self.system_time(self.frame_time_ns)
-        else:
-            self.sync0_missed = False
-        self.app.sync_activation_changed()
 
     # ---- watchdog ---------------------------------------------------------------------------------------
     def _update_watchdog(self) -> None:
         divider = _U16.unpack_from(self.mem, REG_WD_DIVIDER)[0]
         self.output_watchdog_ns = (divider + 2) * 40 * _U16.unpack_from(self.mem, REG_WD_SM_TIME)[0]
 
-    # ---- EEPROM -----------------------------------------------------------------------------------------
-    def _eeprom_command(self) -> None:
-        control = _U16.unpack_from(self.mem, REG_EEPROM_CONTROL)[0]
-        command = (control >> 8) & 0x07
-        address = _U32.unpack_from(self.mem, REG_EEPROM_ADDRESS)[0]
-        status = EEPROM_STATUS_READ_8
-        if command == EEPROM_COMMAND_READ:
-            start = 2 * address
-            data = bytes(self.sii[start:start + 8])
-            if len(data) < 8:
-                data += b"\xff" * (8 - len(data))
-            self.mem[REG_EEPROM_DATA:REG_EEPROM_DATA + 8] = data
-        elif command == EEPROM_COMMAND_WRITE:
-            if control & 0x01 and 2 * address + 2 <= len(self.sii):
-                self.sii[2 * address:2 * address + 2] = self.mem[REG_EEPROM_DATA:REG_EEPROM_DATA + 2]
-            else:
-                status |= EEPROM_STATUS_NACK
-        elif command:
-            status |= EEPROM_STATUS_NACK
-        _U16.pack_into(self.mem, REG_EEPROM_CONTROL, status)
-
     # ---- physical access (APxx, FPxx, Bxx, xRMW) ------------------------------------------------------------
     def read(self, address: int, frame: bytearray, offset: int, length: int, combine: bool = False) -> bool:
         """Copy ``length`` bytes at ``address`` into ``frame[offset:]`` (OR-ed in when ``combine``, as for
         broadcast reads). False when the ESC refuses (empty read mailbox, deactivated SM)."""
         end = address + length
-        if address < REG_DC_SYSTEM_TIME + 8 and end > REG_DC_SYSTEM_TIME:
-            _U64.pack_into(self.mem, REG_DC_SYSTEM_TIME, self.system_time(self.frame_time_ns))
+        self.clock.before_read(address, end)
+        if address < REG_EEPROM_CONTROL + 0x0E and end > REG_EEPROM_CONTROL:
+            self.eeprom.before_read(self.frame_time_ns)
         emptied = None
         if end > PROCESS_RAM:
             for n, start, sm_end, control, pdi_disabled in self._sms:
                 if address < sm_end and end > start:
                     if pdi_disabled:
                         return False
-                    if control & 0x03 == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE:
+                    if control & SM_MODE_MASK == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE:
                         if not self._mailbox_full(n):
                             return False
                         if address < sm_end <= end:
@@ -428,7 +319,7 @@ class Esc:
             if ram_start < sm_end and end > start:
                 if pdi_disabled or not control & SM_DIRECTION_WRITE:
                     return False
-                if control & 0x03 == SM_MODE_MAILBOX:
+                if control & SM_MODE_MASK == SM_MODE_MAILBOX:
                     if self._mailbox_full(n):
                         return False
                     if ram_start < sm_end <= end:
@@ -444,58 +335,45 @@ class Esc:
 
     def _write_registers(self, address: int, data: bytes | bytearray) -> None:
         end = min(address + len(data), PROCESS_RAM)
-        if address >= REG_DC_SYSTEM_TIME and end <= REG_DC_SYSTEM_TIME + 8:  # time distribution, every cycle
-            if end - address >= 4:
-                self._drift_sample(bytes(data[:end - address]))
+        data = data[:end - address]
+        if self.clock.time_distribution(address, data):  # every cycle: the register keeps the local copy
             return
         mem = self.mem
         writable = self._writable
-        drift = None
         for i in range(address, end):
             if writable[i]:
-                if REG_DC_SYSTEM_TIME <= i < REG_DC_SYSTEM_TIME + 8:
-                    continue
                 mem[i] = data[i - address]
-        if address < REG_DC_SYSTEM_TIME + 8 and end > REG_DC_SYSTEM_TIME:
-            lo = max(address, REG_DC_SYSTEM_TIME)
-            hi = min(end, REG_DC_SYSTEM_TIME + 8)
-            drift = bytes(data[lo - address:hi - address])
         touched = (address, end)
         if _overlaps(touched, REG_AL_CONTROL, 2):
             self.app.al_control(self.al_control_value)
         if _overlaps(touched, REG_WD_DIVIDER, 0x22):
             self._update_watchdog()
         if _overlaps(touched, REG_EEPROM_CONTROL, 2):
-            self._eeprom_command()
-        if _overlaps(touched, REG_FMMU, 16 * FMMU_COUNT):
+            self.eeprom.command_written(self.frame_time_ns)
+        if _overlaps(touched, REG_FMMU, FMMU_SIZE * FMMU_COUNT):
             self._rebuild_fmmus()
-        if _overlaps(touched, REG_SM, 8 * SM_COUNT):
-            enabled_before = {sm[0] for sm in self._sms}
-            self._rebuild_sms()
-            for n in range(SM_COUNT):
-                if _overlaps(touched, REG_SM + 8 * n + 6, 1):
-                    _start, _length, control, activate = self.sync_manager(n)
-                    read_mailbox = control & 0x03 == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE
-                    if not activate & 0x01:
-                        self._set_mailbox_full(n, False)
-                        if read_mailbox:
-                            self._forget_reply()
-                    elif read_mailbox and n not in enabled_before:
-                        self._forget_reply()  # a fresh configuration, not a repeat request
-                    elif read_mailbox:
-                        self._repeat_request(n)
-            if _overlaps(touched, REG_SM, 16):  # SM0/SM1, the mailboxes the SII describes
-                self.app.mailbox_changed()
-        if _overlaps(touched, REG_DC_OFFSET, 8) or _overlaps(touched, REG_DC_ACTIVATION, 0x27):
-            self._update_dc()
-        if _overlaps(touched, REG_DC_RECEIVE_TIME, 4):
-            self._latch_receive_times()
-        if _overlaps(touched, REG_DC_SPEED_START, 2):
-            self._reset_time_filter()
-        if drift is not None and len(drift) >= 4:
-            self._drift_sample(drift)
-        if _overlaps(touched, REG_DC_ACTIVATION, 1):
-            self._activation_written()
+        if _overlaps(touched, REG_SM, SM_SIZE * SM_COUNT):
+            self._sync_managers_written(touched)
+        if _overlaps(touched, REG_DC_RECEIVE_TIME, 0xA8):
+            self.clock.written(address, data)
+
+    def _sync_managers_written(self, touched: tuple[int, int]) -> None:
+        enabled_before = {sm[0] for sm in self._sms}
+        self._rebuild_sms()
+        for n in range(SM_COUNT):
+            if _overlaps(touched, REG_SM + SM_SIZE * n + 6, 1):
+                _start, _length, control, activate = self.sync_manager(n)
+                read_mailbox = control & SM_MODE_MASK == SM_MODE_MAILBOX and not control & SM_DIRECTION_WRITE
+                if not activate & SM_ENABLE:
+                    self._set_mailbox_full(n, False)
+                    if read_mailbox:
+                        self._forget_reply()
+                elif read_mailbox and n not in enabled_before:
+                    self._forget_reply()  # a fresh configuration, not a repeat request
+                elif read_mailbox:
+                    self._repeat_request(n)
+        if _overlaps(touched, REG_SM, 2 * SM_SIZE):  # SM0/SM1, the mailboxes the SII describes
+            self.app.mailbox_changed()
 
     # ---- logical access (LRD, LWR, LRW) -------------------------------------------------------------------
     def logical(self, command: int, address: int, frame: bytearray, offset: int, length: int) -> int:
@@ -532,7 +410,7 @@ class Esc:
             return False
         for _n, start, sm_end, control, pdi_disabled in self._sms:
             if address < sm_end and end > start:
-                if pdi_disabled or control & 0x03 == SM_MODE_MAILBOX:
+                if pdi_disabled or control & SM_MODE_MASK == SM_MODE_MAILBOX:
                     return False
                 if bool(control & SM_DIRECTION_WRITE) != write:
                     return False

@@ -35,55 +35,48 @@ event; its reply mailbox is gone until the master configures it again. How long 
 
 from __future__ import annotations
 
-import struct
 from collections import deque
 from collections.abc import Callable
-from enum import IntEnum
 
 from humanoid_prime.drivers.erob import objects as obj
 from humanoid_prime.drivers.erob.constants import MIN_CYCLE_S, PRODUCT_CODE, VENDOR_ID
+from humanoid_prime.drivers.ethercat.wire import (
+    AL_CODE_BOOTSTRAP_NOT_SUPPORTED,
+    AL_CODE_INVALID_MAILBOX_CONFIG,
+    AL_CODE_INVALID_STATE_CHANGE,
+    AL_CODE_INVALID_SYNC_CYCLE,
+    AL_CODE_NO_ERROR,
+    AL_CODE_NO_SYNC,
+    AL_CODE_SYNC_ERROR,
+    AL_CODE_UNKNOWN_STATE,
+    AL_CODE_WATCHDOG,
+    AL_ERROR,
+    AL_STATE_MASK,
+    DC_CYCLIC_SYNC0,
+    SM_ENABLE,
+    AlState,
+)
 from humanoid_prime.virtual.ring import sii
 from humanoid_prime.virtual.ring.drive import ERROR_COMMUNICATION, REVISION, ErobDrive
 from humanoid_prime.virtual.ring.esc import Esc
 from humanoid_prime.virtual.ring.latency import MailboxLatency
 from humanoid_prime.virtual.ring.mailbox import CoeServer
-from humanoid_prime.virtual.ring.od import (
-    ABORT_DEVICE_STATE,
-    ABORT_NOT_MAPPABLE,
-    ABORT_PDO_LENGTH,
-    ABORT_SUBINDEX_ZERO_FIRST,
-    Entry,
-    SdoAbort,
-)
 from humanoid_prime.virtual.ring.options import RingOptions
-
-
-class AlState(IntEnum):
-    INIT = 1
-    PREOP = 2
-    BOOT = 3
-    SAFEOP = 4
-    OP = 8
-
-
-AL_OK = 0x0000
-AL_INVALID_STATE_CHANGE = 0x0011
-AL_UNKNOWN_STATE = 0x0012
-AL_BOOTSTRAP_NOT_SUPPORTED = 0x0013
-AL_INVALID_MAILBOX_CONFIG = 0x0016
-AL_SYNC_ERROR = 0x001A
-AL_WATCHDOG = 0x001B
-AL_INVALID_OUTPUT_CONFIG = 0x001D
-AL_INVALID_INPUT_CONFIG = 0x001E
-AL_INVALID_SYNC_CYCLE = 0x0035
+from humanoid_prime.virtual.ring.pdo import (
+    MAX_PDO_BYTES,
+    SM_INPUTS,
+    SM_OUTPUTS,
+    ProcessData,
+    compile_process_data,
+    guard_pdo_objects,
+)
+from humanoid_prime.virtual.ring.quirks import SLOW_SII_S, SLOW_STATE_S
 
 MAILBOX_OUT_START = 0x1000
 MAILBOX_IN_START = 0x1080
 OUTPUTS_START = 0x1100
-INPUTS_START = 0x1180
-SM_OUTPUTS = 2
-SM_INPUTS = 3
-MAX_PDO_BYTES = 0x80
+SM_MAILBOX_OUT_CONTROL, SM_MAILBOX_IN_CONTROL = 0x26, 0x22  # mailbox, ECAT writes / reads, interrupts on
+SM_OUTPUTS_CONTROL, SM_INPUTS_CONTROL = 0x64, 0x20  # buffered, ECAT writes (watchdog trigger) / reads
 
 # A write the slave logged: (monotonic s, ring position, index, subindex, raw value, applied).
 SdoLogSink = Callable[[float, int, int, int, int, bool], None]
@@ -95,11 +88,12 @@ def sii_content(options: RingOptions, serial: int) -> sii.SiiContent:
         vendor_id=VENDOR_ID, product_code=PRODUCT_CODE, revision=REVISION, serial=serial,
         name="eRob CiA402 (emulated)", group="Servo drives", order="eRob70",
         sync_managers=(
-            sii.SyncManagerLayout(MAILBOX_OUT_START, size, 0x26, sii.SM_TYPE_MAILBOX_OUT),
-            sii.SyncManagerLayout(MAILBOX_IN_START if size <= 0x80 else MAILBOX_OUT_START + size, size, 0x22,
-                                  sii.SM_TYPE_MAILBOX_IN),
-            sii.SyncManagerLayout(_outputs_start(size), _size(obj.POWER_UP_RXPDO), 0x64, sii.SM_TYPE_OUTPUTS),
-            sii.SyncManagerLayout(_outputs_start(size) + MAX_PDO_BYTES, _size(obj.POWER_UP_TXPDO), 0x20,
+            sii.SyncManagerLayout(MAILBOX_OUT_START, size, SM_MAILBOX_OUT_CONTROL, sii.SM_TYPE_MAILBOX_OUT),
+            sii.SyncManagerLayout(MAILBOX_IN_START if size <= 0x80 else MAILBOX_OUT_START + size, size,
+                                  SM_MAILBOX_IN_CONTROL, sii.SM_TYPE_MAILBOX_IN),
+            sii.SyncManagerLayout(_outputs_start(size), _size(obj.POWER_UP_RXPDO), SM_OUTPUTS_CONTROL,
+                                  sii.SM_TYPE_OUTPUTS),
+            sii.SyncManagerLayout(_outputs_start(size) + MAX_PDO_BYTES, _size(obj.POWER_UP_TXPDO), SM_INPUTS_CONTROL,
                                   sii.SM_TYPE_INPUTS),
         ),
         rx_pdo_index=obj.RXPDO_MAP, rx_pdo=obj.POWER_UP_RXPDO, tx_pdo_index=obj.TXPDO_MAP, tx_pdo=obj.POWER_UP_TXPDO,
@@ -114,32 +108,6 @@ def _outputs_start(mailbox_size: int) -> int:
     return max(OUTPUTS_START, MAILBOX_OUT_START + 2 * mailbox_size)
 
 
-class PdoCodec:
-    """Packs or unpacks one direction of process data between SM memory and OD entries."""
-
-    def __init__(self, entries: list[Entry | None], paddings: list[int]) -> None:
-        fmt = "<"
-        self.entries: list[Entry] = []
-        for entry, pad in zip(entries, paddings, strict=True):
-            if entry is None:
-                fmt += "x" * pad
-            else:
-                fmt += entry.fmt
-                self.entries.append(entry)
-        self.struct = struct.Struct(fmt)
-
-    @property
-    def size(self) -> int:
-        return self.struct.size
-
-    def unpack(self, memory: bytearray, address: int) -> None:
-        for entry, value in zip(self.entries, self.struct.unpack_from(memory, address), strict=True):
-            entry.value = value
-
-    def pack(self, memory: bytearray, address: int) -> None:
-        self.struct.pack_into(memory, address, *[e.value for e in self.entries])
-
-
 class ErobFirmware:
     """Glue between one ESC and one drive model. ``tick(now)`` runs the time-driven parts."""
 
@@ -147,17 +115,19 @@ class ErobFirmware:
                  log: SdoLogSink | None = None, latency: MailboxLatency | None = None) -> None:
         self.position = position
         self.options = options
+        self.quirks = options.quirk_profiles
         self.log = log
         self.latency = latency if latency is not None else MailboxLatency(options)
         serial = 0x00E20000 + position
         self.drive = self._new_drive(serial)
-        self.esc = Esc(sii.build_image(sii_content(options, serial)), self, clock_origin_ns=clock_origin_ns)
-        self.coe = CoeServer(self.drive.od, options.mailbox_size, on_download=self._downloaded)
+        self.esc = Esc(sii.build_image(sii_content(options, serial)), self, clock_origin_ns=clock_origin_ns,
+                       eeprom_busy_s=SLOW_SII_S if "slow-sii" in self.quirks else 0.0)
+        self.coe = self._new_coe()
         self.state = AlState.INIT
         self.error = False
-        self.code = AL_OK
+        self.code = AL_CODE_NO_ERROR
         self.pending_op = False
-        self.pending_change: tuple[int, int] | None = None  # (requested state, due ns): options.state_change_s
+        self.pending_change: tuple[int, int] | None = None  # (requested state, due ns): a state change under way
         self.change_frames: list[int] = []  # per delayed state change, process-data frames the ring carried meanwhile
         self.silent = False
         self.locked = False
@@ -165,31 +135,36 @@ class ErobFirmware:
         self.sync_mismatch = 0
         self.last_cycle_ns: int | None = None
         self.outputs_pending = False
-        self.rx: PdoCodec | None = None
-        self.tx: PdoCodec | None = None
-        self._outputs_at = 0
-        self._inputs_at = 0
+        self.process_data: ProcessData | None = None
         self.mailbox_faults = 0
+        self.refusals: dict[int, int] = {}  # fault injection: requests for a state here are refused with that code
         self.replies_taken = 0  # replies the master read out of the read mailbox (a repeated one counts again)
         self._replies: deque[tuple[int, bytes]] = deque()
-        self._guard_pdo_objects()
+        guard_pdo_objects(self.drive.od, self._in_pre_op)
         self._enter(AlState.INIT)
+
+    @property
+    def state_change_s(self) -> float:
+        """How long a request for PRE-OP or SAFE-OP from a lower state takes to be carried out."""
+        slow = SLOW_STATE_S if "slow-states" in self.quirks else 0.0
+        return max(self.options.state_change_s, slow)
 
     # ---- ESC callbacks ------------------------------------------------------------------------------
     def al_control(self, value: int) -> None:
         if self.silent:
             return
-        requested = value & 0x0F
-        if value & 0x10:
+        requested = value & AL_STATE_MASK
+        if value & AL_ERROR:
             self.error = False
-            self.code = AL_OK
+            if "slow-states" not in self.quirks:  # that profile leaves the code set (the master ignores it now)
+                self.code = AL_CODE_NO_ERROR
         elif self.error and requested >= self.state:
             return
         if self.pending_change is not None and self.pending_change[0] == requested:
             return  # asked again while it is under way
         self.pending_change = None
-        if self.options.state_change_s and requested in (AlState.PREOP, AlState.SAFEOP) and requested > self.state:
-            self.pending_change = (requested, self.esc.frame_time_ns + round(self.options.state_change_s * 1e9))
+        if self.state_change_s and requested in (AlState.PRE_OP, AlState.SAFE_OP) and requested > self.state:
+            self.pending_change = (requested, self.esc.frame_time_ns + round(self.state_change_s * 1e9))
             self.change_frames.append(0)
             return
         self._request(requested)
@@ -216,16 +191,16 @@ class ErobFirmware:
     def mailbox_changed(self) -> None:
         """The master wrote SM0 or SM1: above INIT, a mailbox switched off or moved drops the slave to INIT."""
         if not self.silent and self.state != AlState.INIT and not self._mailbox_config_ok():
-            self._fail(AL_INVALID_MAILBOX_CONFIG, AlState.INIT)
+            self._fail(AL_CODE_INVALID_MAILBOX_CONFIG, AlState.INIT)
 
     def outputs_written(self) -> None:
         self.outputs_pending = True
 
     def sync_activation_changed(self) -> None:
-        if self.esc.sync_activation & 0x03 != 0x03:
+        if not self._sync0_on:
             self.locked = False
             self.lock_count = 0
-        cycle = self.esc.sync0_cycle_ns
+        cycle = self.esc.clock.sync0_cycle_ns
         for index in (obj.SYNC_OUTPUT, obj.SYNC_INPUT):
             self.drive.od.set(index, 2, cycle)
 
@@ -239,9 +214,15 @@ class ErobFirmware:
 
     # ---- status ---------------------------------------------------------------------------------------
     @property
+    def _sync0_on(self) -> bool:
+        return self.esc.clock.activation & DC_CYCLIC_SYNC0 == DC_CYCLIC_SYNC0
+
+    @property
     def in_dc_activation(self) -> bool:
-        return (self.esc.sync_activation & 0x03 == 0x03 and not self.locked
-                and self.state in (AlState.SAFEOP, AlState.OP))
+        return self._sync0_on and not self.locked and self.state in (AlState.SAFE_OP, AlState.OP)
+
+    def _in_pre_op(self) -> bool:
+        return self.state == AlState.PRE_OP
 
     # ---- AL state machine -------------------------------------------------------------------------------
     def _request(self, requested: int) -> None:
@@ -249,37 +230,47 @@ class ErobFirmware:
         self.pending_op = False
         if requested == current:
             return
+        if requested in self.refusals:
+            self._fail(self.refusals[requested])
+            return
         if requested == AlState.INIT:
             self._enter(AlState.INIT)
-        elif requested == AlState.PREOP:
+        elif requested == AlState.PRE_OP:
             if current == AlState.INIT and not self._mailbox_config_ok():
-                self._fail(AL_INVALID_MAILBOX_CONFIG)
+                self._fail(AL_CODE_INVALID_MAILBOX_CONFIG)
             else:
-                self._enter(AlState.PREOP)
-        elif requested == AlState.SAFEOP:
+                self._enter(AlState.PRE_OP)
+        elif requested == AlState.SAFE_OP:
             if current == AlState.INIT:
-                self._fail(AL_INVALID_STATE_CHANGE)
-            elif current == AlState.PREOP:
-                code = self._compile_process_data()
-                if code:
-                    self._fail(code)
+                self._fail(AL_CODE_INVALID_STATE_CHANGE)
+            elif current == AlState.PRE_OP:
+                compiled = compile_process_data(self.drive.od, self.esc)
+                if isinstance(compiled, int):
+                    self._fail(compiled)
                 else:
-                    self._enter(AlState.SAFEOP)
+                    self.process_data = compiled
+                    self._enter(AlState.SAFE_OP)
             else:
-                self._enter(AlState.SAFEOP)
+                self._enter(AlState.SAFE_OP)
         elif requested == AlState.OP:
-            if current != AlState.SAFEOP:
-                self._fail(AL_INVALID_STATE_CHANGE)
-            elif self.esc.sync_activation & 0x03 == 0x03 and self.esc.sync0_cycle_ns < MIN_CYCLE_S * 1e9:
-                self._fail(AL_INVALID_SYNC_CYCLE)
-            elif self.esc.sync_activation & 0x03 == 0x03 and not self.locked:
-                self.pending_op = True
-            else:
-                self._enter(AlState.OP)
+            self._request_op(current)
         elif requested == AlState.BOOT:
-            self._fail(AL_BOOTSTRAP_NOT_SUPPORTED)
+            self._fail(AL_CODE_BOOTSTRAP_NOT_SUPPORTED)
         else:
-            self._fail(AL_UNKNOWN_STATE)
+            self._fail(AL_CODE_UNKNOWN_STATE)
+
+    def _request_op(self, current: int) -> None:
+        clock = self.esc.clock
+        if current != AlState.SAFE_OP:
+            self._fail(AL_CODE_INVALID_STATE_CHANGE)
+        elif self._sync0_on and clock.sync0_cycle_ns < MIN_CYCLE_S * 1e9:
+            self._fail(AL_CODE_INVALID_SYNC_CYCLE)
+        elif "slow-states" in self.quirks and not clock.sync0_running(self.esc.frame_time_ns):
+            self._fail(AL_CODE_NO_SYNC)  # asked before its first SYNC0: refused, the master acknowledges and asks again
+        elif self._sync0_on and not self.locked:
+            self.pending_op = True
+        else:
+            self._enter(AlState.OP)
 
     def _fail(self, code: int, fallback: AlState | None = None) -> None:
         self.error = True
@@ -299,11 +290,11 @@ class ErobFirmware:
         if previous == AlState.OP and state != AlState.OP and self.drive.csp_enabled:
             self.drive.fault(ERROR_COMMUNICATION)
         esc.set_sm_deactivated(SM_OUTPUTS, state != AlState.OP)
-        esc.set_sm_deactivated(SM_INPUTS, state not in (AlState.SAFEOP, AlState.OP))
+        esc.set_sm_deactivated(SM_INPUTS, state not in (AlState.SAFE_OP, AlState.OP))
         if state == AlState.OP:
             esc.last_output_write_ns = esc.frame_time_ns
             self.sync_mismatch = 0
-        if state <= AlState.PREOP:
+        if state <= AlState.PRE_OP:
             self.locked = False
             self.lock_count = 0
             self.outputs_pending = False
@@ -319,94 +310,8 @@ class ErobFirmware:
         in_start, in_length, in_control, in_activate = self.esc.sync_manager(1)
         expected = sii_content(self.options, 0).sync_managers
         return (out_start == expected[0].start and out_length == size and out_control & 0x0F == 0x06
-                and out_activate & 0x01 and in_start == expected[1].start and in_length == size
-                and in_control & 0x0F == 0x02 and in_activate & 0x01)
-
-    def _compile_process_data(self) -> int:
-        """Build the PDO codecs from 0x1C12/0x1C13 and check SM2/SM3 against them; an AL code or 0."""
-        try:
-            rx = self._codec(obj.RXPDO_ASSIGN)
-            tx = self._codec(obj.TXPDO_ASSIGN)
-        except SdoAbort:
-            return AL_INVALID_OUTPUT_CONFIG
-        for sm, codec, code, write in ((SM_OUTPUTS, rx, AL_INVALID_OUTPUT_CONFIG, True),
-                                       (SM_INPUTS, tx, AL_INVALID_INPUT_CONFIG, False)):
-            start, length, control, activate = self.esc.sync_manager(sm)
-            if codec.size == 0:
-                continue
-            if (length != codec.size or not activate & 0x01 or control & 0x03 != 0
-                    or bool(control & 0x04) != write or start + length > 0x3000):
-                return code
-        self.rx = rx
-        self.tx = tx
-        self._outputs_at = self.esc.sync_manager(SM_OUTPUTS)[0]
-        self._inputs_at = self.esc.sync_manager(SM_INPUTS)[0]
-        return AL_OK
-
-    def _codec(self, assign_index: int) -> PdoCodec:
-        od = self.drive.od
-        entries: list[Entry | None] = []
-        paddings: list[int] = []
-        for i in range(1, int(od.value(assign_index, 0)) + 1):
-            pdo = int(od.value(assign_index, i))
-            for sub in range(1, int(od.value(pdo, 0)) + 1):
-                mapping = int(od.value(pdo, sub))
-                index, subindex, bits = mapping >> 16, (mapping >> 8) & 0xFF, mapping & 0xFF
-                if index == 0:
-                    entries.append(None)
-                    paddings.append(bits // 8)
-                else:
-                    entries.append(od.entry(index, subindex))
-                    paddings.append(0)
-        return PdoCodec(entries, paddings)
-
-    # ---- PDO mapping objects: writable in PRE-OP only, validated when sub 0 is set -------------------------
-    def _guard_pdo_objects(self) -> None:
-        od = self.drive.od
-        for assign, pdo, direction in ((obj.RXPDO_ASSIGN, obj.RXPDO_MAP, "rx"),
-                                       (obj.TXPDO_ASSIGN, obj.TXPDO_MAP, "tx")):
-            for sub in range(0, 17):
-                od.entry(pdo, sub).on_write = self._mapping_write(pdo, sub, direction)
-            od.entry(assign, 0).on_write = self._assign_write(assign, 0, pdo)
-            od.entry(assign, 1).on_write = self._assign_write(assign, 1, pdo)
-
-    def _check_preop(self) -> None:
-        if self.state != AlState.PREOP:
-            raise SdoAbort(ABORT_DEVICE_STATE, "PDO mapping can only change in PRE-OP")
-
-    def _mapping_write(self, pdo: int, sub: int, direction: str) -> Callable[[Entry, int | str], None]:
-        def hook(entry: Entry, value: int | str) -> None:
-            self._check_preop()
-            od = self.drive.od
-            if sub != 0:
-                if int(od.value(pdo, 0)) != 0:
-                    raise SdoAbort(ABORT_SUBINDEX_ZERO_FIRST)
-                return
-            if not 0 <= int(value) <= 16:
-                raise SdoAbort(ABORT_PDO_LENGTH)
-            total = 0
-            for i in range(1, int(value) + 1):
-                mapping = int(od.value(pdo, i))
-                index, subindex, bits = mapping >> 16, (mapping >> 8) & 0xFF, mapping & 0xFF
-                if bits % 8:
-                    raise SdoAbort(ABORT_NOT_MAPPABLE, f"0x{index:04X}:{subindex:02X} bit length {bits}")
-                if index != 0:
-                    target = od.entry(index, subindex) if (index, subindex) in od else None
-                    if target is None or target.pdo != direction or target.bits != bits:
-                        raise SdoAbort(ABORT_NOT_MAPPABLE, f"0x{index:04X}:{subindex:02X}")
-                total += bits // 8
-            if total > MAX_PDO_BYTES:
-                raise SdoAbort(ABORT_PDO_LENGTH)
-        return hook
-
-    def _assign_write(self, assign: int, sub: int, pdo: int) -> Callable[[Entry, int | str], None]:
-        def hook(entry: Entry, value: int | str) -> None:
-            self._check_preop()
-            if sub == 0 and int(value) > 1:
-                raise SdoAbort(ABORT_PDO_LENGTH)
-            if sub == 1 and int(value) != pdo:
-                raise SdoAbort(ABORT_NOT_MAPPABLE, f"only 0x{pdo:04X} can be assigned")
-        return hook
+                and out_activate & SM_ENABLE and in_start == expected[1].start and in_length == size
+                and in_control & 0x0F == 0x02 and in_activate & SM_ENABLE)
 
     # ---- mailbox ------------------------------------------------------------------------------------------
     def _downloaded(self, index: int, sub: int, data: bytes) -> None:
@@ -426,11 +331,12 @@ class ErobFirmware:
             return
         previous = self.last_cycle_ns
         self.last_cycle_ns = now_ns
-        if self.state not in (AlState.SAFEOP, AlState.OP) or not self.esc.sync0_running(now_ns):
+        clock = self.esc.clock
+        if self.state not in (AlState.SAFE_OP, AlState.OP) or not clock.sync0_running(now_ns):
             return
-        limit = self.esc.sync0_cycle_ns * (1.0 + self.options.sync_tolerance)
+        limit = clock.sync0_cycle_ns * (1.0 + self.options.sync_tolerance)
         too_slow = previous is not None and now_ns - previous > limit
-        difference = self.esc.dc_difference_ns if self.esc.dc_sample_ns == now_ns else None  # this frame's sample
+        difference = clock.difference_ns if clock.sample_ns == now_ns else None  # this frame's sample
         off_time = time_distributed and difference is not None and abs(difference) > self.options.dc_sync_window_ns
         if not self.locked:
             if too_slow or off_time:
@@ -453,20 +359,20 @@ class ErobFirmware:
             self.drive.fault(ERROR_COMMUNICATION)
             self.locked = False
             self.lock_count = 0
-            self._fail(AL_SYNC_ERROR, AlState.SAFEOP)
+            self._fail(AL_CODE_SYNC_ERROR, AlState.SAFE_OP)
 
     def apply_outputs(self) -> None:
         """Decode outputs the master completed in this frame and let the drive react."""
         self.outputs_pending = False
-        if self.silent or self.rx is None or self.state != AlState.OP:
+        if self.silent or self.process_data is None or self.state != AlState.OP:
             return
-        self.rx.unpack(self.esc.mem, self._outputs_at)
+        self.process_data.rx.unpack(self.esc.mem, self.process_data.outputs_at)
         self.drive.process_outputs()
 
     def refresh_inputs(self) -> None:
-        if self.silent or self.tx is None:
+        if self.silent or self.process_data is None:
             return
-        self.tx.pack(self.esc.mem, self._inputs_at)
+        self.process_data.tx.pack(self.esc.mem, self.process_data.inputs_at)
 
     def deliver_replies(self, now_ns: int) -> None:
         """Move a mailbox reply whose latency has passed into the read mailbox."""
@@ -488,26 +394,31 @@ class ErobFirmware:
         watchdog = self.esc.output_watchdog_ns
         last = self.esc.last_output_write_ns
         if watchdog and last is not None and now_ns - last > watchdog:
-            self._fail(AL_WATCHDOG, AlState.SAFEOP)
+            self._fail(AL_CODE_WATCHDOG, AlState.SAFE_OP)
             return
-        if self.drive.csp_enabled and not self.esc.sync0_running(now_ns):
+        if self.drive.csp_enabled and not self.esc.clock.sync0_running(now_ns):
             self.drive.fault(ERROR_COMMUNICATION)
 
     def _new_drive(self, serial: int) -> ErobDrive:
         return ErobDrive(serial, gain_bytes=self.options.gain_bytes, rated_torque_mnm=self.options.rated_torque_mnm)
 
+    def _new_coe(self) -> CoeServer:
+        # with the "counter" profile its replies' counter starts anywhere (one value per ring position)
+        first = (3 * self.position + 4) % 7 if "counter" in self.quirks else 0
+        return CoeServer(self.drive.od, self.options.mailbox_size, on_download=self._downloaded, quirks=self.quirks,
+                         first_counter=first)
+
     def power_cycle(self, now_ns: int | None = None) -> None:
         """The slave lost power and came back at ``now_ns``: ESC registers, its local clock, AL state and the drive
         start afresh."""
         self.drive = self._new_drive(self.drive.serial)  # the same model as before, factory state
-        self.coe = CoeServer(self.drive.od, self.options.mailbox_size, on_download=self._downloaded)
-        self._guard_pdo_objects()
+        self.coe = self._new_coe()
+        guard_pdo_objects(self.drive.od, self._in_pre_op)
         self.esc.power_on(now_ns)
         self.pending_change = None
         self.state = AlState.INIT
         self.error = False
-        self.code = AL_OK
-        self.rx = None
-        self.tx = None
+        self.code = AL_CODE_NO_ERROR
+        self.process_data = None
         self.last_cycle_ns = None
         self._enter(AlState.INIT)

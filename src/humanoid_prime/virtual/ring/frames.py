@@ -1,4 +1,5 @@
-"""EtherCAT frames and datagrams: layout constants, a parser that yields datagram offsets, and a builder.
+"""EtherCAT frames and datagrams: a parser that yields datagram offsets, and a builder (the layout is
+``drivers/ethercat/wire.py``'s).
 
 Wire format (ETG.1000.4; what SOEM sends and expects back):
 
@@ -19,40 +20,25 @@ from __future__ import annotations
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
-from enum import IntEnum
 
-ETHERTYPE_ECAT = 0x88A4
-ETH_HEADER_SIZE = 14
-ECAT_HEADER_SIZE = 2
-DATAGRAM_HEADER_SIZE = 10
-WKC_SIZE = 2
-FRAME_TYPE_COMMANDS = 1
-LENGTH_MASK = 0x07FF
-CIRCULATING = 0x4000
-MORE_FOLLOWS = 0x8000
-BROADCAST_MAC = b"\xff" * 6
-SOEM_MASTER_MAC = b"\x01\x01\x01\x01\x01\x01"
+from humanoid_prime.drivers.ethercat.wire import (
+    BROADCAST_MAC,
+    DATAGRAM_HEADER,
+    DATAGRAM_HEADER_SIZE,
+    ECAT_HEADER_SIZE,
+    ETH_HEADER_SIZE,
+    ETHERTYPE,
+    FRAME_TYPE_COMMANDS,
+    LENGTH_MASK,
+    MASTER_MAC,
+    MORE_FOLLOWS,
+    WKC_SIZE,
+    Command,
+)
 
 _U16 = struct.Struct("<H")
 _ADDRESS = struct.Struct("<HH")
-
-
-class Command(IntEnum):
-    NOP = 0
-    APRD = 1
-    APWR = 2
-    APRW = 3
-    FPRD = 4
-    FPWR = 5
-    FPRW = 6
-    BRD = 7
-    BWR = 8
-    BRW = 9
-    LRD = 10
-    LWR = 11
-    LRW = 12
-    ARMW = 13
-    FRMW = 14
+_ETHERTYPE_BYTES = struct.pack(">H", ETHERTYPE)
 
 
 class FrameError(ValueError):
@@ -91,8 +77,8 @@ def iter_datagrams(frame: bytes | bytearray | memoryview) -> Iterator[tuple[int,
     size = len(frame)
     if size < ETH_HEADER_SIZE + ECAT_HEADER_SIZE:
         raise FrameError(f"frame of {size} bytes is shorter than the Ethernet and EtherCAT headers")
-    if frame[12] != 0x88 or frame[13] != 0xA4:
-        raise FrameError(f"EtherType 0x{frame[12]:02X}{frame[13]:02X} is not EtherCAT (0x88A4)")
+    if frame[12:14] != _ETHERTYPE_BYTES:
+        raise FrameError(f"EtherType 0x{frame[12]:02X}{frame[13]:02X} is not EtherCAT (0x{ETHERTYPE:04X})")
     header = _U16.unpack_from(frame, ETH_HEADER_SIZE)[0]
     if header >> 12 != FRAME_TYPE_COMMANDS:
         raise FrameError(f"EtherCAT frame type {header >> 12} is not 1 (commands)")
@@ -113,17 +99,17 @@ def iter_datagrams(frame: bytes | bytearray | memoryview) -> Iterator[tuple[int,
         offset += DATAGRAM_HEADER_SIZE + length + WKC_SIZE
 
 
-def build_frame(datagrams: list[Datagram], *, source: bytes = SOEM_MASTER_MAC,
+def build_frame(datagrams: list[Datagram], *, source: bytes = MASTER_MAC,
                 destination: bytes = BROADCAST_MAC) -> bytes:
     """An Ethernet frame carrying ``datagrams`` in order (the more-follows bit set on all but the last)."""
     body = bytearray()
     for i, d in enumerate(datagrams):
         length_field = len(d.data) | (MORE_FOLLOWS if i < len(datagrams) - 1 else 0)
-        body += struct.pack("<BBHHHH", int(d.command), d.index, d.adp, d.ado, length_field, d.irq)
+        body += DATAGRAM_HEADER.pack(int(d.command), d.index, d.adp, d.ado, length_field, d.irq)
         body += d.data
         body += _U16.pack(d.wkc)
     header = _U16.pack((FRAME_TYPE_COMMANDS << 12) | len(body))
-    return destination + source + struct.pack(">H", ETHERTYPE_ECAT) + header + bytes(body)
+    return destination + source + _ETHERTYPE_BYTES + header + bytes(body)
 
 
 def parse_frame(frame: bytes | bytearray) -> list[Datagram]:

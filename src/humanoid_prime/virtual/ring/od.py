@@ -1,5 +1,5 @@
-"""A CoE object dictionary: typed entries with access rules, value ranges and write hooks, plus the SDO
-abort codes an access can fail with (ETG.1000.6 / CiA 301).
+"""A CoE object dictionary: typed entries with access rules, value ranges and write hooks; an access it refuses
+raises SdoAbort with the code (``drivers/ethercat/wire.py``) the slave answers with.
 
 Values are Python ints (or str for visible strings); ``encode``/``decode`` convert to and from the
 little-endian wire bytes. A write of another length than the entry's own is refused (0x06070010), as a
@@ -13,23 +13,15 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from humanoid_prime.drivers.ethercat.slave_config import PDO_TYPES
-
-ABORT_TOGGLE = 0x05030000  # toggle bit not alternated
-ABORT_COMMAND = 0x05040001  # client/server command specifier not valid or unknown
-ABORT_UNSUPPORTED_ACCESS = 0x06010000  # unsupported access to an object
-ABORT_WRITE_ONLY = 0x06010001  # attempt to read a write-only object
-ABORT_READ_ONLY = 0x06010002  # attempt to write a read-only object
-ABORT_SUBINDEX_ZERO_FIRST = 0x06010003  # subindex cannot be written, SI0 must be 0 for write access
-ABORT_NO_OBJECT = 0x06020000  # object does not exist in the object dictionary
-ABORT_NOT_MAPPABLE = 0x06040041  # object cannot be mapped to the PDO
-ABORT_PDO_LENGTH = 0x06040042  # number and length of mapped objects would exceed the PDO length
-ABORT_LENGTH = 0x06070010  # data type does not match, length of service parameter does not match
-ABORT_NO_SUBINDEX = 0x06090011  # subindex does not exist
-ABORT_VALUE_RANGE = 0x06090030  # value range of parameter exceeded
-ABORT_VALUE_HIGH = 0x06090031  # value of parameter written too high
-ABORT_VALUE_LOW = 0x06090032  # value of parameter written too low
-ABORT_GENERAL = 0x08000000  # general error
-ABORT_DEVICE_STATE = 0x08000022  # data cannot be transferred or stored because of the present device state
+from humanoid_prime.drivers.ethercat.wire import (
+    ABORT_LENGTH,
+    ABORT_NO_OBJECT,
+    ABORT_NO_SUBINDEX,
+    ABORT_READ_ONLY,
+    ABORT_VALUE_HIGH,
+    ABORT_VALUE_LOW,
+    ABORT_WRITE_ONLY,
+)
 
 READ_ONLY = "ro"
 READ_WRITE = "rw"

@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field, fields
 
+from humanoid_prime.virtual.ring.quirks import PROFILES, Quirks
+
 # 350 process-data cycles to DC lock: a 50 Hz bring-up loop needs 7 s per slave (the ROS 2 original's
 # figure), a 1 kHz loop 0.35 s.
 DEFAULT_DC_LOCK_CYCLES = 350
 PLANTS = ("inertia", "mujoco")
 
 
-def _option(default: float | int, text: str) -> object:
+def _option(default: float | int | str, text: str) -> object:
     return field(default=default, metadata={"help": text})
 
 
@@ -54,6 +56,7 @@ class RingOptions:
                                  "EDS declares them, 4 as one public host reads them")
     rated_torque_mnm: int = _option(23000, "0x6076 rated torque in mN*m (23000 nominal eRob70 50:1; an eRob80H120I "
                                            "reads 31000)")
+    quirks: str = _option("", "quirk profiles of real slaves, comma-separated, or all: " + ", ".join(PROFILES))
 
     def check(self) -> None:
         """Raise ValueError naming the first option out of range."""
@@ -92,6 +95,11 @@ class RingOptions:
             raise ValueError(f"gain_bytes must be 2 or 4, got {self.gain_bytes}")
         if not 1 <= self.rated_torque_mnm <= 1_000_000:
             raise ValueError(f"rated_torque_mnm must be 1..1000000, got {self.rated_torque_mnm}")
+        Quirks.parse(self.quirks)
+
+    @property
+    def quirk_profiles(self) -> Quirks:
+        return Quirks.parse(self.quirks)
 
     def to_args(self) -> list[str]:
         """Command-line arguments that reproduce these options."""
@@ -106,7 +114,7 @@ class RingOptions:
         for f in fields(RingOptions):
             default = getattr(defaults, f.name)
             parser.add_argument("--" + f.name.replace("_", "-"), type=type(default), default=default,
-                                metavar=type(default).__name__.upper(),
+                                metavar="NAME,..." if isinstance(default, str) else type(default).__name__.upper(),
                                 help=f"{f.metadata['help']} (default {default})")
 
     @classmethod

@@ -20,15 +20,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from humanoid_prime.drivers.ethercat.wire import DATAGRAM_HEADER_SIZE, REG_DC_SYSTEM_TIME, Command
 from humanoid_prime.virtual.plant import Plant, make_ring_plant
-from humanoid_prime.virtual.ring.esc import REG_DC_SYSTEM_TIME
 from humanoid_prime.virtual.ring.firmware import ErobFirmware
-from humanoid_prime.virtual.ring.frames import (
-    DATAGRAM_HEADER_SIZE,
-    Command,
-    FrameError,
-    iter_datagrams,
-)
+from humanoid_prime.virtual.ring.frames import FrameError, iter_datagrams
 from humanoid_prime.virtual.ring.latency import MailboxLatency
 from humanoid_prime.virtual.ring.options import RingOptions
 
@@ -94,8 +89,8 @@ class Ring:
         last = len(reachable) - 1
         for i, slave in enumerate(reachable):
             slave.esc.set_links(port1_open=i < last)
-            slave.esc.port0_delay_ns = i * hop
-            slave.esc.port1_delay_ns = (2 * last - i) * hop if i < last else None
+            slave.esc.clock.port0_delay_ns = i * hop
+            slave.esc.clock.port1_delay_ns = (2 * last - i) * hop if i < last else None
 
     def lose(self, position: int) -> None:
         """Power off the slave at ``position``: the line ends before it."""

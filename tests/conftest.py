@@ -16,6 +16,10 @@ from hypothesis import settings
 from doubles.session import DoubledRobot
 from humanoid_prime.config.robot import Robot, load_robot
 
+# The suite's groups, its guard against a real-time test outside them, and its rules under CI (docs/development.md,
+# Tests).
+pytest_plugins = ["suite_rules"]
+
 # Property tests judge values, never time: hypothesis's per-example deadline would fail them on a busy machine.
 settings.register_profile("prime", deadline=None)
 settings.load_profile("prime")

@@ -28,12 +28,14 @@ from pathlib import Path
 
 import pytest
 
+from doubles.domains import domain_ids
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.socket import request
 
 REPOSITORY = Path(__file__).parents[1]
 PAGES = [REPOSITORY / "README.md", *sorted((REPOSITORY / "docs").glob("*.md"))]
 BLOCK = re.compile(r"(?:<!--\s*test:\s*(?P<directive>.*?)\s*-->\s*\n)?```sh\n(?P<body>.*?)```", re.S)
+DOMAINS = domain_ids()  # this worker's own ROS 2 domains
 STARTUP_S = 120.0  # a background process answers on its control socket within this (a loaded machine, MuJoCo)
 
 
@@ -106,7 +108,7 @@ def user(tmp_path, monkeypatch) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PRIME_", "XDG_CONFIG"))}
     env.update(HOME=str(home), PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}",
                PRIME_CONTROL_SOCKET=str(tmp_path / "sock" / "control.sock"),
-               ROS_DOMAIN_ID=str(100 + os.getpid() % 100), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+               ROS_DOMAIN_ID=str(next(DOMAINS)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     return env
 
 
@@ -148,7 +150,15 @@ def _wait_until_ready(command: str, env: dict[str, str], work: Path, process: su
     raise AssertionError(f"{what} was not ready within {STARTUP_S:g} s: {output.read_text()[-2000:]}")
 
 
-@pytest.mark.parametrize("page", PAGES, ids=[p.name for p in PAGES])
+def _on_the_virtual_robot(page: Path) -> bool:
+    """The page runs something on the emulated robot (a network namespace, on the wall clock): a real-time test."""
+    return any(re.search(r"--emulate\b|\bemulate ec\b", command)
+               for block in blocks(page) if _kind(block.directive) != "skip"
+               for command in ([block.directive] if _kind(block.directive) == "instead" else block.commands))
+
+
+@pytest.mark.parametrize("page", [pytest.param(p, marks=pytest.mark.netns) if _on_the_virtual_robot(p) else p
+                                  for p in PAGES], ids=[p.name for p in PAGES])
 def test_every_example_of_the_page_runs_as_written(page, user, tmp_path):
     work = tmp_path / "work"
     work.mkdir()

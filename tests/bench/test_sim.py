@@ -5,6 +5,8 @@ import pytest
 from humanoid_prime.bench.sim import bench_sim
 from humanoid_prime.modes import Mode
 
+pytestmark = pytest.mark.realtime  # the benchmark's figures are wall-clock measurements
+
 
 def test_bench_sim_runs_every_mode_for_the_requested_simulated_time():
     result = bench_sim(seconds=2.0)

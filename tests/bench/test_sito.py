@@ -1,6 +1,10 @@
 """``bench_sito``: the Sito benchmark reports the tick cost and the bus load DESIGN §6 measures."""
 
+import pytest
+
 from humanoid_prime.bench.sito import TARGET_LOAD_PERCENT, bench_sito
+
+pytestmark = pytest.mark.realtime  # emulated wrists on the wall clock, measured
 
 
 def test_bench_sito_reports_cost_and_load_at_50_hz():

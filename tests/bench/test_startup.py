@@ -1,6 +1,10 @@
 """``bench_startup``: each command's start-up from the shell, beside the interpreter's own in the same run."""
 
+import pytest
+
 from humanoid_prime.bench.startup import COMMANDS, bench_startup
+
+pytestmark = pytest.mark.realtime  # start-up times, measured
 
 
 def test_bench_startup_times_every_command_beside_python_c_pass():

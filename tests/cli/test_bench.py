@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from humanoid_prime.cli import main
 from humanoid_prime.cli.bench import TARGETS, figure
 
@@ -12,6 +14,7 @@ def test_unknown_suite_is_one_line_error(capsys):
     assert "unknown suite 'warp'" in err and err.count("\n") == 1
 
 
+@pytest.mark.realtime  # a wall-clock figure: faster than real time
 def test_sim_suite_reports_the_realtime_factor(capsys, tmp_path):
     out = tmp_path / "bench.json"
     assert main(["bench", "--only", "sim", "--json", "--output", str(out)]) == 0

@@ -12,10 +12,8 @@ from humanoid_prime.cli.bench import soak_failures
 from humanoid_prime.modes import Mode
 from humanoid_prime.virtual.netns import netns_unavailable_reason
 
-pytestmark = pytest.mark.netns
 REASON = netns_unavailable_reason()
-if REASON is not None:
-    pytest.skip(f"emulated soak: {REASON}", allow_module_level=True)
+pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"emulated soak: {REASON}")]
 
 
 @pytest.fixture(scope="module")

@@ -22,10 +22,8 @@ from humanoid_prime.modes import Mode
 from humanoid_prime.runtime.socket import request
 from humanoid_prime.virtual.netns import netns_unavailable_reason
 
-pytestmark = pytest.mark.netns
 REASON = netns_unavailable_reason()
-if REASON is not None:
-    pytest.skip(f"emulated bringup: {REASON}", allow_module_level=True)
+pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"emulated bringup: {REASON}")]
 
 PRIME = [sys.executable, "-m", "humanoid_prime"]
 

@@ -24,10 +24,8 @@ from humanoid_prime.files import package_root
 from humanoid_prime.runtime.socket import SocketSdoClient, request
 from humanoid_prime.virtual.netns import netns_unavailable_reason
 
-pytestmark = pytest.mark.netns
 REASON = netns_unavailable_reason()
-if REASON is not None:
-    pytest.skip(f"emulated calibration: {REASON}", allow_module_level=True)
+pytestmark = [pytest.mark.netns, pytest.mark.skipif(REASON is not None, reason=f"emulated calibration: {REASON}")]
 
 PRIME = [sys.executable, "-m", "humanoid_prime"]
 FLIPPED = ("left_shoulder_roll", "right_wrist_pitch", "right_wrist_yaw")

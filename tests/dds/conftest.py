@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import subprocess
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from doubles.domains import domain_ids
 from humanoid_prime.config.controllers import load_controllers
 
 # Cyclone DDS on loopback with multicast, plus a unicast peer for participants that do not multicast.
@@ -22,14 +22,14 @@ LOOPBACK = ('<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterface
             '</Interfaces><AllowMulticast>true</AllowMulticast></General><Discovery><ParticipantIndex>auto'
             '</ParticipantIndex><MaxAutoParticipantIndex>60</MaxAutoParticipantIndex><Peers>'
             '<Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>')
-_domains = itertools.count(1 + os.getpid() % 150)
+_domains = domain_ids()  # this worker's own (doubles.domains)
 
 
 @pytest.fixture
 def domain(monkeypatch) -> int:
     """A ROS 2 domain for this test alone (set as ROS_DOMAIN_ID for children too), on loopback."""
     monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
-    number = next(_domains) % 200 + 1
+    number = next(_domains)
     monkeypatch.setenv("ROS_DOMAIN_ID", str(number))
     return number
 

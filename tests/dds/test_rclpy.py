@@ -28,6 +28,10 @@ from humanoid_prime.drivers.mujoco.system import load_model
 
 from .conftest import LOOPBACK, ROS_DISTROS, _domains, ros_environment, wait_for
 
+# Two simulations at 200 Hz on the wall clock and a ROS 2 node per distribution that must keep up with both: on busy
+# cores a node falls seconds behind one stream and its /tf and joint states no longer overlap.
+pytestmark = pytest.mark.realtime
+
 PRIME = [sys.executable, "-m", "humanoid_prime"]
 PROBE = Path(__file__).parent / "ros" / "probe.py"
 SIM_RATE_HZ = 200.0  # the bundled prime_sim controllers' update rate
@@ -52,7 +56,7 @@ def graph(ros_clients, tmp_path_factory):
     """Two Primes and two ROS 2 nodes on a domain of their own; what each node reported and each Prime's
     summary."""
     folder = tmp_path_factory.mktemp("graph")
-    domain = next(_domains) % 200 + 1
+    domain = next(_domains)
     env = {**os.environ, "CYCLONEDDS_URI": LOOPBACK, "ROS_DOMAIN_ID": str(domain),
            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     sims = {}

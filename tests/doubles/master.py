@@ -139,3 +139,49 @@ class FakeMaster(EthercatMaster):
 
 def u32(value: int) -> bytes:
     return struct.pack("<I", value)
+
+
+class MirrorMaster(EthercatMaster):
+    """A ring that reports, frame by frame, whatever inputs the test gives it (``feed``, set before each read) and
+    keeps the outputs of the last frame (``sent``): a host component on it sees exactly what another saw."""
+
+    def __init__(self, feed: np.ndarray, *, rated_torque_mnm: int, update_rate: float = 50.0) -> None:
+        super().__init__("mirror0", update_rate=update_rate)
+        self.feed = feed.copy()
+        self.sent = np.zeros(len(feed), RX_DTYPE)
+        self._rated = rated_torque_mnm
+
+    def _discover(self) -> Sequence[SlaveInfo]:
+        return erob_ring(len(self.feed))
+
+    def _configure(self) -> None:
+        n = len(self.feed)
+        self.outputs, self.inputs = np.zeros(n, RX_DTYPE), np.zeros(n, TX_DTYPE)
+        self.expected_wkc = 3 * n
+        for k in range(n):
+            self.store_rated_torque(k, u32(self._rated))
+
+    def _request_op(self) -> None:
+        pass
+
+    def _read_states(self) -> list[tuple[int, int]]:
+        return [(AlState.OP, 0)] * len(self.feed)
+
+    def _advance(self, states) -> None:
+        pass
+
+    def _send(self) -> None:
+        np.copyto(self.sent, self.outputs)
+
+    def _receive(self) -> int:
+        np.copyto(self.inputs, self.feed)
+        return self.expected_wkc
+
+    def _sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
+        raise SdoError(position, index, sub_index, "the mirror ring has no mailbox")
+
+    def _sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
+        raise SdoError(position, index, sub_index, "the mirror ring has no mailbox")
+
+    def _close(self) -> None:
+        pass

@@ -1,22 +1,27 @@
 """The virtual Prime in this process and in virtual time: its device models on its MuJoCo world, stepped in
-lockstep with the controller manager, without the wire. For runs that need many robot-minutes quickly (the
+lockstep with the controller manager, without a wire. For runs that need many robot-minutes quickly (the
 hands-free calibration on many truths); the emulator behind real buses is ``python -m humanoid_prime.virtual``.
 
-``LockstepPrime`` is one hardware component owning all 14 joints. Like the real components it applies a
-calibration (the host frame) and speaks to its devices in their raw frames; the devices are the emulator's own:
+``LockstepPrime`` is the robot, not a component: the host drives it through the two components a run on the real
+robot uses (``components``: ``EthercatSystem`` and ``SitoSystem``, with the calibration they apply), each on an
+in-process bus, so every command takes the host's own per-tick path (the compiled ``EcTick`` and ``SitoTick``)
+and nothing of the host's command mapping is restated here. The devices are the emulator's own:
 
 - each eRob is an ``ErobDrive`` (object dictionary with its sizes and the gate, loop gains at the realised
-  efficiency, following error, 0x6072, faults), enabled in CSP at activation. Per tick it takes the command as
-  ``EthercatSystem`` maps it (a NaN position keeps the last target, zero stiffness follows the joint, no offsets
-  unless enabled) in whole counts and per mille, and reports position, velocity and torque the same way. SDO
-  goes to the object dictionaries (``sdo_read``/``sdo_write``, ring positions as on the ring);
-- each Sito is a ``SitoMotor`` fed the frames ``SitoSystem`` would send (unusable or no command: limp), and
-  reports output position and phase current at the wire's resolution.
+  efficiency, following error, 0x6072, faults) behind ``LockstepRing``, an ``EthercatMaster`` whose exchange hands
+  the process image to the drives' objects in Prime's PDO layout and their inputs back, and whose SDOs go to their
+  object dictionaries. The ring comes up and the drives are enabled by the host's own bring-up and enabling;
+- each Sito is a ``SitoMotor`` behind ``LockstepCan``, a python-can bus on which a frame the host sends reaches
+  the motors as it is sent, and the motors' feedback reaches the host's receive thread before the next tick.
+  A motor answers its enable with its first feedback, then streams at the intervals it was told (one firmware
+  tick per control period).
 
-Each device's control law is a joint-space impedance (the eRob's cascaded loop with its integral at 0, the
-Sito's MIT law), so MuJoCo applies it at every physics step as ``MujocoSystem`` applies the MIT law, with the
-device's gains, targets and torque limit of that tick, moved into the true joint frame by the truth calibration
-(``raw = direction * joint + offset``). A disabled or faulted eRob brakes: a stiff hold where the joint is.
+``step`` runs once per control period, after every component's ``write`` (the controller manager's end of tick).
+Each device's control law is a joint-space impedance (the eRob's cascaded loop with its integral at 0, the Sito's
+MIT law), so MuJoCo applies it at every physics step as ``MujocoSystem`` applies the MIT law, with the device's
+gains, targets and torque limit of that tick, moved into the true joint frame by the truth calibration
+(``raw = direction * joint + offset``). A disabled or faulted eRob brakes: a stiff hold where the joint is. Then
+the devices measure the moved world at their own resolution.
 
 While a joint is within ``NEAR_STOP_RAD`` of a mechanical stop the world is stepped one physics step at a time;
 the effort its actuator puts into the stop beyond gravity is recorded (``contact_peak``), and the speed it met the
@@ -25,9 +30,11 @@ stop at (``touch_speed``): the truths a contact-effort cap and a contact speed a
 
 from __future__ import annotations
 
-import math
+import threading
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 
+import can
 import mujoco
 import numpy as np
 
@@ -43,95 +50,245 @@ from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.hardware import HardwareComponent
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.drivers.erob import objects as obj
-from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD, MODE_CSP
+from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.ethercat.errors import SdoError
+from humanoid_prime.drivers.ethercat.master import EthercatMaster
+from humanoid_prime.drivers.ethercat.ring import SlaveInfo
+from humanoid_prime.drivers.ethercat.system import EthercatSystem
+from humanoid_prime.drivers.ethercat.wire import AlState
 from humanoid_prime.drivers.mujoco.system import MujocoSystem
-from humanoid_prime.drivers.sito.protocol import COUNTS_PER_RAD as SITO_COUNTS_PER_RAD
 from humanoid_prime.drivers.sito.protocol import (
-    Command,
-    Disable,
-    Enable,
-    Gains,
+    FrameType,
     counts_to_position,
     counts_to_velocity,
     current_mA_to_torque,
-    kd_to_firmware,
-    kp_to_firmware,
-    pack,
-    position_to_counts,
-    torque_to_current_mA,
-    velocity_to_counts,
 )
+from humanoid_prime.drivers.sito.system import SitoSystem
+from humanoid_prime.errors import PrimeError
 from humanoid_prime.runtime.registry import ComponentSettings
 from humanoid_prime.runtime.session import assemble
 from humanoid_prime.sim.demo import START_POSE
 from humanoid_prime.virtual.operator import WatchingOperator
 from humanoid_prime.virtual.plant import Bools, Floats, Plant
-from humanoid_prime.virtual.ring.drive import Cia402State, ErobDrive
+from humanoid_prime.virtual.ring.drive import ErobDrive
 from humanoid_prime.virtual.ring.od import SdoAbort
-from humanoid_prime.virtual.sito import SitoMotor
+from humanoid_prime.virtual.ring.pdo import PdoCodec
+from humanoid_prime.virtual.sito import SitoEmulator, SitoMotor
 
 NEAR_STOP_RAD = 0.02
 SETTLE_S = 1.0  # after activation, before a calibration starts: the arms sag onto their drives' factory gains
 BRAKE_KP = 2000.0  # Nm/rad: a closed holding brake
 BRAKE_KD = 20.0
-_I32 = (-0x80000000, 0x7FFFFFFF)
+# How long the host's receive thread may take to collect one tick's feedback before the rig gives up: a guard
+# against a dead thread, never a pace (a loaded machine takes milliseconds).
+DRAIN_TIMEOUT_S = 60.0
+
+
+class _Instant:
+    """The ring's bring-up clock: a wait passes at once, as the drives answer within each exchange."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+class LockstepRing(EthercatMaster):
+    """The eRob drives (``drives``, ring order) as a master sees them, without a wire: ``send`` hands each drive
+    its outputs (Prime's RxPDO, decoded into the drive's objects) once its slave is in OP, ``receive`` fills the
+    inputs from the drives' objects after they have measured ``q``/``qd`` (raw rad, rad/s, one per drive, set by
+    the world). ``lock`` is held while a drive changes, by the exchange and by the world alike: the master's keeper
+    thread may exchange while the world steps."""
+
+    def __init__(self, drives: Sequence[ErobDrive], *, update_rate: float) -> None:
+        clock = _Instant()
+        super().__init__("lockstep", update_rate=update_rate, clock=clock, sleep=clock.sleep)
+        self.drives = tuple(drives)
+        n = len(self.drives)
+        self.q, self.qd = np.zeros(n), np.zeros(n)
+        self.lock = threading.Lock()
+        self._states = [AlState.PRE_OP] * n
+        self._rx = [_codec(drive, obj.RXPDO) for drive in self.drives]
+        self._tx = [_codec(drive, obj.TXPDO) for drive in self.drives]
+
+    def _discover(self) -> Sequence[SlaveInfo]:
+        return [SlaveInfo(k, "eRob (lockstep)", int(drive.od.value(obj.IDENTITY, 1)),
+                          int(drive.od.value(obj.IDENTITY, 2)), int(drive.od.value(obj.IDENTITY, 3)), AlState.PRE_OP)
+                for k, drive in enumerate(self.drives)]
+
+    def _configure(self) -> None:
+        n = len(self.drives)
+        self.outputs = np.zeros(n, self.outputs.dtype)
+        self.inputs = np.zeros(n, self.inputs.dtype)
+        self.expected_wkc = 3 * n
+        for k, drive in enumerate(self.drives):  # read in PRE-OP, as SoemMaster does
+            self.store_rated_torque(k, drive.od.upload(obj.RATED_TORQUE, 0))
+        self._states = [AlState.SAFE_OP] * n
+
+    def _request_op(self) -> None:
+        self._states = [AlState.OP] * len(self.drives)
+
+    def _read_states(self) -> list[tuple[int, int]]:
+        return [(state, 0) for state in self._states]
+
+    def _advance(self, slaves: Sequence[tuple[int, int]]) -> None:
+        pass  # every slave reaches OP when asked
+
+    def _send(self) -> None:
+        image = bytearray(self.outputs.tobytes())
+        with self.lock:
+            for k, (drive, codec, state) in enumerate(zip(self.drives, self._rx, self._states, strict=True)):
+                if state == AlState.OP:
+                    codec.unpack(image, k * codec.size)
+                    drive.process_outputs()
+
+    def _receive(self) -> int:
+        image = bytearray(self.inputs.nbytes)
+        with self.lock:
+            for k, (drive, codec) in enumerate(zip(self.drives, self._tx, strict=True)):
+                drive.update_feedback(float(self.q[k]), float(self.qd[k]))
+                codec.pack(image, k * codec.size)
+        self.inputs[:] = np.frombuffer(image, self.inputs.dtype)
+        return self.expected_wkc
+
+    def _sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
+        with self.lock:
+            try:
+                return self.drives[position].od.upload(index, sub_index)
+            except SdoAbort as exc:
+                raise SdoError(position, index, sub_index, f"aborted with 0x{exc.code:08X} ({exc})", exc.code) \
+                    from None
+
+    def _sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
+        with self.lock:
+            try:
+                self.drives[position].od.download(index, sub_index, data)
+            except SdoAbort as exc:
+                raise SdoError(position, index, sub_index, f"aborted with 0x{exc.code:08X} ({exc})", exc.code) \
+                    from None
+
+    def _close(self) -> None:
+        self._states = [AlState.PRE_OP] * len(self.drives)
+
+
+def _codec(drive: ErobDrive, layout: Sequence[obj.PdoEntry]) -> PdoCodec:
+    """The drive's side of Prime's PDO ``layout``: its objects, and the pad bytes it ignores."""
+    return PdoCodec([None if e.index == 0 else drive.od.entry(e.index, e.sub_index) for e in layout],
+                    [len(e.fmt) if e.index == 0 else 0 for e in layout])
+
+
+class LockstepCan:
+    """One CAN bus in this process between the host (``host``, a python-can bus) and the motors' side
+    (``motors``): a frame the host sends is handed to ``on_host_frame`` as it is sent; frames the motors send
+    wait for the host's receive thread, and ``drain()`` returns once that thread has handled every one."""
+
+    def __init__(self, on_host_frame: Callable[[], None]) -> None:
+        self.on_host_frame = on_host_frame
+        self.to_motors: deque[can.Message] = deque()
+        self.to_host: deque[can.Message] = deque()
+        self.changed = threading.Condition()
+        self.delivered = 0  # frames the motors sent
+        self.handled = 0  # frames the host's reader took and came back from
+        self.holding = False  # the reader took a frame and has not come back for the next
+        self.closed = False
+        self.host = _HostEnd(self)
+        self.motors = _MotorEnd(self)
+
+    def drain(self) -> None:
+        with self.changed:
+            if not self.changed.wait_for(lambda: self.handled == self.delivered or self.closed, DRAIN_TIMEOUT_S):
+                raise PrimeError(f"the host's CAN receive thread took {self.handled} of {self.delivered} frames "
+                                 f"within {DRAIN_TIMEOUT_S:g} s; it has stopped")
+
+    def close(self) -> None:
+        with self.changed:
+            self.closed = True
+            self.changed.notify_all()
+        self.host.shutdown()
+        self.motors.shutdown()
+
+
+class _HostEnd(can.BusABC):
+    def __init__(self, line: LockstepCan) -> None:
+        self.line = line
+        self.channel_info = "lockstep"
+        super().__init__(channel="lockstep")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.line.to_motors.append(msg)
+        self.line.on_host_frame()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        line = self.line
+        with line.changed:
+            if line.holding:  # back from handling the frame it took: that one is done
+                line.holding = False
+                line.handled += 1
+                line.changed.notify_all()
+            if not line.to_host:
+                line.changed.wait(timeout)
+            if not line.to_host:
+                return None, False
+            line.holding = True
+            return line.to_host.popleft(), False
+
+
+class _MotorEnd(can.BusABC):
+    def __init__(self, line: LockstepCan) -> None:
+        self.line = line
+        self.channel_info = "lockstep"
+        super().__init__(channel="lockstep")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        line = self.line
+        with line.changed:
+            line.to_host.append(msg)
+            line.delivered += 1
+            line.changed.notify_all()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return (self.line.to_motors.popleft() if self.line.to_motors else None), False
 
 
 class _RawWrists(Plant):
-    """The wrists' raw state as the emulated motors read it when they are enabled (moved by MuJoCo, not here)."""
+    """The wrists' raw state as the emulated motors measure it (moved by MuJoCo, not here)."""
 
     def step(self, torque: Floats, braked: Bools, dt: float) -> None:
         pass
 
 
-def _clamp(value: float, low: float, high: float) -> float:
-    return low if value < low else high if value > high else value
-
-
-class LockstepPrime(HardwareComponent):
+class LockstepPrime:
     """All 14 joints on the emulator's device models and one MuJoCo world (module docstring).
 
-    ``calibration``: what the host applies (raw -> joint frame), as a real component does. ``truth``: the
-    virtual robot's wiring and factory offsets. ``update_rate``: the controller manager's rate; each ``write``
-    advances the world by one period."""
+    ``calibration``: what the host's components apply (raw -> joint frame). ``truth``: the virtual robot's wiring
+    and factory offsets. ``update_rate``: the controller manager's rate; each ``step`` advances the world by one
+    period. ``components`` are the host's, for the controller manager; ``close()`` after it has shut them down."""
 
     def __init__(self, robot: Robot, calibration: Calibration, truth: Calibration, *, update_rate: float,
-                 physics_rate: float = 1000.0, initial_pose: Mapping[str, float] | None = None,
-                 name: str = "LockstepPrime") -> None:
-        super().__init__(name, robot, robot.names)
+                 physics_rate: float = 1000.0, initial_pose: Mapping[str, float] | None = None) -> None:
         self.robot = robot
         self.physics = MujocoSystem(robot, physics_rate=physics_rate, update_rate=update_rate,
-                                    initial_pose=initial_pose, name=f"{name}/physics")
+                                    initial_pose=initial_pose, name="LockstepPrime/physics")
         model = self.physics.model
         model.jnt_solref[:] = (2.0 * self.physics.physics_dt, 1.0)  # metal stops: the stiffest stable limit
         self.period = 1.0 / update_rate
         names = robot.names
-        self.host_direction = calibration.direction_array(names)
-        self.host_offset = calibration.offset_array(names)
         self.true_direction = truth.direction_array(names)
         self.true_offset = truth.offset_array(names)
         hw = robot.hardware
         self.erob = {j: ErobDrive(serial=hw.erob_slaves[j], kt=hw.erob_kt[j], gear=hw.erob_gear[j])
-                     for j in hw.erob_joints}
-        self.by_position = {hw.erob_slaves[j]: drive for j, drive in self.erob.items()}
+                     for j in sorted(hw.erob_joints, key=lambda j: hw.erob_slaves[j])}  # ring order
         self._erob_index = [(robot.index(j), drive) for j, drive in self.erob.items()]
         self._wrists = _RawWrists(len(hw.sito_joints))
         self.sito = {j: SitoMotor(hw.mit_joints[j], self._wrists, k,
                                   torque_limit=robot.joints[robot.index(j)].effort_limit)
                      for k, j in enumerate(hw.sito_joints)}
         self._sito_index = [(robot.index(j), k, motor) for k, (j, motor) in enumerate(self.sito.items())]
-        self._sent: dict[int, tuple[tuple[float, float], Command]] = {}  # per Sito joint: the last gains and command
-        self._erob = np.array([i for i, _ in self._erob_index], dtype=np.intp)
-        self._sito = np.array([i for i, _, _ in self._sito_index], dtype=np.intp)
-        self._joint_of = {hw.erob_slaves[j]: robot.index(j) for j in hw.erob_joints}
-        self._rated = np.array([drive.rated_torque_nm for _, drive in self._erob_index])
-        self._nm_per_mA = np.array([motor.model.nm_per_mA for _, _, motor in self._sito_index])
-        self._braked = np.ones(len(self._erob_index), dtype=bool)
-        self._enabled = np.zeros(len(self._sito_index), dtype=bool)
         n = robot.n
-        self._last_command = np.full((5, n), np.nan)
-        self._dirty = np.ones(n, dtype=bool)
         self.law = CommandArrays(n)  # the devices' laws in the true joint frame, what MuJoCo applies
         self.true_state = StateArrays(n)
         self.raw_q = np.zeros(n)
@@ -143,115 +300,62 @@ class LockstepPrime(HardwareComponent):
         self._touching = np.zeros(n, dtype=bool)
         self._dof = self.physics.dof_adr
         self._lower, self._upper = robot.lower, robot.upper
-        self.sim_time = 0.0
-
-    # ---- lifecycle -----------------------------------------------------------------------------------------
-    def on_activate(self) -> None:
         self.physics.configure()
         self.physics.activate()
+        self.sim_time = self.physics.sim_time
         self._sense()
-        for i, drive in self._erob_index:
-            drive.target_position.value = round(self.raw_q[i] * COUNTS_PER_RAD)  # enabled where it is
-            drive.mode.value = MODE_CSP
-            drive.mode_display.value = MODE_CSP
-            drive.state = Cia402State.OPERATION_ENABLED
-        for i, k, motor in self._sito_index:
-            self._wrists.q[k] = self.raw_q[i]
-            motor.receive(*pack(Gains(0.0, 0.0)))  # as SitoSystem activates them: limp, then enabled
-            motor.receive(*pack(Enable(9, (1, 1, 0))))
 
-    def on_deactivate(self) -> None:
-        for _, drive in self._erob_index:
-            drive.state = Cia402State.SWITCH_ON_DISABLED
-        for _, _, motor in self._sito_index:
-            motor.receive(*pack(Disable()))
-        self._sent.clear()
-        self._dirty[:] = True
+        self.ring = LockstepRing(tuple(self.erob.values()), update_rate=update_rate)
+        self._ring_joint = np.array([i for i, _ in self._erob_index], dtype=np.intp)
+        self.can = LockstepCan(self._deliver)
+        self._motors = SitoEmulator(self.can.motors, self.sito.values(), rate_hz=update_rate)
+        self._measure()
+        self.ethercat = EthercatSystem(robot, calibration, update_rate=update_rate, master=self.ring, emulated=True)
+        self.wrists = SitoSystem(robot, calibration, update_rate=update_rate, bus=self.can.host,
+                                 clock=lambda: self.sim_time, emulated=True)
+        self.components: tuple[HardwareComponent, ...] = (self.ethercat, self.wrists)
+
+    def close(self) -> None:
+        self.can.close()
+        self.physics.shutdown()
 
     # ---- faults a test injects -----------------------------------------------------------------------------
     def inject_fault(self, joint: str, code: int) -> None:
         """Fault the eRob of ``joint`` with ``code`` (0x603F), as the ring emulator's fault injection does."""
-        self.erob[joint].fault(code)
-        self._dirty[self.robot.index(joint)] = True
+        with self.ring.lock:
+            self.erob[joint].fault(code)
 
-    # ---- SDO ------------------------------------------------------------------------------------------------
-    def sdo_read(self, position: int, index: int, sub_index: int) -> bytes:
-        try:
-            return self._drive(position, index, sub_index).od.upload(index, sub_index)
-        except SdoAbort as exc:
-            raise SdoError(position, index, sub_index, f"aborted with 0x{exc.code:08X} ({exc})", exc.code) from None
-
-    def sdo_write(self, position: int, index: int, sub_index: int, data: bytes) -> None:
-        try:
-            self._drive(position, index, sub_index).od.download(index, sub_index, bytes(data))
-            self._dirty[self._joint_of[position]] = True
-        except SdoAbort as exc:
-            raise SdoError(position, index, sub_index, f"aborted with 0x{exc.code:08X} ({exc})", exc.code) from None
-
-    def _drive(self, position: int, index: int, sub_index: int) -> ErobDrive:
-        drive = self.by_position.get(position)
-        if drive is None:
-            raise SdoError(position, index, sub_index, "no slave at that ring position")
-        return drive
+    # ---- the wire ---------------------------------------------------------------------------------------------
+    def _deliver(self) -> None:
+        """The frames the host just sent reach the motors; a motor enabled by one answers with its first feedback
+        (its firmware's tick 0)."""
+        enables = [motor.received[FrameType.ENABLE] for motor in self.sito.values()]
+        self._motors.process_pending()
+        for motor, before in zip(self.sito.values(), enables, strict=True):
+            if motor.enabled and motor.received[FrameType.ENABLE] != before:
+                motor.stream(self.can.motors.send)
 
     # ---- per tick -------------------------------------------------------------------------------------------
-    # A device whose command, state and settings have not changed since the last tick keeps its law; its frames
-    # would carry what it already holds. Feedback is computed for all joints at once, at the wire's resolution.
-    def read(self, now: float, state: StateArrays) -> None:
-        d, o = self.host_direction, self.host_offset
-        e, w = self._erob, self._sito
-        counts = np.round(self.raw_q[e] * COUNTS_PER_RAD)  # 0x6064
-        state.position[e] = d[e] * (counts / COUNTS_PER_RAD - o[e])
-        state.velocity[e] = d[e] * np.round(self.raw_qd[e] * COUNTS_PER_RAD) / COUNTS_PER_RAD  # 0x606C
-        per_mille = np.clip(np.round(self.raw_torque[e] / self._rated * 1000.0), -0x8000, 0x7FFF)  # 0x6077
-        per_mille[self._braked] = 0.0
-        state.effort[e] = d[e] * per_mille / 1000.0 * self._rated
-        counts = np.round(self.raw_q[w] * SITO_COUNTS_PER_RAD)  # 0xB2 output position
-        state.position[w] = d[w] * (counts / SITO_COUNTS_PER_RAD - o[w])
-        speed = np.clip(np.round(self.raw_qd[w] * SITO_COUNTS_PER_RAD), -0x8000, 0x7FFF)  # 0xB1 velocity
-        state.velocity[w] = d[w] * speed / SITO_COUNTS_PER_RAD
-        current = np.clip(np.round(self.raw_torque[w] / self._nm_per_mA), -0x8000, 0x7FFF)  # 0xB1 phase current
-        state.effort[w] = np.where(self._enabled, d[w] * current * self._nm_per_mA, 0.0)
-        for i, drive in self._erob_index:
-            key = f"ring{drive.serial}/fault"
-            faulted = drive.state == Cia402State.FAULT
-            if faulted != (key in self.flags):
-                if faulted:
-                    self.set_flag(key, f"{self.robot.names[i]} (ring {drive.serial}): fault, error "
-                                       f"0x{int(drive.error_code.value):04X}")
-                else:
-                    self.clear_flag(key)
-
-    def write(self, now: float, command: CommandArrays) -> None:
-        data, last = command.data, self._last_command
-        changed = (np.any((data != last) & ~(np.isnan(data) & np.isnan(last)), axis=0) | self._dirty).tolist()
-        np.copyto(last, data)
-        q_counts = np.round(self.raw_q * COUNTS_PER_RAD).tolist()
+    def step(self) -> None:
+        """One control period: the devices act on what they hold, the world moves, the devices measure it."""
         raw_q, raw_qd = self.raw_q.tolist(), self.raw_qd.tolist()
-        braked = self._braked
-        for k, (i, drive) in enumerate(self._erob_index):
-            follows = command.stiffness[i] == 0.0 and math.isfinite(command.position[i])  # moves with the joint
-            if changed[i] or drive.braked != braked[k] or follows:
-                self._erob_command(i, drive, command, int(q_counts[i]))
-                self._erob_law(k, i, drive)
-            drive.step(raw_q[i], raw_qd[i], self.period)  # its state machine and following error
-            if drive.braked != braked[k]:
-                self._erob_law(k, i, drive)
-        for i, k, motor in self._sito_index:
-            if changed[i] and self._sito_command(i, k, motor, command):
-                self._sito_law(k, i, motor)
-        self._dirty[:] = False
-        self._step(now)
+        with self.ring.lock:
+            for i, drive in self._erob_index:
+                drive.step(raw_q[i], raw_qd[i], self.period)  # its state machine and following error
+                self._erob_law(i, drive)
+        for i, _, motor in self._sito_index:
+            self._sito_law(i, motor)
+        self._advance()
         self._sense()
-        torque = self.raw_torque.tolist()
-        for k, (i, drive) in enumerate(self._erob_index):
-            drive.torque_nm = 0.0 if braked[k] else torque[i]
+        self._measure()
+        for motor in self.sito.values():
+            motor.stream(self.can.motors.send)
+        self.can.drain()
 
-    def _erob_law(self, k: int, i: int, drive: ErobDrive) -> None:
+    def _erob_law(self, i: int, drive: ErobDrive) -> None:
         """The drive's loop as a joint impedance in the true frame, with its torque limit."""
         law, td, to = self.law, self.true_direction[i], self.true_offset[i]
         forcerange = self.physics.model.actuator_forcerange
-        self._braked[k] = drive.braked
         if drive.braked:
             law.position[i], law.velocity[i], law.effort[i] = self.true_state.position[i], 0.0, 0.0
             law.stiffness[i], law.damping[i] = BRAKE_KP, BRAKE_KD
@@ -266,10 +370,9 @@ class LockstepPrime(HardwareComponent):
         limit = int(drive.max_torque.value) / 1000.0 * rated
         forcerange[i] = (-limit, limit)
 
-    def _sito_law(self, k: int, i: int, motor: SitoMotor) -> None:
+    def _sito_law(self, i: int, motor: SitoMotor) -> None:
         """The firmware's MIT law in the true frame."""
         law, td, to = self.law, self.true_direction[i], self.true_offset[i]
-        self._enabled[k] = motor.enabled
         if motor.enabled:
             law.position[i] = td * (counts_to_position(motor.position_counts) - to)
             law.velocity[i] = td * counts_to_velocity(motor.velocity_counts)
@@ -279,54 +382,14 @@ class LockstepPrime(HardwareComponent):
             law.data[:, i] = 0.0
         self.physics.model.actuator_forcerange[i] = (-motor.torque_limit, motor.torque_limit)
 
-    def _erob_command(self, i: int, drive: ErobDrive, command: CommandArrays, actual: int) -> None:
-        """The CSP target and offsets as ``EthercatSystem`` writes them (whole counts, per mille)."""
-        d, o = self.host_direction[i], self.host_offset[i]
-        position = command.position[i]
-        if not drive.csp_enabled:
-            drive.target_position.value = actual
-            drive.velocity_offset.value = 0
-            drive.torque_offset.value = 0
-            return
-        if math.isfinite(position):
-            target = actual if command.stiffness[i] == 0.0 else round((d * position + o) * COUNTS_PER_RAD)
-            drive.target_position.value = int(_clamp(target, *_I32))
-        velocity, effort = command.velocity[i], command.effort[i]
-        drive.velocity_offset.value = int(_clamp(round(d * velocity * COUNTS_PER_RAD), *_I32)) \
-            if math.isfinite(velocity) else 0
-        limit = obj.TORQUE_OFFSET_LIMIT_PER_MILLE
-        drive.torque_offset.value = int(_clamp(round(d * effort / drive.rated_torque_nm * 1000.0), -limit, limit)) \
-            if math.isfinite(effort) else 0
-
-    def _sito_command(self, i: int, k: int, motor: SitoMotor, command: CommandArrays) -> bool:
-        """The gains and the MIT command frames ``SitoSystem`` sends; False when they carry what the motor holds."""
-        d, o = self.host_direction[i], self.host_offset[i]
-        position, velocity, effort = command.position[i], command.velocity[i], command.effort[i]
-        kp, kd = command.stiffness[i], command.damping[i]
-        if not (math.isfinite(position) and math.isfinite(velocity) and math.isfinite(effort)
-                and math.isfinite(kp) and math.isfinite(kd) and kp >= 0 and kd >= 0):
-            position = velocity = effort = kp = kd = 0.0
-        self._wrists.q[k] = self.raw_q[i]
-        gains = (kp_to_firmware(kp, motor.model), kd_to_firmware(kd, motor.model))
-        current, _ = torque_to_current_mA(d * effort, motor.model)
-        speed, _ = velocity_to_counts(d * velocity)
-        frame = Command(current, speed, position_to_counts(d * position + o))
-        if self._sent.get(i) == (gains, frame):
-            return False
-        if self._sent.get(i, (None,))[0] != gains:
-            motor.receive(*pack(Gains(*gains)))
-        motor.receive(*pack(frame))
-        self._sent[i] = (gains, frame)
-        return True
-
-    def _step(self, now: float) -> None:
+    def _advance(self) -> None:
         """One control period of physics; one step at a time near a stop (or one it can reach within the period),
         recording the contact effort and speed."""
         q = self.true_state.position
         reach = NEAR_STOP_RAD + 2.0 * np.abs(self.true_state.velocity) * self.period
         near = (q - self._lower < reach) | (self._upper - q < reach)
         self.physics.advance = self._step_watching if near.any() else None
-        self.physics.write(now, self.law)
+        self.physics.write(self.sim_time, self.law)
         self.sim_time = self.physics.sim_time
 
     def _step_watching(self, dt: float) -> None:
@@ -356,6 +419,19 @@ class LockstepPrime(HardwareComponent):
         np.multiply(td, true.velocity, out=self.raw_qd)
         np.multiply(td, true.effort, out=self.raw_torque)
 
+    def _measure(self) -> None:
+        """What each device measures of the world: the joint, and the torque it applied (none while braked)."""
+        ring = self.ring
+        with ring.lock:
+            ring.q[:] = self.raw_q[self._ring_joint]
+            ring.qd[:] = self.raw_qd[self._ring_joint]
+            torque = self.raw_torque.tolist()
+            for i, drive in self._erob_index:
+                drive.torque_nm = 0.0 if drive.braked else torque[i]
+        for i, k, motor in self._sito_index:
+            self._wrists.q[k], self._wrists.qd[k] = self.raw_q[i], self.raw_qd[i]
+            motor.torque = self.raw_torque[i]
+
     def true_positions(self) -> dict[str, float]:
         """Every joint's true angle (description frame)."""
         return {j: float(self.true_state.position[i]) for i, j in enumerate(self.robot.names)}
@@ -377,9 +453,10 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
     rig = LockstepPrime(robot, host, truth, update_rate=config.update_rate, physics_rate=physics_rate,
                         initial_pose=START_POSE if initial_pose is None else initial_pose)
     settings = ComponentSettings(robot, host, update_rate=config.update_rate)
-    manager = assemble(settings, config, (rig,), broadcaster_only=True)
-    manager.start(now=rig.sim_time)
+    manager = assemble(settings, config, rig.components, broadcaster_only=True)
+    manager.add_end_of_tick(rig.step)
     try:
+        manager.start(now=rig.sim_time)
         auto: AutoCalibration | None = None
 
         def step() -> None:
@@ -389,7 +466,7 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
 
         for _ in range(round(SETTLE_S * config.update_rate)):  # the arms settle on their drives' own gains first
             manager.tick(now=rig.sim_time)
-        rings = {j: (rig, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints}
+        rings = {j: (rig.ring, robot.hardware.erob_slaves[j]) for j in robot.hardware.erob_joints}
         auto = AutoCalibration(manager, prior, joints, rings=rings, ticks=SteppedTicks(step),
                                operator=WatchingOperator(robot, rig.true_positions), assume_direction=assume_direction,
                                measure=measure, offset_range=offset_range, journal=journal)
@@ -397,3 +474,4 @@ def calibrate_in_lockstep(robot: Robot, config: ControllersConfig, prior: Calibr
         return auto.run(), rig
     finally:
         manager.shutdown()
+        rig.close()

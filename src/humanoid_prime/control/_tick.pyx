@@ -9,7 +9,10 @@
 
 In NumPy the output check alone was a dozen calls on 14-element arrays, about 100 us a tick at 50 Hz, when the
 interpreter's and NumPy's code paths have left the caches between ticks; a bound kernel call is a few tens of
-nanoseconds warm. The policy controllers stay Python, around onnxruntime."""
+nanoseconds warm. The policy controllers stay Python, around onnxruntime.
+
+Every array a kernel indexes is checked against the shape its loops need, once per call (or when it is bound), so a
+caller's mistake is a ValueError naming the array, never a read or write past a buffer."""
 
 from libc.math cimport isfinite, isnan
 from libc.string cimport memcpy
@@ -52,7 +55,7 @@ cdef class CommandCheck:
         """Check ``data`` (5 x n), clipping a target within the margin of a limit onto it in place; OK or what
         was found, with ``row`` and ``col`` saying where."""
         if data.shape[0] != 5 or data.shape[1] != self.n:
-            raise ValueError(f"a command is 5 x {self.n}")
+            raise ValueError(f"command is {data.shape[0]}x{data.shape[1]}, needs 5x{self.n}")
         return self._check(data)
 
     cdef int _check(self, double[:, ::1] data):
@@ -213,7 +216,8 @@ cdef class FollowMeasured:
         cdef const double[::1] p = position
         cdef double[:, ::1] c = command
         if c.shape[0] != 5 or p.shape[0] != c.shape[1] or p.shape[0] != self.lower.shape[0]:
-            raise ValueError(f"need a 5 x {self.lower.shape[0]} command and as many positions")
+            raise ValueError(f"position has {p.shape[0]} entries and command is {c.shape[0]}x{c.shape[1]}, need "
+                             f"{self.lower.shape[0]} and 5x{self.lower.shape[0]}")
         self.position, self.command = p, c
         self._position, self._command = position, command
 
@@ -242,7 +246,8 @@ cdef class Blend:
         cdef const double[::1] s = start, d = delta
         cdef double[:, ::1] c = command
         if c.shape[0] != 5 or s.shape[0] != c.shape[1] or d.shape[0] != c.shape[1]:
-            raise ValueError(f"need a 5 x {s.shape[0]} command for {s.shape[0]} joints")
+            raise ValueError(f"start has {s.shape[0]} entries, delta {d.shape[0]}, command is {c.shape[0]}x"
+                             f"{c.shape[1]}: need 5x{s.shape[0]} and as many of each")
         self.start, self.delta, self.command = s, d, c
         self._start, self._delta, self._command = start, delta, command
 
@@ -325,6 +330,16 @@ cdef class BodyKernel:
         self.m = <void*><size_t>model._address
         self.d = <void*><size_t>data._address
         self.qpos, self.xpos, self.rbound = data.qpos, data.geom_xpos, model.geom_rbound
+        for j in range(n):
+            if not 0 <= qadr[j] < self.qpos.shape[0]:
+                raise ValueError(f"qadr[{j}] is {qadr[j]}, outside the model's {self.qpos.shape[0]} qpos")
+        if self.xpos.shape[1] != 3 or self.rbound.shape[0] != self.xpos.shape[0]:
+            raise ValueError("the model's geom_xpos and geom_rbound are not one 3-vector and one radius per geom")
+        for p in range(pairs.shape[0]):
+            for side in range(2):
+                if not 0 <= pairs[p, side] < self.xpos.shape[0]:
+                    raise ValueError(f"pairs[{p}, {side}] is {pairs[p, side]}, outside the model's "
+                                     f"{self.xpos.shape[0]} geoms")
         self.qadr, self.lower, self.upper, self.pairs, self.live, self.margin = qadr, lower, upper, pairs, live, margin
         self.chains, self.unknown = chains, 0
         self.found_ = np.zeros(pairs.shape[0], dtype=np.intc)
@@ -337,7 +352,8 @@ cdef class BodyKernel:
         """Bind the frame the poses are moved into the model's by (the arrays are read at every ``pose``)."""
         cdef Py_ssize_t n = self.qadr.shape[0]
         if scale.shape[0] != n or shift.shape[0] != n or known.shape[0] != n:
-            raise ValueError(f"a frame has {n} joints")
+            raise ValueError(f"scale, shift and known have {scale.shape[0]}, {shift.shape[0]} and {known.shape[0]} "
+                             f"entries, need {n} each")
         self.scale, self.shift, self.known = scale, shift, known
 
     def check(self, const double[:, ::1] command not None, const double[::1] measured not None,
@@ -360,7 +376,8 @@ cdef class BodyKernel:
         cdef double q
         cdef unsigned long long unknown = 0
         if command.shape[0] != 5 or command.shape[1] != n or measured.shape[0] != n or velocity.shape[0] != n:
-            raise ValueError(f"need a 5 x {n} command, {n} positions and {n} velocities")
+            raise ValueError(f"command is {command.shape[0]}x{command.shape[1]}, measured and velocity have "
+                             f"{measured.shape[0]} and {velocity.shape[0]} entries: need 5x{n}, {n} and {n}")
         for j in range(n):
             if targets and command[3, j] > 0.0 and isfinite(command[0, j]):
                 q = command[0, j] + (horizon * velocity[j] if isfinite(velocity[j]) else 0.0)

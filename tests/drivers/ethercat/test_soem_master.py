@@ -99,11 +99,11 @@ def test_ten_emulated_erob_reach_op_and_operation_enabled(system, ring):
     assert system.master.expected_wkc == 30
 
 
-def test_soem_drops_prime_s_replies_in_its_socket_and_reads_it_before_they_could_fill_it(system, ring):
+def test_soem_drops_prime_s_replies_in_its_socket_and_reads_it_before_they_could_fill_it(system, ring, robot):
     """SOEM's socket gets a copy of every reply to Prime's frames; SOEM drops them when it reads its socket, and the
     master has it read before QUEUE_LIMIT of them queue there: no cycle frame is lost to a full queue."""
     master = system.master
-    with Loop(system, 10) as loop:
+    with Loop(system, robot.n) as loop:
         wait_for(lambda: loop.ticks >= 5, what="the loop ticking")
         before, drains = system.wkc_errors, master.queue.drains
         with ThreadPoolExecutor(10) as pool:

@@ -3,7 +3,9 @@
 MIT command into the process image. At 50 Hz the tick's cost was Python's and NumPy's per-call overhead on
 ten-element arrays (dozens of calls, each paying for a cold interpreter path), not the arithmetic.
 
-Every array is the component's own, bound once; the kernel holds no state of its own."""
+Every array is the component's own, bound once and checked then; the kernel holds no state of its own. The arrays
+a call is passed (the robot's state and command, the reset flags) are checked at each call against the shape the
+loops will index, so a caller's mistake is a ValueError, never a write past its buffer."""
 
 from libc.math cimport floor, isfinite
 
@@ -57,6 +59,14 @@ cdef inline double _round_clamp(double value, double low, double high) noexcept 
     return value
 
 
+cdef inline int _fits(str name, Py_ssize_t rows_have, Py_ssize_t columns_have, Py_ssize_t rows,
+                      Py_ssize_t columns) except -1:
+    """Raise unless an array of ``rows_have`` x ``columns_have`` has the ``rows`` x ``columns`` a loop indexes."""
+    if rows_have < rows or columns_have < columns:
+        raise ValueError(f"{name} is {rows_have}x{columns_have}, needs at least {rows}x{columns}")
+    return 0
+
+
 cdef class EcTick:
     """Bound to one EthercatSystem's arrays (joint order ``k``; ``ring[k]`` is the slave, ``index[k]`` the joint
     in the robot's arrays). Booleans are passed as uint8 views of the component's bool arrays."""
@@ -75,7 +85,7 @@ cdef class EcTick:
     cdef unsigned short enabled_mask, enabled_value, fault_mask, fault_value, fault_reset, disable_voltage
     cdef signed char mode
     cdef double target_low, target_high, velocity_low, velocity_high, torque_low, torque_high
-    cdef Py_ssize_t n
+    cdef Py_ssize_t n, columns  # joints; columns the robot's arrays need (the highest joint in ``index``, plus 1)
 
     def __init__(self, TxPdo[::1] inputs not None, RxPdo[::1] outputs not None, TxPdo[::1] rec not None,
                  const Py_ssize_t[::1] ring not None, const Py_ssize_t[::1] index not None,
@@ -89,14 +99,25 @@ cdef class EcTick:
                  unsigned short fault_reset, unsigned short disable_voltage, signed char mode,
                  tuple target_limits, tuple velocity_limits, tuple torque_limits,
                  unsigned short[::1] grace not None):
-        cdef Py_ssize_t n = ring.shape[0], k
+        cdef Py_ssize_t n = ring.shape[0], k, needed = 0
         if cw_table.shape[0] != 0x80:
             raise ValueError(f"controlword table has {cw_table.shape[0]} entries, expected 128")
         for k in range(n):
             if not 0 <= ring[k] < inputs.shape[0] or ring[k] >= outputs.shape[0]:
                 raise ValueError(f"ring position {ring[k]} outside the process image of {inputs.shape[0]} slaves")
+        for k in range(index.shape[0]):
+            if index[k] < 0:
+                raise ValueError(f"index[{k}] is {index[k]}: a joint is a column of the robot's arrays, 0 or more")
+            needed = max(needed, index[k] + 1)
         if chart.shape[0] % 3 != 0:
             raise ValueError(f"drive chart has {chart.shape[0]} entries, not 3 per state")
+        for k in range(chart.shape[0]):
+            if chart[k] >= chart.shape[0] // 3:
+                raise ValueError(f"drive chart entry {k} goes to state {chart[k]} of {chart.shape[0] // 3}")
+        for k in range(3):
+            if not 0 <= states[k] < chart.shape[0] // 3:
+                raise ValueError(f"state {states[k]} (fault, resetting, held) not in the drive chart's "
+                                 f"{chart.shape[0] // 3}")
         for name, length in (("index", index.shape[0]), ("rec", rec.shape[0]), ("held", held.shape[0]),
                              ("enabled", enabled.shape[0]), ("fault", fault.shape[0]), ("state", state.shape[0]),
                              ("cw_prev", cw_prev.shape[0]), ("grace", grace.shape[0])):
@@ -123,7 +144,12 @@ cdef class EcTick:
         self.target_low, self.target_high = target_limits
         self.velocity_low, self.velocity_high = velocity_limits
         self.torque_low, self.torque_high = torque_limits
-        self.n = n
+        self.n, self.columns = n, needed
+
+    cdef int _fits_reset(self, const unsigned char[::1] reset) except -1:
+        if reset is not None and reset.shape[0] < self.n:
+            raise ValueError(f"reset has {reset.shape[0]} entries, needs at least {self.n} (one per drive)")
+        return 0
 
     cpdef int gather(self):
         """The inputs of this component's slaves into joint order (``rec``, ``raw``), and which drives are
@@ -148,9 +174,11 @@ cdef class EcTick:
         fault reset is under way (RESETTING) and still in fault after ``grace_ticks`` frames is latched again.
         Returns (drives in fault, whether a drive entered or left a held state)."""
         cdef Py_ssize_t k, row
-        cdef int faulted = self.gather()
+        cdef int faulted
         cdef bint held_changed = False
         cdef unsigned char before, seen, now
+        _fits("state", state.shape[0], state.shape[1], 3, self.columns)
+        faulted = self.gather()
         for k in range(self.n):
             seen = 0 if self.enabled[k] else (1 if self.fault[k] else 2)
             before = self.state[k]
@@ -172,6 +200,7 @@ cdef class EcTick:
         is RESETTING for ``grace_ticks`` frames. A held drive gets disable voltage."""
         cdef Py_ssize_t k
         cdef unsigned short cw
+        self._fits_reset(reset)
         for k in range(self.n):
             cw = self.cw_table[self.rec[k].statusword & 0x7F]
             if self.fault[k] and reset is not None and reset[k]:
@@ -196,6 +225,8 @@ cdef class EcTick:
         effort's feed-forward) are zero where not finite or where the drive is not enabled."""
         cdef Py_ssize_t k, j, slave
         cdef double target, velocity, torque
+        _fits("command", command.shape[0], command.shape[1], 5, self.columns)
+        self._fits_reset(reset)
         for k in range(self.n):
             j, slave = self.index[k], self.ring[k]
             target = command[0, j] * self.command_factor[0, k] + self.command_offset[0, k]

@@ -5,7 +5,10 @@ cost had been Python's and NumPy's per-call overhead on four-element arrays.
 
 The wire format is protocol.py's and is not restated here: the packer is built from its payload layout (a dtype
 of big-endian fields) and its table of which field carries each command interface, with the scales the component
-derives from protocol's model constants and the calibration. The frames themselves are sent by the component."""
+derives from protocol's model constants and the calibration. The frames themselves are sent by the component.
+
+The arrays a call is passed (the robot's state and command) and a motor's number are checked at each call against
+what the loops will index, so a caller's mistake is a ValueError or an IndexError, never a write past a buffer."""
 
 from libc.math cimport fabs, isfinite, isnan, rint
 from libc.string cimport memcmp, memcpy
@@ -52,6 +55,14 @@ cdef inline void _put(unsigned char* at, Field field, double value) noexcept nog
         at[field.offset + byte] = (word >> (8 * (field.size - 1 - byte))) & 0xFF
 
 
+cdef inline int _fits(str name, Py_ssize_t rows_have, Py_ssize_t columns_have, Py_ssize_t rows,
+                      Py_ssize_t columns) except -1:
+    """Raise unless an array of ``rows_have`` x ``columns_have`` has the ``rows`` x ``columns`` a loop indexes."""
+    if rows_have < rows or columns_have < columns:
+        raise ValueError(f"{name} is {rows_have}x{columns_have}, needs at least {rows}x{columns}")
+    return 0
+
+
 cdef class SitoTick:
     """Bound to one SitoSystem's feedback arrays (motor order ``k``; ``index[k]`` is the joint in the robot's
     arrays). ``to_wire`` (5 x n) is wire units per joint-frame unit of each command interface (direction and
@@ -62,7 +73,7 @@ cdef class SitoTick:
     not usable) and ``gains_due`` (n)."""
 
     cdef Field fields[5]
-    cdef Py_ssize_t gains_offset, gains_size, n
+    cdef Py_ssize_t gains_offset, gains_size, n, columns  # columns the robot's arrays need: highest index, plus 1
     cdef const Py_ssize_t[::1] index
     cdef const double[:, ::1] to_wire, raw, stamp
     cdef const double[::1] wire_bias
@@ -76,7 +87,11 @@ cdef class SitoTick:
     def __init__(self, const Py_ssize_t[::1] index not None, const double[:, ::1] to_wire not None,
                  const double[::1] wire_bias not None, const double[:, ::1] raw not None,
                  const double[:, ::1] stamp not None, payload_dtype, tuple mit_fields):
-        cdef Py_ssize_t n = index.shape[0], r
+        cdef Py_ssize_t n = index.shape[0], r, k, needed = 0
+        for k in range(n):
+            if index[k] < 0:
+                raise ValueError(f"index[{k}] is {index[k]}: a joint is a column of the robot's arrays, 0 or more")
+            needed = max(needed, index[k] + 1)
         for name, rows, columns, want in (("to_wire", to_wire.shape[0], to_wire.shape[1], 5),
                                           ("raw", raw.shape[0], raw.shape[1], 3),
                                           ("stamp", stamp.shape[0], stamp.shape[1], 2)):
@@ -94,7 +109,7 @@ cdef class SitoTick:
         self.gains_size = gains.itemsize
         self.index, self.to_wire, self.wire_bias, self.raw, self.stamp = index, to_wire, wire_bias, raw, stamp
         self.from_wire = 1.0 / np.asarray(to_wire)[:3]
-        self.n = n
+        self.n, self.columns = n, needed
         self.payloads = np.zeros(n, dtype=payload_dtype)
         self.wire = self.payloads.view(np.uint8).reshape(n, payload_dtype.itemsize)
         self.gains_sent = np.zeros((n, self.gains_size), dtype=np.uint8)
@@ -107,6 +122,8 @@ cdef class SitoTick:
 
     def gains_sent_at(self, Py_ssize_t k, double now):
         """Motor ``k``'s gains payload went out at ``now``: it is due again when it changes or goes stale."""
+        if not 0 <= k < self.n:
+            raise IndexError(f"no motor {k}: there are {self.n}")
         memcpy(&self.gains_sent[k, 0], &self.wire[k, self.gains_offset], self.gains_size)
         self.gains_stamp[k] = now
 
@@ -118,6 +135,7 @@ cdef class SitoTick:
         cdef Py_ssize_t k, j
         cdef double oldest
         cdef bint changed = False
+        _fits("state", state.shape[0], state.shape[1], 3, self.columns)
         for k in range(self.n):
             j = self.index[k]
             state[0, j] = (self.raw[0, k] - self.wire_bias[k]) * self.from_wire[0, k]
@@ -143,6 +161,7 @@ cdef class SitoTick:
         cdef bint usable, changed = False
         cdef unsigned char* at
         cdef Field field
+        _fits("command", command.shape[0], command.shape[1], 5, self.columns)
         for k in range(self.n):
             j = self.index[k]
             usable = command[3, j] >= 0.0 and command[4, j] >= 0.0

@@ -1,6 +1,7 @@
 """The emulator process: a raw AF_PACKET socket on one interface (EtherType 0x88A4 only), each frame
 passed through the ring and sent back at once, the plant advanced between frames, and the control
-channel served in the same loop.
+channel served in the same loop. (Over 450 lines: that one loop and the slowness it plays, below, share its timing
+state, which would cross a module boundary on every frame.)
 
 SOEM waits 2 ms for a frame before it gives up on it (EC_TIMEOUTRET), so the loop keeps pauses short:
 the garbage collector is frozen after start-up and disabled while serving (generation-0 collections run

@@ -62,8 +62,7 @@ class Recording:
 
 
 def open_phase(args: argparse.Namespace, backends: str, calibration: Calibration, virtual: VirtualPrime | None,
-          server: ControlServer,
-          stack: contextlib.ExitStack) -> Session:
+               server: ControlServer, stack: contextlib.ExitStack) -> Session:
     """A broadcaster-only session on ``backends`` with ``calibration``, answering on ``server``."""
     # The loop keeps every drive's output watchdog fed while the arm is swept: on a busy computer it needs the
     # same real-time scheduling as a bring-up (a 100 ms stall faults every drive with 0xA000).

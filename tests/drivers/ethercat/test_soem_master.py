@@ -16,10 +16,11 @@ from humanoid_prime.control.rate import Rate
 from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.objects import BUS_GAIN_GATE, ERROR_CODE, POS_LOOP_GAIN, VEL_LOOP_GAIN
 from humanoid_prime.drivers.ethercat.errors import SdoError, SdoRefused
-from humanoid_prime.drivers.ethercat.link import Channel, SocketWire
+from humanoid_prime.drivers.ethercat.link import Channel, SocketWire, brd, build_frame, frame_index
 from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
 from humanoid_prime.drivers.ethercat.ring import expected_ring
 from humanoid_prime.drivers.ethercat.sdo_client import SizedSdo
+from humanoid_prime.drivers.ethercat.soem_contract import SocketWatch
 from humanoid_prime.drivers.ethercat.soem_master import SoemMaster
 from humanoid_prime.drivers.ethercat.system import EthercatSystem
 from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
@@ -342,3 +343,24 @@ def test_the_cycle_goes_on_while_a_returning_slave_takes_its_time_to_change_stat
     assert len(frames) >= 2, frames  # PRE-OP and SAFE-OP, each a second late
     assert all(count > 0 for count in frames), f"process-data frames while each state change was pending: {frames}"
     assert not any(ring.control.slave(k)["drive"]["state"] == "FAULT" for k in range(9))
+
+
+def test_the_start_up_watch_counts_frames_sent_from_this_host_and_not_replies(ring):
+    """A reply that comes back late to a frame of a master that has ended (a command run just before) carries that
+    master's index: the watch of SOEM's scan must not take it for a frame of SOEM's."""
+    wire = SocketWire(ring.master_interface, 0x40, 0xFF)
+    watch = None
+    try:
+        ring.control.delay_frames(0.3)  # the next frame is answered 0.3 s late
+        wire.send(build_frame(0xC5, [brd(0x0130, 2)]))  # sent before the watch is opened: an earlier master's
+        watch = SocketWatch(ring.master_interface)
+        reply = wire.receive(5.0)
+        assert reply is not None and frame_index(reply) == 0xC5  # its late reply came while the watch looked
+        assert watch.indices() == []
+        wire.send(build_frame(0xC6, [brd(0x0130, 2)]))
+        assert wire.receive(5.0) is not None
+        assert watch.indices() == [0xC6]  # a frame sent while it looks, once (its reply is not counted again)
+    finally:
+        wire.close()
+        if watch is not None:
+            watch.close()

@@ -33,6 +33,8 @@ TESTED_PYSOEM = "1.1.13"
 EC_MAXBUF = 16
 QUEUE_LIMIT = 48  # frames of Prime's SOEM's socket may hold before SOEM is made to read it
 WATCH_BUFFER = 4 << 20  # bytes a watch socket asks for, to see a whole ring scan
+ETH_P_ALL = 0x0003  # linux/if_ether.h
+ETHERTYPE_BYTES = ETHERTYPE.to_bytes(2, "big")  # where an Ethernet frame says its type (bytes 12-13)
 
 
 def check_version(installed: str) -> str | None:
@@ -64,25 +66,30 @@ class FrameWatch(Protocol):
 
 
 class SocketWatch:
-    """A packet socket on ``interface`` that only looks: every EtherCAT frame, sent or received, by its index."""
+    """A packet socket on ``interface`` that only looks: every EtherCAT frame sent from this host, by its index. It
+    takes every protocol (ETH_P_ALL), since the kernel shows a packet socket the frames its host sends only then."""
 
     def __init__(self, interface: str) -> None:
-        self._sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
+        self._sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, WATCH_BUFFER)
-            self._sock.bind((interface, ETHERTYPE))
+            self._sock.bind((interface, ETH_P_ALL))
             self._sock.setblocking(False)
         except BaseException:
             self._sock.close()
             raise
 
     def indices(self) -> list[int]:
+        """The indices of the frames sent from this host since the last call. A reply is left out: one that comes
+        back late to a frame of an earlier master on the NIC (a command that has ended) says nothing of SOEM's."""
         seen: list[int] = []
         while True:
             try:
-                frame = self._sock.recv(2048)
+                frame, address = self._sock.recvfrom(2048)
             except BlockingIOError:
                 return seen
+            if address[2] != socket.PACKET_OUTGOING or frame[12:14] != ETHERTYPE_BYTES:
+                continue
             index = frame_index(frame)
             if index is not None:
                 seen.append(index)

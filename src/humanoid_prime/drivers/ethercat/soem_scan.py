@@ -81,7 +81,10 @@ class SoemScan:
             watch = self.watch(self.interface)
             try:
                 found = m.config_init()
-                problem = check_indices(watch.indices())
+                sent = watch.indices()
+                problem = check_indices(sent) if sent or found <= 0 else (
+                    "the NIC showed none of the frames of SOEM's ring scan, so the split of frame indices between "
+                    "SOEM and Prime could not be checked")
             finally:
                 watch.close()
             answered, waited = self._count()  # its reply reaches SOEM's socket too, which SOEM's next read drops

@@ -2,6 +2,7 @@
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from humanoid_prime.drivers.erob.constants import COUNTS_PER_RAD
 from humanoid_prime.drivers.erob.gains import gains_to_registers
 from humanoid_prime.errors import PrimeError
 from humanoid_prime.modes import Mode
-from humanoid_prime.runtime.impedance import ImpedanceManager
+from humanoid_prime.runtime.impedance import CONFIRM_PAUSE_S, CONFIRM_READS, ImpedanceManager
 
 
 @pytest.fixture
@@ -502,6 +503,44 @@ def test_a_switch_is_ok_only_when_every_slave_is_in_op_after_it(robot, gains):
     assert report.as_dict()["failed"] == {
         "left_wrist_yaw": "STANDBY switch: the slave is in INIT + ERROR after it, not OP"}
     assert "INIT + ERROR" in mgr.flags["erob/impedance/ring4"]
+    mgr.close()
+
+
+class UnansweredReads(Ring):
+    """A ring whose first ``unanswered`` reads of the AL states come back unanswered (0 for every slave)."""
+
+    def __init__(self, unanswered: int) -> None:
+        super().__init__()
+        self.unanswered = unanswered
+        self.reads = 0
+
+    def read_states(self):
+        self.reads += 1
+        answered = super().read_states()
+        return [replace(s, al_state=0) for s in answered] if self.reads <= self.unanswered else answered
+
+
+def test_an_unanswered_read_of_the_al_states_is_made_again_before_the_switch_is_judged(robot, gains):
+    drives = DriveMailboxes()
+    ring = UnansweredReads(2)  # a busy host lost two reads' frames
+    mgr = make(robot, gains, drives, states=ring)
+    mgr.arm()
+    report = mgr.apply(Mode.STANDBY)
+    assert report.ok and ring.reads == 3
+    assert not any(key.startswith("erob/impedance/ring") for key in mgr.flags)
+    mgr.close()
+
+
+def test_a_ring_that_answers_no_read_of_its_states_leaves_the_switch_not_confirmed_and_says_so(robot, gains):
+    drives = DriveMailboxes()
+    ring = UnansweredReads(1000)
+    mgr = make(robot, gains, drives, states=ring)
+    mgr.arm()
+    report = mgr.apply(Mode.STANDBY)
+    assert not report.ok and ring.reads == CONFIRM_READS
+    assert report.as_dict()["failed"]["left_wrist_yaw"] == (
+        f"STANDBY switch: its AL state after it is unknown (it answered none of {CONFIRM_READS} reads of its AL "
+        f"state over {CONFIRM_READS * CONFIRM_PAUSE_S:g} s)")
     mgr.close()
 
 

@@ -61,6 +61,8 @@ class SlaveSwitch:
         """Why this slave's part of the switch is not ok (None: it is, as far as known yet)."""
         if self.error:
             return self.error
+        if self.al_state is not None and self.al_state.startswith("unknown"):
+            return f"{self.mode} switch: its AL state after it is {self.al_state}"
         if self.al_state is not None and self.al_state != "OP":
             return f"{self.mode} switch: the slave is in {self.al_state} after it, not OP"
         return self.read_back_error

@@ -61,6 +61,10 @@ _T = TypeVar("_T")
 # Otherwise it sleeps until a mode change or the EtherCAT side's word that a held drive waits: a thread that wakes
 # on a timer can be preempted by a busy machine while it holds the interpreter, and the control loop then waits.
 RESTORE_RETRY_S = 0.5
+# After a switch each slave's AL state is read back; a read no slave answers (a frame lost on a busy host) is made
+# again, up to CONFIRM_READS times CONFIRM_PAUSE_S apart, before the switch is called not confirmed.
+CONFIRM_READS = 10
+CONFIRM_PAUSE_S = 0.1
 _RESTORE = "restore"  # on the worker's queue: look for held drives whose settings wait
 
 
@@ -284,15 +288,26 @@ class ImpedanceManager(SafetyFlags):
         may still look right) makes the switch not ok."""
         if self.states is None:
             return
-        try:
-            found = {s.position: s for s in self.states.read_states()}
-        except Exception as exc:  # the states could not be read: not confirmed, said as such
-            for r in report.slaves:
-                r.al_state = f"unknown (the AL states could not be read: {exc})"
-            return
+        for _ in range(CONFIRM_READS):
+            try:
+                found = {s.position: s for s in self.states.read_states()}
+            except Exception as exc:  # the states could not be read: not confirmed, said as such
+                for r in report.slaves:
+                    r.al_state = f"unknown (the AL states could not be read: {exc})"
+                return
+            # 0 is no state: the read's frame came back unanswered (or not at all), so it is read again
+            unanswered = [r for r in report.slaves if (info := found.get(r.position)) is not None and not info.al_state]
+            if not unanswered or self._closing.wait(CONFIRM_PAUSE_S):
+                break
         for r in report.slaves:
             info = found.get(r.position)
-            r.al_state = info.state_text if info is not None else "not found on the ring"
+            if info is None:
+                r.al_state = "not found on the ring"
+            elif not info.al_state:
+                r.al_state = (f"unknown (it answered none of {CONFIRM_READS} reads of its AL state over "
+                              f"{CONFIRM_READS * CONFIRM_PAUSE_S:g} s)")
+            else:
+                r.al_state = info.state_text
 
     def _flag(self, report: SwitchReport) -> None:
         for r in report.slaves:

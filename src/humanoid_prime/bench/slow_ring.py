@@ -89,8 +89,7 @@ def one_run(seed: int, *, dwell_s: float = 2.0, quirks: str = "") -> SlowRun:
     with contextlib.ExitStack() as stack:
         plan = plan_session(options)
         virtual = attach_virtual_prime(stack, ring_options={**SLOW, "seed": seed, "quirks": quirks})
-        options.interface = virtual.master_interface
-        options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+        virtual.wire_into(options)
         virtual.control.hold_reply_frames(HELD_REPLY_FRAMES, HELD_S)
         try:
             session = open_session(plan, stack)

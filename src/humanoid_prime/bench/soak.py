@@ -251,8 +251,7 @@ def bench_soak(minutes: float = 10.0, *, rate: float | None = None, load: bool =
         plan.options.control_socket = os.path.join(folder, "control.sock")
         claim_control_socket(plan, stack)
         virtual = attach_virtual_prime(stack, hardware_file=hardware_file, record=emulator, avoid_cpu=cpu)
-        options.interface = virtual.master_interface
-        options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+        virtual.wire_into(options)
         session = open_session(plan, stack)
         manager = session.manager
         stream = demo_stream(session.robot, session.config, manager)

@@ -179,8 +179,7 @@ def run(args: argparse.Namespace) -> int:
             t = time.monotonic()
             virtual = attach_virtual_prime(stack, hardware_file=args.hardware, truth_file=args.truth,
                                            ring_options=ring, record=emulator, avoid_cpu=args.cpu)
-            options.interface = virtual.master_interface
-            options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+            virtual.wire_into(options)
             plan.stage(EMULATOR_STAGE, t)
         with _bringing_up(plan, args):
             session = open_session(plan, stack)

@@ -207,8 +207,7 @@ def _on_buses(args: argparse.Namespace, prior: Calibration, ring: RingSettings, 
                                  controllers_file=args.controllers, control_socket=args.socket,
                                  state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
         if virtual is not None:
-            options.interface = virtual.master_interface
-            options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+            virtual.wire_into(options)
         plan = plan_session(options)
         plan.control = server
         robot = plan.robot

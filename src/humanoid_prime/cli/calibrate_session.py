@@ -72,8 +72,7 @@ def open_phase(args: argparse.Namespace, backends: str, calibration: Calibration
                              realtime=args.realtime, cpu=args.cpu, config=args.config.as_dict(),
                              state_folder=args.config.folder.state, ec_mailbox=args.ec_mailbox)
     if virtual is not None:
-        options.interface = virtual.master_interface
-        options.can_interface, options.can_channel = virtual.can_interface, virtual.can_channel
+        virtual.wire_into(options)
     plan = plan_session(options)
     plan.control = server
     return open_session(plan, stack)

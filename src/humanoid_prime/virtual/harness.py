@@ -32,6 +32,7 @@ from humanoid_prime.virtual.ring.control import RingControl
 from humanoid_prime.virtual.ring.options import RingSettings
 
 if TYPE_CHECKING:
+    from humanoid_prime.runtime.session import BringupOptions
     from humanoid_prime.virtual.prime import SitoFaults
     from humanoid_prime.virtual.ring.server import SdoLogEntry
 
@@ -145,6 +146,11 @@ class VirtualPrime(EmulatedRing):
         self.pose = dict(pose or {})
         self.can_interface = CAN_INTERFACE
         self.can_channel = CAN_CHANNEL
+
+    def wire_into(self, options: BringupOptions) -> None:
+        """Point a run's options at this virtual Prime's buses: its EtherCAT interface and the Sito motors' bus."""
+        options.interface = self.master_interface
+        options.can_interface, options.can_channel = self.can_interface, self.can_channel
 
     @property
     def control(self) -> PrimeControl:

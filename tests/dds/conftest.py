@@ -14,8 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from doubles.control import Clock, Plant
 from doubles.domains import domain_ids
 from humanoid_prime.config.controllers import load_controllers
+from humanoid_prime.control.manager import ControllerManager
 
 # Cyclone DDS on loopback with multicast, plus a unicast peer for participants that do not multicast.
 LOOPBACK = ('<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterface name="lo" multicast="true"/>'
@@ -37,6 +39,17 @@ def domain(monkeypatch) -> int:
 @pytest.fixture(scope="session")
 def config(sim_robot):
     return load_controllers(sim_robot.names)
+
+
+@pytest.fixture
+def manager(sim_robot, config):
+    """A started controller manager on a doubled plant, on a clock of its own (nothing runs unless ticked)."""
+    clock = Clock()
+    m = ControllerManager(sim_robot, [Plant("plant", sim_robot.names)], config, update_rate=100.0, clock=clock,
+                          sleep=clock.sleep)
+    m.start()
+    yield m
+    m.shutdown()
 
 
 def wait_for(condition: Callable[[], bool], timeout: float = 30.0, poll: Callable[[], None] | None = None) -> bool:

@@ -12,8 +12,6 @@ from cyclonedds.qos import Policy
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from doubles.control import Clock, Plant
-from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.dds import messages as msg
 from humanoid_prime.dds.bridge import DdsBridge, bridge_manager
 from humanoid_prime.dds.graph import CONTROL_OFF, CONTROL_ON, MODE_REQUEST
@@ -23,16 +21,6 @@ from humanoid_prime.dds.typehash import type_hash
 from humanoid_prime.modes import Mode
 
 from .conftest import wait_for
-
-
-@pytest.fixture
-def manager(sim_robot, config):
-    clock = Clock()
-    m = ControllerManager(sim_robot, [Plant("plant", sim_robot.names)], config, update_rate=100.0, clock=clock,
-                          sleep=clock.sleep)
-    m.start()
-    yield m
-    m.shutdown()
 
 
 @pytest.fixture

@@ -5,23 +5,17 @@ from __future__ import annotations
 
 import pytest
 
-from doubles.control import Clock, Plant
-from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.dds.controllers import SwitchRefused, controllers, mode_to_activate
 from humanoid_prime.dds.parameters import REMOTE_TIMEOUT, run_parameters
 from humanoid_prime.modes import Mode
 
 
 @pytest.fixture
-def manager(sim_robot, config):
-    clock = Clock()
-    m = ControllerManager(sim_robot, [Plant("plant", sim_robot.names)], config, update_rate=100.0, clock=clock,
-                          sleep=clock.sleep)
-    m.start()
-    m.request_mode(Mode.DAMPING)
-    m.tick(0.0)
-    yield m
-    m.shutdown()
+def manager(manager):
+    """The DDS tests' manager, in DAMPING."""
+    manager.request_mode(Mode.DAMPING)
+    manager.tick(0.0)
+    return manager
 
 
 def test_the_broadcaster_and_the_active_mode_are_active_and_the_mode_claims_every_command(manager):

@@ -67,10 +67,14 @@ class FrameWatch(Protocol):
 
 class SocketWatch:
     """A packet socket on ``interface`` that only looks: every EtherCAT frame sent from this host, by its index. It
-    takes every protocol (ETH_P_ALL), since the kernel shows a packet socket the frames its host sends only then."""
+    takes every protocol (ETH_P_ALL), since the kernel shows a packet socket the frames its host sends only then. It
+    is opened for no protocol and given ETH_P_ALL in ``bind``: a socket opened for a protocol takes that protocol from
+    every NIC until it is bound, and frames of other masters on other NICs (Prime's own, in their indices) queued in
+    it meanwhile."""
 
     def __init__(self, interface: str) -> None:
-        self._sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
+        self.interface = interface
+        self._sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, WATCH_BUFFER)
             self._sock.bind((interface, ETH_P_ALL))
@@ -88,7 +92,7 @@ class SocketWatch:
                 frame, address = self._sock.recvfrom(2048)
             except BlockingIOError:
                 return seen
-            if address[2] != socket.PACKET_OUTGOING or frame[12:14] != ETHERTYPE_BYTES:
+            if address[0] != self.interface or address[2] != socket.PACKET_OUTGOING or frame[12:14] != ETHERTYPE_BYTES:
                 continue
             index = frame_index(frame)
             if index is not None:

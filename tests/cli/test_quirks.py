@@ -35,6 +35,13 @@ def bringup(tmp_path: Path, *args: str) -> dict:
     return json.loads(summary.read_text())
 
 
+def assert_nothing_misread(drops: dict, given_up: int) -> None:
+    """Every reply understood, and none in time taken for a late one: a late drop answers a request given up on (a
+    busy host asked again, or its wait ran out), and there are no more of them than those."""
+    assert drops == {**NOTHING_DROPPED, "late": drops["late"]}
+    assert drops["late"] <= given_up
+
+
 def assert_up_with_every_switch(summary: dict) -> None:
     assert summary["ok"], summary["problems"]
     assert (summary["end"]["slaves_op"], summary["end"]["drives_enabled"]) == (10, 10)
@@ -50,7 +57,7 @@ def test_a_bring_up_switches_standby_damping_standby_on_every_drive(tmp_path, qu
     assert_up_with_every_switch(summary)
     drops = summary["ethercat_bringup"]["mailbox_drops"]
     assert summary["ethercat_bringup"]["mailbox"] == "prime"
-    assert drops == NOTHING_DROPPED  # every reply understood, and none taken for a late one
+    assert_nothing_misread(drops, summary["ethercat_bringup"]["mailbox_given_up"])
 
 
 @pytest.mark.parametrize("quirks", EACH_AND_ALL)
@@ -61,7 +68,7 @@ def test_scan_and_sdo_write_and_read_reach_op_and_every_drive(quirks, capsys):
         report = json.loads(capsys.readouterr().out)
         assert report["problem"] is None and [s["al_state"] for s in report["slaves"]] == ["OP"] * 10
         assert [s["rated_torque_nm"] for s in report["slaves"]] == [23.0] * 10  # 0x6076, a 4-byte value
-        assert report["mailbox_drops"] == NOTHING_DROPPED
+        assert_nothing_misread(report["mailbox_drops"], report["mailbox_given_up"])
         assert main(["ec", "sdo", "write", "6", "0x2383:0", "1", "--interface", interface]) == 0  # the gain gate
         capsys.readouterr()
         assert main(["ec", "sdo", "write", "6", "0x2382:01", "515", "--interface", interface, "--json"]) == 0

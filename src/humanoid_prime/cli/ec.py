@@ -123,6 +123,7 @@ class ScanReport(TypedDict):
     retried: list[str]  # why the ring was scanned or configured again
     mailbox: str | None
     mailbox_drops: dict[str, int]  # by why
+    mailbox_given_up: int  # requests whose reply was given up on: the most late drops there can be
     problem: str | None
 
 
@@ -173,6 +174,7 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: ScanReport) -> No
         finally:
             report["retried"] = [*master.scan_reasons, *master.configure_reasons]
             report["mailbox_drops"] = master.mailbox_drops()
+            report["mailbox_given_up"] = master.mailbox_given_up()
         report["bringup_seconds"] = round(bringup.seconds, 3)
         for _ in range(_SCAN_CYCLES):
             master.exchange()
@@ -187,6 +189,7 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: ScanReport) -> No
             for row in rows:
                 row["error_history"] = [f"0x{c:04X}" for c in master.error_history(row["ring"])]
         report["mailbox_drops"] = master.mailbox_drops()
+        report["mailbox_given_up"] = master.mailbox_given_up()
 
 
 def _scan_igh(args: argparse.Namespace, robot: Robot, report: ScanReport) -> None:
@@ -218,7 +221,7 @@ def run_scan(args: argparse.Namespace) -> int:
     robot = load_robot(args.hardware)
     report: ScanReport = {"backend": args.backend, "interface": None, "slaves": [], "ring_matches": False,
                               "bringup_seconds": None, "retried": [], "mailbox": None, "mailbox_drops": {},
-                              "problem": None}
+                              "mailbox_given_up": 0, "problem": None}
     try:
         (_scan_igh if args.backend == "igh" else _scan_soem)(args, robot, report)
     except (RingError, SdoError) as exc:

@@ -94,7 +94,8 @@ def run_summary(session: Session) -> dict[str, object]:
         ec_bringup = session.ethercat.bringup.as_dict()
         master = session.ethercat.master
         if master is not None:  # who worked the mailboxes, and what they dropped, by why
-            ec_bringup.update(mailbox=master.mailbox, mailbox_drops=master.mailbox_drops())
+            ec_bringup.update(mailbox=master.mailbox, mailbox_drops=master.mailbox_drops(),
+                              mailbox_given_up=master.mailbox_given_up())
         ec_bringup["rated_torque_nm"] = {  # 0x6076 of each drive; null: unread, nominal used
             joint: (float(r) if math.isfinite(r) else None)
             for joint, r in zip(session.ethercat.joints, session.ethercat.rated_torque_nm, strict=True)}

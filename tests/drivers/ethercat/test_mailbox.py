@@ -83,6 +83,7 @@ def test_a_reply_that_came_after_its_request_was_given_up_on_is_not_the_answer_t
     (dropped,) = mailbox.log.records
     assert dropped.reason == "late" and "an upload reply for 0x6076:00" in dropped.what
     assert 0.030 <= dropped.late_s <= 0.045  # from the request it answers
+    assert mailbox.log.given_up == 1  # the one request given up on: a ring's late drops are at most its count
 
 
 def test_a_late_write_reply_is_not_read_as_an_empty_value_of_the_same_object():

@@ -125,12 +125,20 @@ class DropLog:
         self.counts: collections.Counter[str] = collections.Counter({reason: 0 for reason in DROP_REASONS})
         self.records: collections.deque[DroppedReply] = collections.deque(maxlen=DROPS_KEPT)
         self.emergencies = 0
+        # Requests whose reply was given up on (asked again, or timed out): a reply that comes after is late, so a
+        # ring's late drops are at most this many; more would be replies in time that were not recognised.
+        self.given_up = 0
         self._lock = threading.Lock()
 
     def add(self, record: DroppedReply) -> None:
         with self._lock:
             self.counts[record.reason] += 1
             self.records.append(record)
+
+    def give_up(self) -> None:
+        """A request's reply is no longer awaited."""
+        with self._lock:
+            self.given_up += 1
 
     def snapshot(self) -> dict[str, int]:
         with self._lock:
@@ -230,6 +238,8 @@ class CoeMailbox:
             if self.clock() >= deadline:
                 break
             self.requests_again += 1  # the reply was read out but its frame did not come back: ask again
+            self.log.give_up()
+        self.log.give_up()
         wait = self._wait
         raise SdoTimeout(self.position, index, sub, timeout_s, delivered=wait.delivered, looks=wait.looks,
                          longest_gap_s=max(wait.longest_gap_s, self.clock() - wait.last))

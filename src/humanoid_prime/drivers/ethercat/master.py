@@ -371,6 +371,10 @@ class EthercatMaster(ABC):
         """The mailbox messages dropped so far, by why (``coe.DROP_REASONS``; empty where none are counted)."""
         return {}
 
+    def mailbox_given_up(self) -> int:
+        """Requests whose reply was given up on (asked again, or timed out): the most late drops there can be."""
+        return 0
+
     def live_error(self, position: int) -> int:
         return read_live_error(self, position)
 

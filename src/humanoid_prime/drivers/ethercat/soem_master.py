@@ -142,6 +142,9 @@ class SoemMaster(EthercatMaster):
     def mailbox_drops(self) -> dict[str, int]:
         return self.drops.snapshot()
 
+    def mailbox_given_up(self) -> int:
+        return self.drops.given_up
+
     # ---------------------------------------------------------------------------------------- discovery
     def _discover(self) -> Sequence[SlaveInfo]:
         self._closing.clear()

@@ -78,6 +78,9 @@ class MujocoSystem(HardwareComponent):
         self._a = np.zeros(n)
         self._b = np.zeros(n)
         self._none = np.zeros(n, dtype=bool)
+        # Owning every joint (a whole simulated robot), the tick reads into and writes from the manager's rows
+        # directly: no copy through an index of every joint.
+        self._all = owned == robot.names
         # Views into MuJoCo's buffers, taken once.
         self._qpos, self._qvel, self._ctrl = self.data.qpos, self.data.qvel, self.data.ctrl
         self._force = self.data.actuator_force
@@ -121,6 +124,11 @@ class MujocoSystem(HardwareComponent):
         self._ctrl[:] = 0.0
 
     def read(self, now: float, state: StateArrays) -> None:
+        if self._all:
+            self._qpos.take(self.qpos_adr, out=state.position)
+            self._qvel.take(self.dof_adr, out=state.velocity)
+            np.copyto(state.effort, self._force)
+            return
         idx = self.indices
         self._qpos.take(self.qpos_adr, out=self._a)
         state.position[idx] = self._a
@@ -130,24 +138,33 @@ class MujocoSystem(HardwareComponent):
         state.effort[idx] = self._a
 
     def write(self, now: float, command: CommandArrays) -> None:
-        idx, actuators = self.indices, self._actuators
         u = self._u
-        command.stiffness.take(idx, out=self._kp)
-        command.damping.take(idx, out=self._kd)
-        np.negative(self._kp, out=self._a)
-        self._bias_kp[actuators] = self._a
-        np.negative(self._kd, out=self._a)
-        self._bias_kd[actuators] = self._a
-        command.position.take(idx, out=self._a)
-        np.multiply(self._kp, self._a, out=u)
-        command.velocity.take(idx, out=self._a)
-        np.multiply(self._kd, self._a, out=self._b)
-        u += self._b
-        command.effort.take(idx, out=self._a)
-        u += self._a
+        if self._all:
+            kp, kd = command.stiffness, command.damping
+            np.negative(kp, out=self._bias_kp)
+            np.negative(kd, out=self._bias_kd)
+            np.multiply(kp, command.position, out=u)
+            np.multiply(kd, command.velocity, out=self._b)
+            u += self._b
+            u += command.effort
+        else:
+            idx, actuators = self.indices, self._actuators
+            command.stiffness.take(idx, out=self._kp)
+            command.damping.take(idx, out=self._kd)
+            np.negative(self._kp, out=self._a)
+            self._bias_kp[actuators] = self._a
+            np.negative(self._kd, out=self._a)
+            self._bias_kd[actuators] = self._a
+            command.position.take(idx, out=self._a)
+            np.multiply(self._kp, self._a, out=u)
+            command.velocity.take(idx, out=self._a)
+            np.multiply(self._kd, self._a, out=self._b)
+            u += self._b
+            command.effort.take(idx, out=self._a)
+            u += self._a
         np.isnan(u, out=self._none)
         np.copyto(u, 0.0, where=self._none)  # no command: limp
-        self._ctrl[actuators] = u
+        self._ctrl[self._actuators] = u
         advance = self.advance
         began = time.perf_counter()  # the physics is this component's plant time (``io_s``)
         if advance is None:

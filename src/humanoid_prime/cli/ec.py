@@ -123,7 +123,7 @@ class ScanReport(TypedDict):
     retried: list[str]  # why the ring was scanned or configured again
     mailbox: str | None
     mailbox_drops: dict[str, int]  # by why
-    mailbox_given_up: int  # requests whose reply was given up on: the most late drops there can be
+    mailbox_given_up: int  # requests whose reply was given up on (asked again, or timed out)
     problem: str | None
 
 

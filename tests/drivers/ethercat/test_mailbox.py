@@ -13,7 +13,7 @@ from doubles.wire import MAILBOX_IN, MAILBOX_OUT, STATION_BASE, WireMaster
 from humanoid_prime.drivers.erob.objects import RATED_TORQUE, TXPDO_MAP
 from humanoid_prime.drivers.ethercat.errors import SdoError, SdoTimeout
 from humanoid_prime.drivers.ethercat.link import FIRST_INDEX, Channel
-from humanoid_prime.drivers.ethercat.mailbox import CoeMailbox, MailboxLayout
+from humanoid_prime.drivers.ethercat.mailbox import REQUEST_ATTEMPTS, CoeMailbox, MailboxLayout
 from humanoid_prime.drivers.ethercat.wire import mailbox_message
 from humanoid_prime.virtual.ring.options import RingOptions
 from humanoid_prime.virtual.ring.ring import Ring
@@ -104,6 +104,15 @@ def test_a_reply_read_out_but_lost_on_its_way_back_is_asked_for_again_never_by_a
     assert mailbox.requests_again == 1
     assert sync_manager_writes(hub) == []
     assert ring.slaves[0].esc.al_status == 0x02  # still in PRE-OP, its mailbox on
+
+
+def test_a_request_whose_every_reply_is_lost_is_asked_again_and_each_copy_given_up_once():
+    _ring, hub, mailbox = make()
+    for _ in range(REQUEST_ATTEMPTS):
+        hub.lose_next(lambda frame, took_reply: took_reply)
+    with pytest.raises(SdoTimeout):
+        mailbox.upload(*IDENTITY_VENDOR, timeout_s=0.5)
+    assert (mailbox.requests_again, mailbox.log.given_up) == (REQUEST_ATTEMPTS - 1, REQUEST_ATTEMPTS)
 
 
 def test_a_request_whose_frame_was_lost_before_the_slave_is_sent_again_and_served_once():

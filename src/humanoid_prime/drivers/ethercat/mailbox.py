@@ -125,8 +125,8 @@ class DropLog:
         self.counts: collections.Counter[str] = collections.Counter({reason: 0 for reason in DROP_REASONS})
         self.records: collections.deque[DroppedReply] = collections.deque(maxlen=DROPS_KEPT)
         self.emergencies = 0
-        # Requests whose reply was given up on (asked again, or timed out): a reply that comes after is late, so a
-        # ring's late drops are at most this many; more would be replies in time that were not recognised.
+        # Requests whose reply was given up on (asked again, or timed out): a late drop mostly answers one of them
+        # (or a request of SOEM's at start-up, or a request a slave served twice).
         self.given_up = 0
         self._lock = threading.Lock()
 
@@ -139,6 +139,11 @@ class DropLog:
         """A request's reply is no longer awaited."""
         with self._lock:
             self.given_up += 1
+
+    def emergency(self) -> None:
+        """An emergency message was read out (the mailboxes of a ring share this log, each in its own thread)."""
+        with self._lock:
+            self.emergencies += 1
 
     def snapshot(self) -> dict[str, int]:
         with self._lock:
@@ -224,22 +229,22 @@ class CoeMailbox:
         index, sub = expected.index, expected.sub
         deadline = self.clock() + timeout_s
         self._wait = _Wait(self.clock())
-        for _attempt in range(REQUEST_ATTEMPTS):
+        for attempt in range(REQUEST_ATTEMPTS):
             message = mailbox_message(payload, MAILBOX_TYPE_COE, self._take_counter())
             message = message.ljust(self.layout.write_size, b"\0")
             sent = Expected(expected.specifier, index, sub, expected.toggle, self.clock())
             if not self._send(message, deadline):
+                self.log.give_up()  # (its frame may have reached the slave)
                 break
             self._wait.delivered = True
             self._sent.append(sent)
             reply = self._await_reply(sent, deadline)
             if reply is not None:
                 return reply
-            if self.clock() >= deadline:
+            self.log.give_up()
+            if self.clock() >= deadline or attempt == REQUEST_ATTEMPTS - 1:
                 break
             self.requests_again += 1  # the reply was read out but its frame did not come back: ask again
-            self.log.give_up()
-        self.log.give_up()
         wait = self._wait
         raise SdoTimeout(self.position, index, sub, timeout_s, delivered=wait.delivered, looks=wait.looks,
                          longest_gap_s=max(wait.longest_gap_s, self.clock() - wait.last))
@@ -291,7 +296,7 @@ class CoeMailbox:
         """A message that answers no request in flight: an emergency is handed on; anything else dropped and
         counted by why."""
         if reply.kind == EMERGENCY:
-            self.log.emergencies += 1
+            self.log.emergency()
             if self.on_emergency is not None:
                 self.on_emergency(self.position, reply.detail)
             return

@@ -372,7 +372,8 @@ class EthercatMaster(ABC):
         return {}
 
     def mailbox_given_up(self) -> int:
-        """Requests whose reply was given up on (asked again, or timed out): the most late drops there can be."""
+        """Requests whose reply Prime's mailboxes gave up on (asked again, or timed out): what a late drop mostly
+        answers."""
         return 0
 
     def live_error(self, position: int) -> int:

@@ -78,6 +78,7 @@ class SocketWatch:
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, WATCH_BUFFER)
             self._sock.bind((interface, ETH_P_ALL))
+            self.interface = self._sock.getsockname()[0]  # the kernel's name for it (frames carry that one)
             self._sock.setblocking(False)
         except BaseException:
             self._sock.close()

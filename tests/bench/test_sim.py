@@ -16,10 +16,11 @@ def test_bench_sim_runs_every_mode_for_the_requested_simulated_time():
     assert result["fallbacks"] == 0
 
 
-def test_bench_sim_reports_the_realtime_factor_against_the_100x_target_at_the_robots_rates():
+def test_bench_sim_judges_its_speed_as_a_share_of_mujocos_own_in_the_run_at_the_robots_rates():
     result = bench_sim(seconds=0.5)
     assert result["realtime_factor"] == pytest.approx(result["sim_seconds"] / result["wall_seconds"], rel=1e-3)
-    assert result["meets_target"] == (result["realtime_factor"] >= 100.0)
+    fraction = result["realtime_factor"] / result["floors"]["realtime_factor"]
+    assert result["meets_target"] == (fraction >= 0.9)  # DESIGN §6
     assert 0 < result["tick_us"]["median"] <= result["tick_us"]["p99"]
     assert (result["update_rate"], result["physics_rate"]) == (50.0, 1000.0)
 

@@ -127,6 +127,10 @@ def test_the_recording_benchmark_records_every_tick_at_both_rates():
         recorded = results[rate]["with"]
         assert recorded["recorder"]["messages"]["/prime/joint_states"] + recorded["recorder"]["dropped_ticks"] == \
             recorded["ticks"]
+        # the figure: the recorder attached and detached in turns of one run, so it recorded only some ticks
+        paired = results[rate]["paired"]
+        assert 0 < paired["recorder"]["messages"]["/prime/joint_states"] < paired["ticks"]
+        assert results[rate]["added_tick_us_median"] == paired["paired_us"]["added"]
 
 
 def test_a_simulation_as_fast_as_it_goes_records_every_tick(tmp_path):

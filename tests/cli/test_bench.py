@@ -30,3 +30,13 @@ def test_figures_are_found_by_dotted_path():
     assert figure(results, "bringup", "jitter_us.p99") is None
     assert {suite for suite, *_ in TARGETS} == {"startup", "sim", "sito", "bringup", "khz", "dds", "record", "doctor",
                                                 "gate"}
+
+
+def test_every_floor_stands_beside_a_figure_with_a_target_and_comes_from_a_suite_of_the_bench():
+    from humanoid_prime.cli.bench import FLOORS, SUITES
+
+    judged = {(suite, path) for suite, path, *_ in TARGETS}
+    assert set(FLOORS) <= judged
+    assert {suite for suite, _path, _what in FLOORS.values()} <= set(SUITES)
+    # the 50 Hz tick beside the same tick at 1 kHz (warm caches), in the same run
+    assert FLOORS["bringup", "tick_cpu_us.median"][:2] == ("khz", "tick_cpu_us.median")

@@ -52,6 +52,12 @@ FLOORS: dict[tuple[str, str], tuple[str, str, str]] = {
     ("sim", "realtime_factor"): ("sim", "floors.realtime_factor", "MuJoCo's own steps in this run"),
     ("bringup", "tick_io_us.median"): ("bringup", "floors.ethercat_cycle_us",
                                        "EtherCAT frame on the wire, 10 slaves at 100 Mbit/s"),
+    # At 50 Hz the emulated robot runs on the same two cores between ticks and each tick starts with cold caches;
+    # at 1 kHz the same tick finds them warm: what the code costs, beside what this machine makes of it.
+    ("bringup", "tick_cpu_us.median"): ("khz", "tick_cpu_us.median",
+                                        "the same tick at 1 kHz, caches warm, in this run (us, median)"),
+    ("record", "added_tick_us_median"): ("dds", "floors.tap_added_tick_us_median",
+                                         "handing each tick to another thread, nothing done, in the DDS runs"),
     **{("dds", f"{rate}_hz.{backend}added_tick_us_median"): (
         "dds", f"{rate}_hz.tap_added_tick_us_median", "handing each tick to the publisher thread, nothing published")
        for rate in (50, 1000) for backend in ("", "rclpy_")},

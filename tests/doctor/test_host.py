@@ -3,12 +3,16 @@ NIC's interrupts, the rights and limits of the process, the NIC's state and its 
 
 from __future__ import annotations
 
+import socket
 from collections import Counter
+
+import pytest
 
 from doubles.kernel import ALL_CAPS, link, nic_files, process, write_tree
 from humanoid_prime.doctor import host
 from humanoid_prime.doctor.report import Verdict
 from humanoid_prime.doctor.system import CAP_IPC_LOCK, CAP_NET_RAW, CAP_SYS_NICE, nic_state, parse_cpu_list
+from humanoid_prime.virtual.netns import EmulatedRing, netns_unavailable_reason
 
 RT_VERSION = "#1 SMP PREEMPT_RT Debian 6.1.90-1 (2024-05-03)\n"
 
@@ -194,3 +198,26 @@ def test_frames_the_host_sends_on_the_ring_s_nic_fail_with_how_to_keep_the_netwo
 def test_cpu_lists_read_as_the_kernel_writes_them():
     assert parse_cpu_list("0-2,5,7-8\n") == {0, 1, 2, 5, 7, 8}
     assert parse_cpu_list("") == set()
+
+
+@pytest.mark.netns
+@pytest.mark.skipif(netns_unavailable_reason() is not None, reason=f"no emulated ring: {netns_unavailable_reason()}")
+def test_the_traffic_watch_counts_only_its_own_nics_frames_even_while_it_is_being_opened(monkeypatch):
+    """A frame another NIC sends while the watch's socket is not yet bound to its NIC is not this NIC's traffic."""
+    other = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)
+    other.bind(("lo", 0))
+    bind = socket.socket.bind
+
+    def bind_after_a_frame_elsewhere(sock, address):
+        if sock.family == socket.AF_PACKET and sock is not other:
+            other.send(bytes(12) + b"\x86\xdd" + bytes(46))  # an IPv6 frame, out of another NIC
+        return bind(sock, address)
+
+    try:
+        with EmulatedRing(slaves=1) as ring:
+            monkeypatch.setattr(socket.socket, "bind", bind_after_a_frame_elsewhere)
+            traffic = host.watch(ring.master_interface, seconds=0.05)
+            monkeypatch.undo()
+        assert traffic.frames == Counter()
+    finally:
+        other.close()

@@ -158,8 +158,10 @@ class Traffic:
 def watch(interface: str, seconds: float = LISTEN_S) -> Traffic:
     """Every frame on ``interface`` for ``seconds``, both directions (OSError when no raw socket may be opened)."""
     traffic = Traffic(seconds)
-    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL)) as sock:
-        sock.bind((interface, 0))
+    # Opened for no protocol and given every protocol in ``bind``: opened for one, the socket takes it from every NIC
+    # until it is bound, and another NIC's frames queued meanwhile would be counted as this one's.
+    with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0) as sock:
+        sock.bind((interface, ETH_P_ALL))
         deadline = time.monotonic() + seconds
         while (left := deadline - time.monotonic()) > 0:
             ready, _, _ = select.select([sock], [], [], left)

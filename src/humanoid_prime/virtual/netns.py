@@ -200,7 +200,7 @@ class EmulatedRing:
 
     def _wait_for_frames(self, deadline: float) -> None:
         """Send a broadcast read on the master end until the ring answers with every slave counted."""
-        with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE)) as raw:
+        with socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0) as raw:  # EtherCAT once bound: this ring's only
             raw.bind((self.master_interface, ETHERTYPE))
             probe = build_frame([Datagram(Command.BRD, b"\x00\x00", index=0xA5)])
             while True:

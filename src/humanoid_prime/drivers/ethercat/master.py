@@ -372,8 +372,7 @@ class EthercatMaster(ABC):
         return {}
 
     def mailbox_given_up(self) -> int:
-        """Requests whose reply Prime's mailboxes gave up on (asked again, or timed out): what a late drop mostly
-        answers."""
+        """Requests whose reply the mailboxes gave up on (asked again, or timed out; 0 where none are counted)."""
         return 0
 
     def live_error(self, position: int) -> int:

@@ -99,7 +99,7 @@ class EmulatorServer:
         self._last_frame_ns = 0
         self._last_gc_ns = 0
         self._random = random.Random(0x88A4)
-        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
+        self._raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)  # EtherCAT once bound: this ring's only
         self._raw.bind((interface, ETHERTYPE))
         self._raw.setblocking(False)
         with contextlib.suppress(FileNotFoundError):

@@ -184,6 +184,7 @@ def test_robot_description_and_tf_match_forward_kinematics(graph, distro, sim_ro
     for namespace, seen in graph[0][distro]["instances"].items():
         assert seen["description"] == load_robot(use_sim=True).description.urdf
         frame = seen["frame"]
+        assert "error" not in frame, frame.get("error")
         parent_of = {child: (parent, np.array(t), np.array(r))
                      for parent, child, t, r in seen["tf_static"] + frame["transforms"]}
         for link in ("left_hand_link", "right_hand_link"):

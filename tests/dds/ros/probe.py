@@ -28,6 +28,7 @@ from tf2_msgs.msg import TFMessage
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 TIMEOUT_S = 120.0  # bounds a failure only
+KEPT = 2000  # the latest joint states and /tf samples kept by stamp, to pair them
 
 
 def topic(namespace: str, name: str) -> str:
@@ -50,6 +51,9 @@ class Instance:
         self.tf: dict[int, list] = {}  # stamp ns -> transforms
         self.tf_static: list = []
         self.positions_at: dict[int, list[float]] = {}  # stamp ns -> positions (the last few)
+        # the latest stamp seen on both (taken as they arrive: on a loaded machine /tf may trail the joint states by
+        # more than the last few)
+        self.matched: dict | None = None
         sub = node.create_subscription
         sub(JointState, topic(namespace, "/prime/joint_states"), self.on_joint_state, 1000)
         sub(String, topic(namespace, "/control_mode"), self.on_mode, LATCHED)
@@ -66,7 +70,9 @@ class Instance:
             self.joint_states.append((stamp, list(m.name), list(m.position)))
         self.latest = (stamp, list(m.position))
         self.positions_at[stamp] = list(m.position)
-        if len(self.positions_at) > 400:
+        if stamp in self.tf:
+            self.matched = {"stamp_ns": stamp, "positions": self.positions_at[stamp], "transforms": self.tf[stamp]}
+        if len(self.positions_at) > KEPT:
             self.positions_at.pop(next(iter(self.positions_at)))
 
     def on_mode(self, m: String) -> None:
@@ -90,8 +96,11 @@ class Instance:
     def on_tf(self, m: TFMessage) -> None:
         self.received["tf"] += 1
         stamp = m.transforms[0].header.stamp
-        self.tf[stamp.sec * 1_000_000_000 + stamp.nanosec] = transforms(m)
-        if len(self.tf) > 400:
+        ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+        self.tf[ns] = transforms(m)
+        if ns in self.positions_at:
+            self.matched = {"stamp_ns": ns, "positions": self.positions_at[ns], "transforms": self.tf[ns]}
+        if len(self.tf) > KEPT:
             self.tf.pop(next(iter(self.tf)))
 
     def on_tf_static(self, m: TFMessage) -> None:
@@ -102,9 +111,11 @@ class Instance:
         return len(self.joint_states) >= self.keep and all(self.received.values())
 
     def frame_with_joints(self) -> dict:
-        """The latest /tf whose stamp has its joint state too."""
-        stamp = max(s for s in self.tf if s in self.positions_at)
-        return {"stamp_ns": stamp, "positions": self.positions_at[stamp], "transforms": self.tf[stamp]}
+        """The latest /tf whose stamp has its joint state too (an error in words where none had)."""
+        if self.matched is None:
+            return {"error": f"none of {self.received['tf']} /tf samples carried the stamp of one of the "
+                             f"{self.received['joint_states']} joint states"}
+        return self.matched
 
 
 def transforms(m: TFMessage) -> list:

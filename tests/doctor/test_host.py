@@ -3,12 +3,12 @@ NIC's interrupts, the rights and limits of the process, the NIC's state and its 
 
 from __future__ import annotations
 
-import socket
 from collections import Counter
 
 import pytest
 
 from doubles.kernel import ALL_CAPS, link, nic_files, process, write_tree
+from doubles.sockets import frame_elsewhere_at_each_bind
 from humanoid_prime.doctor import host
 from humanoid_prime.doctor.report import Verdict
 from humanoid_prime.doctor.system import CAP_IPC_LOCK, CAP_NET_RAW, CAP_SYS_NICE, nic_state, parse_cpu_list
@@ -202,22 +202,9 @@ def test_cpu_lists_read_as_the_kernel_writes_them():
 
 @pytest.mark.netns
 @pytest.mark.skipif(netns_unavailable_reason() is not None, reason=f"no emulated ring: {netns_unavailable_reason()}")
-def test_the_traffic_watch_counts_only_its_own_nics_frames_even_while_it_is_being_opened(monkeypatch):
+def test_the_traffic_watch_counts_only_its_own_nics_frames_even_while_it_is_being_opened():
     """A frame another NIC sends while the watch's socket is not yet bound to its NIC is not this NIC's traffic."""
-    other = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)
-    other.bind(("lo", 0))
-    bind = socket.socket.bind
-
-    def bind_after_a_frame_elsewhere(sock, address):
-        if sock.family == socket.AF_PACKET and sock is not other:
-            other.send(bytes(12) + b"\x86\xdd" + bytes(46))  # an IPv6 frame, out of another NIC
-        return bind(sock, address)
-
-    try:
-        with EmulatedRing(slaves=1) as ring:
-            monkeypatch.setattr(socket.socket, "bind", bind_after_a_frame_elsewhere)
-            traffic = host.watch(ring.master_interface, seconds=0.05)
-            monkeypatch.undo()
-        assert traffic.frames == Counter()
-    finally:
-        other.close()
+    ipv6 = bytes(12) + b"\x86\xdd" + bytes(46)
+    with EmulatedRing(slaves=1) as ring, frame_elsewhere_at_each_bind(ipv6):  # (the ring is up before it)
+        traffic = host.watch(ring.master_interface, seconds=0.05)
+    assert traffic.frames == Counter()

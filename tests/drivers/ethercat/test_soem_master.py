@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import math
-import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from doubles.sockets import frame_elsewhere_at_each_bind
 from humanoid_prime.config.calibration import JointCalibration, load_calibration
 from humanoid_prime.control.interfaces import CommandArrays, StateArrays
 from humanoid_prime.control.rate import Rate
@@ -349,21 +349,11 @@ def test_the_cycle_goes_on_while_a_returning_slave_takes_its_time_to_change_stat
     assert not any(ring.control.slave(k)["drive"]["state"] == "FAULT" for k in range(9))
 
 
-def test_the_start_up_watch_sees_only_its_own_nic_even_while_it_is_being_opened(ring, monkeypatch):
+def test_the_start_up_watch_sees_only_its_own_nic_even_while_it_is_being_opened(ring):
     """Other masters send on other NICs beside a scan (the suite's parallel tests; a second Prime on its own ring):
     a frame another NIC sends while the watch's socket is not yet bound to its NIC is not one of SOEM's."""
-    other = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)
-    other.bind(("lo", 0))
-    bind = socket.socket.bind
-
-    def bind_after_a_frame_elsewhere(sock, address):
-        if sock.family == socket.AF_PACKET:
-            other.send(build_frame(0xD7, [brd(0x0130, 2)]))  # a frame of Prime's indices, out of another NIC
-        return bind(sock, address)
-
-    monkeypatch.setattr(socket.socket, "bind", bind_after_a_frame_elsewhere)
-    watch = SocketWatch(ring.master_interface)
-    monkeypatch.undo()
+    with frame_elsewhere_at_each_bind(build_frame(0xD7, [brd(0x0130, 2)])):  # a frame of Prime's indices
+        watch = SocketWatch(ring.master_interface)
     try:
         wire = SocketWire(ring.master_interface, 0x40, 0xFF)
         try:
@@ -374,7 +364,6 @@ def test_the_start_up_watch_sees_only_its_own_nic_even_while_it_is_being_opened(
         assert watch.indices() == [0xC6]
     finally:
         watch.close()
-        other.close()
 
 
 def test_the_start_up_watch_counts_frames_sent_from_this_host_and_not_replies(ring):

@@ -11,7 +11,7 @@ import argparse
 import math
 import time
 from contextlib import AbstractContextManager
-from typing import NotRequired, TypedDict
+from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from humanoid_prime.cli._commands import summary
 from humanoid_prime.cli._common import add_config_options, add_json_option, add_mailbox_option, print_json, whole
@@ -26,6 +26,9 @@ from humanoid_prime.drivers.ethercat.sdo import SDO_BACKENDS, open_sdo
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient, read_error_history, write_fitting
 from humanoid_prime.drivers.ethercat.wire import AL_ERROR, describe_al_status_code
 from humanoid_prime.errors import PrimeError
+
+if TYPE_CHECKING:  # the master is imported by the scan that runs one (the CLI starts without it)
+    from humanoid_prime.drivers.ethercat.master import EthercatMaster
 
 _SCAN_CYCLES = 5  # exchanges after OP before statusword and error code are read from the process data
 
@@ -173,8 +176,7 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: ScanReport) -> No
             raise
         finally:
             report["retried"] = [*master.scan_reasons, *master.configure_reasons]
-            report["mailbox_drops"] = master.mailbox_drops()
-            report["mailbox_given_up"] = master.mailbox_given_up()
+            _mailbox_counts(report, master)
         report["bringup_seconds"] = round(bringup.seconds, 3)
         for _ in range(_SCAN_CYCLES):
             master.exchange()
@@ -188,8 +190,13 @@ def _scan_soem(args: argparse.Namespace, robot: Robot, report: ScanReport) -> No
         if args.history:
             for row in rows:
                 row["error_history"] = [f"0x{c:04X}" for c in master.error_history(row["ring"])]
-        report["mailbox_drops"] = master.mailbox_drops()
-        report["mailbox_given_up"] = master.mailbox_given_up()
+        _mailbox_counts(report, master)
+
+
+def _mailbox_counts(report: ScanReport, master: EthercatMaster) -> None:
+    """What the mailboxes dropped, by why, and the requests whose reply they gave up on."""
+    report["mailbox_drops"] = master.mailbox_drops()
+    report["mailbox_given_up"] = master.mailbox_given_up()
 
 
 def _scan_igh(args: argparse.Namespace, robot: Robot, report: ScanReport) -> None:

@@ -51,8 +51,8 @@ class Instance:
         self.tf: dict[int, list] = {}  # stamp ns -> transforms
         self.tf_static: list = []
         self.positions_at: dict[int, list[float]] = {}  # stamp ns -> positions (the last few)
-        # the latest stamp seen on both (taken as they arrive: on a loaded machine /tf may trail the joint states by
-        # more than the last few)
+        # the latest /tf and joint state with one stamp (paired as they arrive: on a loaded machine /tf may trail the
+        # joint states by more than the last few)
         self.matched: dict | None = None
         sub = node.create_subscription
         sub(JointState, topic(namespace, "/prime/joint_states"), self.on_joint_state, 1000)
@@ -70,8 +70,7 @@ class Instance:
             self.joint_states.append((stamp, list(m.name), list(m.position)))
         self.latest = (stamp, list(m.position))
         self.positions_at[stamp] = list(m.position)
-        if stamp in self.tf:
-            self.matched = {"stamp_ns": stamp, "positions": self.positions_at[stamp], "transforms": self.tf[stamp]}
+        self.pair(stamp)
         if len(self.positions_at) > KEPT:
             self.positions_at.pop(next(iter(self.positions_at)))
 
@@ -98,8 +97,7 @@ class Instance:
         stamp = m.transforms[0].header.stamp
         ns = stamp.sec * 1_000_000_000 + stamp.nanosec
         self.tf[ns] = transforms(m)
-        if ns in self.positions_at:
-            self.matched = {"stamp_ns": ns, "positions": self.positions_at[ns], "transforms": self.tf[ns]}
+        self.pair(ns)
         if len(self.tf) > KEPT:
             self.tf.pop(next(iter(self.tf)))
 
@@ -109,6 +107,10 @@ class Instance:
 
     def complete(self) -> bool:
         return len(self.joint_states) >= self.keep and all(self.received.values())
+
+    def pair(self, stamp: int) -> None:
+        if stamp in self.tf and stamp in self.positions_at:
+            self.matched = {"stamp_ns": stamp, "positions": self.positions_at[stamp], "transforms": self.tf[stamp]}
 
     def frame_with_joints(self) -> dict:
         """The latest /tf whose stamp has its joint state too (an error in words where none had)."""

@@ -344,3 +344,26 @@ def test_a_joint_the_gate_refuses_backs_off_to_where_it_started_and_the_run_goes
                                "(margin 0.030 m)")
     assert abs(rig.true_state.position[robot.index("left_elbow_pitch")] - started[0]) < 0.05  # backed off
     assert result.outcomes["right_elbow_pitch"].status == "done"  # the run went on with the next joint
+
+
+@pytest.mark.parametrize(("prior_error", "source"), [(0.01, "prior calibration"),
+                                                     (0.3, "the simulated operator's answer")])
+def test_a_recalibration_keeps_the_prior_direction_only_where_both_stops_are_where_the_prior_put_them(
+        robot, setup, prior_error, source):
+    """A symmetric range and a wrist yaw's gravity cannot tell its direction: a recalibration whose stops are where
+    the prior put them is the same joint as before and asks nothing; one whose stops moved is asked. A prior 0.3 rad
+    wrong puts its first stop where the plan travels fast: it is met there, seen at once (not pressed at the drive's
+    torque limit until the time runs out), taken as the stop it is, and the run says the prior is wrong."""
+    config, _, truth = setup
+    joint = "left_wrist_yaw"
+    prior = truth.with_joint(joint, JointCalibration(1, 0.1 + prior_error))
+    result, rig = calibrate_in_lockstep(robot, config, prior, truth, [joint])
+    outcome = result.outcomes[joint]
+    assert outcome.done and outcome.calibration == JointCalibration(1, pytest.approx(0.1, abs=1e-3))
+    assert outcome.direction_source.startswith(source)
+    assert (outcome.times.get("question", 0.0) > 0) == (source != "prior calibration")
+    if source == "prior calibration":
+        assert outcome.warnings == [] and outcome.impact_rad_s <= MAX_SPEED_RAD_S
+    else:
+        assert len(outcome.warnings) == 1 and "prior calibration put none" in outcome.warnings[0]
+        assert rig.contact_peak[robot.index(joint)] < 2 * contact_cap(robot, joint)  # released at once

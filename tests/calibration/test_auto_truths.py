@@ -6,8 +6,8 @@ robot: every offset unknown, so the gravity model starts out wrong everywhere) a
 
 Every run: complete, every direction right, every offset within a milliradian, every joint's peak contact effort
 (the rig's truth: its actuator's push into a stop beyond gravity) within its cap and its speed when it met a stop
-at most the contact speed, every drive back on its factory gains and torque limit, every wrist off; within its
-robot-time budget. Each run's robot and wall time are printed (``-s``).
+at most the contact speed, no arm touching the other or the body, every drive back on its factory gains and torque
+limit, every wrist off; within its robot-time budget. Each run's robot and wall time are printed (``-s``).
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ OFFSET_RANGE_RAD = 0.5
 PRIOR_ERROR_RAD = 0.02
 TOLERANCE_RAD = 1e-3
 STIFFNESS_TOLERANCE = 0.05  # realised stiffness within 5 % of what the emulated drive models
-NEW_ROBOT_S = 450.0  # robot time a run from the bundled calibration takes at most (the joints go one at a time)
-PRIOR_S = 80.0  # robot time a recalibration takes at most (one joint of each arm at a time)
+NEW_ROBOT_S = 400.0  # robot time a run from the bundled calibration takes at most (the joints go one at a time)
+PRIOR_S = 60.0  # robot time a recalibration takes at most (one joint of each arm at a time)
 FREE_RAD = 0.05  # a joint's contacts count from here on: before, a wrist may rest on a stop under its own weight
 
 
@@ -129,6 +129,7 @@ def check(robot, kind: str, k: int, budget_s: float) -> None:
     assert all(int(drive.gate.value) == 0 for drive in rig.erob.values())  # every gate back on factory gains
     assert all(int(drive.max_torque.value) == 1500 for drive in rig.erob.values())  # every torque limit restored
     assert not any(motor.enabled for motor in rig.sito.values())  # every wrist off
+    assert rig.body_contacts == {}  # no arm ever touched the other arm or the body
     print(f"{kind} truth {k}: {result.robot_seconds:.1f} s robot time, {wall:.1f} s wall; worst offset error "
           f"{1e3 * max(errors):.4f} mrad, fastest contact {max(watch.speeds.values()):.3f} rad/s")
     assert result.robot_seconds <= budget_s

@@ -154,3 +154,24 @@ def test_every_command_reaches_the_devices_as_the_host_drivers_send_it(robot, pa
             if all(drive.csp_enabled for drive in pair.rig.erob.values()):
                 break
         assert all(drive.csp_enabled for drive in pair.rig.erob.values())
+
+
+@pytest.mark.parametrize("crossed", [False, True])
+def test_the_rig_records_an_arm_touching_the_other_arm(robot, crossed):
+    """The truths a calibration is judged by include that no arm touched the other or the body: the rig sees arms
+    crossed in front of the chest, and nothing in the start pose."""
+    identity = Calibration({j: JointCalibration(1, 0.0) for j in robot.names})
+    pose = dict(START_POSE)
+    if crossed:
+        pose.update({"left_shoulder_roll": -1.0, "right_shoulder_roll": 1.0, "left_shoulder_pitch": -1.2,
+                     "right_shoulder_pitch": -1.2, "left_elbow_pitch": -1.2, "right_elbow_pitch": -1.2})
+    rig = LockstepPrime(robot, identity, identity, update_rate=UPDATE_RATE, physics_rate=250.0, initial_pose=pose)
+    try:
+        rig.step()
+        touching = set(rig.body_contacts)
+    finally:
+        rig.close()
+    if crossed:
+        assert ("left_forearm_link", "right_forearm_link") in touching
+    else:
+        assert touching == set()

@@ -32,9 +32,13 @@ MAX_SPEED_RAD_S = 0.2  # the contact speed: its default and its ceiling (DESIGN 
 # frame is known from a robot's prior calibration (the model's gravity and inertia hold) and where it is not (the
 # feed-forward is what free motion teaches, at the contact speed: faster, a joint overshoots its target by what the
 # model got wrong, and meets a stop faster than the contact speed, or stalls short of it).
-TRAVEL = {True: (1.5, 4.0), False: (MAX_SPEED_RAD_S, 1.0)}
+TRAVEL = {True: (2.5, 6.0), False: (MAX_SPEED_RAD_S, 1.0)}
 ACCEL_SHARE = 0.5  # of the cap: the most accelerating the joint's inertia may ask (it is fed forward)
-GOVERN_SHARE = 0.85  # within a window, a joint faster than this share of the contact speed holds its target back
+# Within a window the target moves at ``SEARCH_SHARE`` of the contact speed, and a joint faster than
+# ``GOVERN_SHARE`` of it holds its target back: a joint follows its target's speed only within some 10 % (its drive's
+# loop, its encoder's resolution), and the contact speed is a ceiling, not an aim.
+SEARCH_SHARE = 0.85
+GOVERN_SHARE = 0.9
 SLOW_LEAD_RAD = 0.1  # the target is at the contact speed this far before a window (the joint settles meanwhile)
 CAP_SHARE = 0.7  # the leash spends this share of the cap; the rest is margin (friction, the baseline's lag)
 DAMPING_SHARE = 0.2  # of the cap, what stopping a joint moving at the contact speed may cost (kd * speed)
@@ -215,6 +219,7 @@ class Move(Segment):
             self.failure = f"touched something at {tick.q:+.3f} rad while moving to {self.goal:+.3f} rad"
             return
         if self._reached is not None:  # there, and stopped: measured, or given up on after ``SETTLE_TIMEOUT_S``
+            run.adapt(tick, self.target)  # what lag is left is weight the feed-forward lacks: it takes it up
             settled = abs(tick.q - self.goal) < 0.25 * run.leash + 0.01 and abs(tick.qd) < 0.25 * run.speed
             self.finished = settled or tick.t - self._reached > SETTLE_TIMEOUT_S
 
@@ -236,7 +241,7 @@ class Approach(Segment):
         spans = search.spans()
         self._spans = spans
         self._end = (spans[-1][1] if spans else 0.0) + run.leash  # the target goes no further
-        self.budget_s = (search.seconds(run.travel_speed, run.speed) + 2 * len(spans) * run.travel_speed
+        self.budget_s = (search.seconds(run.travel_speed, run.search_speed) + 2 * len(spans) * run.travel_speed
                          / run.accel_limit + TIME_MARGIN_S)
         self.phase = "moving"  # then settling (its position recorded), easing and pushing (measured), done
         self.stop: float | None = None
@@ -260,10 +265,11 @@ class Approach(Segment):
         run = self.run
         for near, far in self._spans:
             if along < near - SLOW_LEAD_RAD:
-                return min(run.travel_speed, braking(run.speed, near - SLOW_LEAD_RAD - along, run.accel_limit))
+                return min(run.travel_speed, braking(run.search_speed, near - SLOW_LEAD_RAD - along,
+                                                     run.accel_limit))
             if along <= far:
-                return run.speed
-        return run.speed if along < self._end else 0.0
+                return run.search_speed
+        return run.search_speed if along < self._end else 0.0
 
     def update(self, tick: Tick) -> None:
         if self._t0 is None:
@@ -310,7 +316,7 @@ class Approach(Segment):
         along = search.along(self.target)
         limit = self.limit(along)
         most = GOVERN_SHARE * run.speed
-        if limit <= run.speed and s * tick.qd > most:  # the joint runs ahead of its target: hold the target back
+        if limit <= run.search_speed and s * tick.qd > most:  # the joint runs ahead of its target: hold the target back
             limit *= most / (s * tick.qd)
         was = self.ramp.speed
         speed = self.ramp.step(tick.dt, limit)
@@ -379,6 +385,7 @@ class JointRun:
         self.kp, self.kd = gains
         kp_leash, kd_leash = leash_gains
         self.speed = speed
+        self.search_speed = SEARCH_SHARE * speed  # the target's speed where a stop may be
         self.travel_speed = max(TRAVEL[known][0], speed)
         self.rate = rate
         self.effort_limit = effort_limit

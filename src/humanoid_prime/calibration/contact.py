@@ -59,6 +59,7 @@ class ContactDetector:
         self.needed = max(3, math.ceil(DEBOUNCE_S * run.rate - 1e-9))
         self.speeds: deque[float] = deque(maxlen=self.needed + IMPACT_TICKS)
         self.impact = 0.0  # how fast the joint met what it touched (rad/s)
+        self.stalled_at = 0.0  # how fast it was going when it stopped while its target slowed down (0: it did not)
         self.quiet_until = -math.inf  # no contact counts before (the target's speed changed)
 
     def start(self, tick: Tick, target: float) -> None:
@@ -86,8 +87,12 @@ class ContactDetector:
         if accel < 0.0:
             self.quiet_until = tick.t + TRANSIENT_S
         if tick.t < self.quiet_until:  # the target slowed down: the baselines follow, nothing counts
-            self.lag_base += alpha * (lag - self.lag_base)
-            self.effort_base += alpha * (effort - self.effort_base)
+            if s * tick.qd > STALL_SHARE * run.speed:  # (but a joint that stopped is not catching up: what
+                self.lag_base += alpha * (lag - self.lag_base)  # stopped it shows once the quiet ends, and how
+                self.effort_base += alpha * (effort - self.effort_base)  # fast it was going then is kept)
+                self.stalled_at = 0.0
+            elif self.stalled_at == 0.0:
+                self.stalled_at = max(self.speeds)
             self.count = 0
             return False
         excess = lag - self.lag_base
@@ -101,7 +106,7 @@ class ContactDetector:
                     and rise >= EFFORT_SHARE * run.cap)
         self.count = self.count + 1 if touching else 0
         if self.count >= self.needed:
-            self.impact = max(list(self.speeds)[:IMPACT_TICKS])
+            self.impact = max(max(list(self.speeds)[:IMPACT_TICKS]), self.stalled_at)
             return True
         return False
 

@@ -50,6 +50,7 @@ class Sweep:
     by_limits: int | None
     config: Floats
     samples: Floats
+    where_prior: bool = False  # both stops where a robot's prior calibration put them
 
 
 def new_run(auto: AutoCalibration, joint: str) -> JointRun:
@@ -195,6 +196,12 @@ def find_stops(auto: AutoCalibration, run: JointRun) -> Steps:
                                       (near,)), off.target, auto.measure)
         yield a
     assert a.stop is not None
+    if a.impact > run.speed:  # met where the plan put no stop: the prior calibration is wrong here
+        warning = (f"it met its {'upper' if first > 0 else 'lower'} stop at {a.impact:.2f} rad/s, faster than the "
+                   f"contact speed, at {a.stop:+.3f} rad, where the prior calibration put none: that calibration "
+                   "is wrong for this joint (calibrate a rebuilt joint from the bundled calibration)")
+        auto.outcomes[joint].warnings.append(warning)
+        auto.report(f"{joint}: {warning}")
     auto.report(f"{joint}: stop at {a.stop:+.4f} rad; now the other one")
     backed = Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(float(position[i])), leaving=True)
     yield backed
@@ -235,5 +242,8 @@ def conclude(auto: AutoCalibration, run: JointRun, a: Approach, b: Approach) -> 
     # model's gravity along this sweep can be trusted; meanwhile the limits' verdict, or the prior's.
     outcome.status = "direction_unknown"
     outcome.calibration = flipped if by_limits == -1 else same
+    prior = auto.prior.joints[joint]
+    windows = plan.prior(prior.direction, prior.homing_offset) if auto.robots_prior[joint] else []
+    where_prior = bool(windows) and all(plan.found(windows, spec, side, stop) for side, stop in ((-1, low), (1, high)))
     auto.sweeps[joint] = Sweep(same, flipped, by_limits, auto.manager.resources.state.position.copy(),
-                               np.array(b.free).reshape(-1, 2))
+                               np.array(b.free).reshape(-1, 2), where_prior)

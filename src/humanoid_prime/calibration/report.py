@@ -83,6 +83,7 @@ class JointOutcome:
     seconds: float = 0.0  # robot time the joint took
     times: dict[str, float] = field(default_factory=dict)  # robot time by what it went to (approach.KINDS)
     drive_torque_limit: str = ""  # what became of the drive's own torque limit
+    warnings: list[str] = field(default_factory=list)  # what went against the plan (a stop met too fast)
 
     @property
     def done(self) -> bool:
@@ -102,6 +103,7 @@ class JointOutcome:
                 "stops": list(self.stops) if self.stops else None, "cap_nm": self.cap_nm,
                 "peak_contact_nm": self.peak_contact_nm, "impact_rad_s": self.impact_rad_s,
                 "seconds": self.seconds, "times": dict(self.times), "drive_torque_limit": self.drive_torque_limit,
+                "warnings": list(self.warnings),
                 "stiffness": self.stiffness.as_dict() if self.stiffness else None}
 
 

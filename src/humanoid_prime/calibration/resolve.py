@@ -1,7 +1,9 @@
 """The directions of a hands-free calibration, settled at its end (``calibration.auto``; DESIGN §5), once every
 joint's offset is known, proximal first: from the limits (an asymmetric range) and the gravity measured along
-each sweep (``calibration.direction``, ``settle``); where neither tells, one small motion and a plain question
-for each joint whose proximal joints are known (``ask``), or the prior's with ``assume_direction``. A flip is
+each sweep (``calibration.direction``, ``settle``); where neither tells, a robot's prior calibration whose windows
+held both stops (the same joint as calibrated before: a recalibration asks only where the stops moved), else one
+small motion and a plain question for each joint whose proximal joints are known (``ask``), or the prior's with
+``assume_direction``. A flip is
 written only on such evidence, and reported.
 """
 
@@ -46,6 +48,14 @@ def settle(auto: AutoCalibration) -> None:
         if len(verdicts) > 1:
             outcome.message = f"the limits and gravity disagree about the direction ({gravity_text})"
             outcome.calibration = sweep.same
+            continue
+        if not verdicts and sweep.where_prior:  # the same joint as calibrated before: its wiring is as it was
+            outcome.calibration = sweep.same
+            outcome.direction_source = "prior calibration"
+            outcome.status = "done"
+            outcome.message = (f"direction from the prior calibration: both stops are where it put them, and "
+                               f"the physics cannot tell ({gravity_text})")
+            auto.know(auto.robot.index(joint), outcome.calibration, settled=True)
             continue
         if not verdicts:
             outcome.message = f"the physics cannot tell the direction ({gravity_text})"

@@ -396,6 +396,8 @@ def _report(console: Console, result: AutoResult, output: Path, written: bool, a
         console.print(Text(line, style=styles.get(o.status, "")))
         if o.message:
             console.print(f"      {o.message}")
+        for warning in o.warnings:
+            console.print(Text(f"      warning: {warning}", style="bold yellow"))
         if o.stiffness is not None:
             s = o.stiffness.as_dict()
             if o.stiffness.family == "erob" and "torque_efficiency" in s:

@@ -25,7 +25,8 @@ the devices measure the moved world at their own resolution.
 
 While a joint is within ``NEAR_STOP_RAD`` of a mechanical stop the world is stepped one physics step at a time;
 the effort its actuator puts into the stop beyond gravity is recorded (``contact_peak``), and the speed it met the
-stop at (``touch_speed``): the truths a contact-effort cap and a contact speed are checked against.
+stop at (``touch_speed``): the truths a contact-effort cap and a contact speed are checked against. Two bodies of
+different classes that touch (an arm the other arm or the body) are recorded with when (``body_contacts``).
 """
 
 from __future__ import annotations
@@ -115,6 +116,7 @@ class LockstepPrime:
         self.contact_peak = np.zeros(n)  # per joint: the most effort beyond gravity its actuator put into a stop
         self.touch_speed = np.zeros(n)  # per joint: the fastest it met a stop at (rad/s)
         self._touching = np.zeros(n, dtype=bool)
+        self.body_contacts: dict[tuple[str, str], float] = {}  # two bodies of different classes touching: first time
         self._dof = self.physics.dof_adr
         self._lower, self._upper = robot.lower, robot.upper
         self.physics.configure()
@@ -163,6 +165,7 @@ class LockstepPrime:
         for i, _, motor in self._sito_index:
             self._sito_law(i, motor)
         self._advance()
+        self._watch_bodies()
         self._sense()
         self._measure()
         for motor in self.sito.values():
@@ -225,6 +228,19 @@ class LockstepPrime:
         if met.any():  # the speed it came in at, the step it met the stop
             np.maximum(self.touch_speed, np.where(met, np.abs(data.qvel[self._dof]), 0.0), out=self.touch_speed)
         self._touching = touching_any
+
+    def _watch_bodies(self) -> None:
+        """Two bodies of different classes (an arm against the other arm or the body) in contact after this period:
+        recorded with the first time they were (a calibration must never bring them together)."""
+        model, data = self.physics.model, self.physics.data
+        for k in range(data.ncon):
+            contact = data.contact[k]
+            a, b = int(contact.geom1), int(contact.geom2)
+            if model.geom_contype[a] == model.geom_contype[b]:
+                continue
+            names = tuple(sorted(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g])) or "?"
+                                 for g in (a, b)))
+            self.body_contacts.setdefault((names[0], names[1]), self.sim_time)
 
     def _sense(self) -> None:
         """The world's true state, and each joint's in its device's raw frame."""

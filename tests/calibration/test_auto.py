@@ -367,3 +367,30 @@ def test_a_recalibration_keeps_the_prior_direction_only_where_both_stops_are_whe
     else:
         assert len(outcome.warnings) == 1 and "prior calibration put none" in outcome.warnings[0]
         assert rig.contact_peak[robot.index(joint)] < 2 * contact_cap(robot, joint)  # released at once
+
+
+def test_a_joint_comes_back_across_what_it_crossed_with_what_it_needed_at_each_point():
+    taught = approach.Taught(side=-1)
+    for q, correction in [(0.5, 0.1), (0.495, 9.0), (0.3, 0.2), (0.1, 0.4)]:  # (one value per step of the way)
+        taught.add(q, correction)
+    assert taught.positions == [0.5, 0.3, 0.1]
+    assert taught.correction(0.2) == pytest.approx(0.3) and taught.correction(0.4) == pytest.approx(0.15)
+    assert taught.covers(0.08, 0.5, 0.0) and not taught.covers(0.08, 0.7, 0.0)
+    assert taught.covers(0.05, 0.5, 0.04)  # a target pressing the stop the way ended at leads the joint
+    assert not approach.Taught(side=1).covers(0.0, 0.0, 1.0)  # nothing crossed
+
+
+def test_an_arms_reach_across_the_robot_is_its_collision_geometry_where_it_is(robot):
+    from humanoid_prime.calibration.gravity import GravityModel
+    from humanoid_prime.sim.demo import START_POSE
+
+    model = GravityModel(robot)
+    left = [i for i, name in enumerate(robot.names) if name.startswith("left_")]
+    right = [i for i, name in enumerate(robot.names) if name.startswith("right_")]
+    pose = np.array([START_POSE.get(name, 0.0) for name in robot.names])
+    (left_low, left_high), (right_low, right_high) = model.lateral(pose, left), model.lateral(pose, right)
+    assert 0.1 < left_low < left_high and right_low < right_high < -0.1  # each arm on its side
+    assert left_low == pytest.approx(-right_high) and left_high == pytest.approx(-right_low)  # mirrored
+    pose[robot.index("left_shoulder_roll")] = -1.0  # the arm across the chest
+    pose[robot.index("left_elbow_pitch")] = -1.2
+    assert model.lateral(pose, left)[0] < 0.0

@@ -35,7 +35,7 @@ OFFSET_RANGE_RAD = 0.5
 PRIOR_ERROR_RAD = 0.02
 TOLERANCE_RAD = 1e-3
 STIFFNESS_TOLERANCE = 0.05  # realised stiffness within 5 % of what the emulated drive models
-NEW_ROBOT_S = 400.0  # robot time a run from the bundled calibration takes at most (the joints go one at a time)
+NEW_ROBOT_S = 210.0  # robot time a run from the bundled calibration takes at most (first stops one joint at a time)
 PRIOR_S = 60.0  # robot time a recalibration takes at most (one joint of each arm at a time)
 FREE_RAD = 0.05  # a joint's contacts count from here on: before, a wrist may rest on a stop under its own weight
 
@@ -68,6 +68,7 @@ class ContactWatch:
     moment it has moved ``FREE_RAD`` from where it started."""
 
     def __init__(self) -> None:
+        self.blind_pairs = 0  # ticks in which both arms moved while a moving joint's arm could not be placed
         self.peaks: dict[str, float] = {}
         self.speeds: dict[str, float] = {}
         self._start: dict[str, float] = {}
@@ -75,6 +76,9 @@ class ContactWatch:
 
     def __call__(self, rig, auto) -> None:
         moving = {run.name for run in auto.moving}
+        arms = {joint.split("_", 1)[0] for joint in moving}
+        if len(arms) > 1 and any(j not in auto.firsts and not auto.robots_prior[j] for j in moving):
+            self.blind_pairs += 1
         for joint in [j for j in self._start if j not in moving]:
             self._collect(rig, joint)
         for joint in moving:
@@ -130,6 +134,7 @@ def check(robot, kind: str, k: int, budget_s: float) -> None:
     assert all(int(drive.max_torque.value) == 1500 for drive in rig.erob.values())  # every torque limit restored
     assert not any(motor.enabled for motor in rig.sito.values())  # every wrist off
     assert rig.body_contacts == {}  # no arm ever touched the other arm or the body
+    assert watch.blind_pairs == 0  # both arms moved only once every moving joint's first stop had placed its arm
     print(f"{kind} truth {k}: {result.robot_seconds:.1f} s robot time, {wall:.1f} s wall; worst offset error "
           f"{1e3 * max(errors):.4f} mrad, fastest contact {max(watch.speeds.values()):.3f} rad/s")
     assert result.robot_seconds <= budget_s
@@ -154,6 +159,10 @@ def test_the_run_is_distal_first_and_its_time_is_reported_by_what_it_went_to(rob
         "left_wrist_yaw", "left_wrist_pitch", "left_wrist_roll", "left_elbow_pitch", "left_shoulder_yaw",
         "left_shoulder_roll", "left_shoulder_pitch", "right_wrist_yaw", "right_wrist_pitch", "right_wrist_roll",
         "right_elbow_pitch", "right_shoulder_yaw", "right_shoulder_roll", "right_shoulder_pitch"]
+    firsts = [what.removesuffix(": first stop") for what, _, _ in result.timeline if what.endswith("first stop")]
+    assert firsts == list(result.asked)  # a new robot's first stops, one joint at a time, before any second one
+    seconds = [what for what, _, _ in result.timeline[len(firsts) + 1:]]
+    assert any(" and " in what for what in seconds)  # then both arms at once where their arms' reaches keep apart
     report = result.as_dict()
     assert report["robot_seconds"] == result.robot_seconds > 0 and report["wall_seconds"] > 0
     kinds = report["joint_seconds_by_kind"]

@@ -24,6 +24,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from humanoid_prime.calibration.contact import ContactDetector, Still, Tick
 from humanoid_prime.calibration.plan import Search
 
@@ -33,6 +35,13 @@ MAX_SPEED_RAD_S = 0.2  # the contact speed: its default and its ceiling (DESIGN 
 # feed-forward is what free motion teaches, at the contact speed: faster, a joint overshoots its target by what the
 # model got wrong, and meets a stop faster than the contact speed, or stalls short of it).
 TRAVEL = {True: (2.5, 6.0), False: (MAX_SPEED_RAD_S, 1.0)}
+# A new robot's joint, once its first stop has told its offset (its arm's bodies checked under every direction its
+# joints may still have, ``calibration.auto``): the model's gravity holds but for those directions, so it travels
+# slower than where a robot's prior gives its frame.
+FOUND = (1.5, 4.0)
+# Back across what a joint has just crossed at the contact speed (everything else held where it was: the same
+# ground, clear), with the feed-forward it needed there at each point (``Taught``) instead of the model's.
+CROSSED = (1.5, 3.0)
 ACCEL_SHARE = 0.5  # of the cap: the most accelerating the joint's inertia may ask (it is fed forward)
 # Within a window the target moves at ``SEARCH_SHARE`` of the contact speed, and a joint faster than
 # ``GOVERN_SHARE`` of it holds its target back: a joint follows its target's speed only within some 10 % (its drive's
@@ -164,7 +173,7 @@ class Move(Segment):
     on, never more. ``kind``: what its time is counted as."""
 
     def __init__(self, run: JointRun, goal: float, start: float, *, leaving: bool = False,
-                 kind: str = "travel") -> None:
+                 kind: str = "travel", crossed: Taught | None = None) -> None:
         super().__init__(run)
         self.goal = goal
         self.target = start
@@ -172,7 +181,12 @@ class Move(Segment):
         self.velocity = 0.0
         self.kind = kind
         self.detector = ContactDetector(run, self.side)
-        self.ramp = Ramp(run.accel_limit)
+        # (Where its own regime is as fast, what the model and free motion give it is the better feed-forward.)
+        self.crossed = crossed if (crossed is not None and CROSSED[0] > run.travel_speed
+                                   and crossed.covers(start, goal, 2 * run.leash)) else None
+        self.top_speed, self.accel_limit = (CROSSED[0], accel_for(run.cap, run.inertia, CROSSED[1])) \
+            if self.crossed is not None else (run.travel_speed, run.accel_limit)
+        self.ramp = Ramp(self.accel_limit)
         self.budget_s = abs(goal - start) / run.speed + TIME_MARGIN_S
         self._leaving = leaving
         self._from: float | None = None
@@ -194,8 +208,10 @@ class Move(Segment):
             self._leaving = False
             self.detector.start(tick, self.target)  # free of the stop: the baseline from here
         remaining = s * (self.goal - self.target)
-        speed = self.ramp.step(tick.dt, min(run.travel_speed, braking(0.0, remaining, run.accel_limit)))
+        speed = self.ramp.step(tick.dt, min(self.top_speed, braking(0.0, remaining, self.accel_limit)))
         wanted = self.target + s * min(speed * tick.dt, max(remaining, 0.0))
+        if self.crossed is not None and not self._leaving:  # what it needed here on the way across
+            run.correction = self.crossed.correction(wanted)
         if self._leaving:
             most = s * tick.q + 2.0 * run.leash + run.weight / run.kp_leash  # it may have to lift its weight
             limited = wanted if s * wanted <= most else s * most
@@ -254,6 +270,7 @@ class Approach(Segment):
         self._contact = 0.0  # where the contact was seen
         self._last: tuple[float, float] | None = None
         self.free: list[tuple[float, float]] = []  # (q, effort) in steady free motion, for the gravity fit
+        self.taught = Taught(self.side)  # what the feed-forward learned along the way, to come back across it
 
     def command(self) -> tuple[float, float]:
         return self.target, self.velocity
@@ -331,6 +348,8 @@ class Approach(Segment):
         steady = free and self.ramp.accel == 0.0 and abs(s * tick.qd - speed) < 0.2 * speed
         if steady and speed >= 0.95 * run.travel_speed:  # one speed, one friction: the gravity fit's constant
             self.free.append((tick.q, tick.effort))
+        if free and not self.detector.quiet(tick):
+            self.taught.add(tick.q, run.correction)
         slowing = self.ramp.accel < 0.0 and was > 1.05 * run.speed  # from the travel speed
         if self.detector.update(tick, self.target, free=free, speed=self.ramp.speed, accel=-1.0 if slowing else 0.0):
             if not search.takes(tick.q):
@@ -372,13 +391,45 @@ class Approach(Segment):
         return q + self.side * self.detector.lag_base
 
 
+class Taught:
+    """What free motion taught a joint's feed-forward along its way (``JointRun.correction`` by position, the
+    way it went): coming back across the same ground, the feed-forward it needed at each point, so it may go
+    fast there (``CROSSED``). The friction it met turns with the motion, which the leash and what free motion
+    teaches on the way back take up."""
+
+    STEP_RAD = 0.01  # one value per this much of the way
+
+    def __init__(self, side: int) -> None:
+        self.side = side
+        self.positions: list[float] = []
+        self.values: list[float] = []
+
+    def add(self, q: float, correction: float) -> None:
+        if not self.positions or self.side * (q - self.positions[-1]) >= self.STEP_RAD:
+            self.positions.append(q)
+            self.values.append(correction)
+
+    def covers(self, a: float, b: float, lead: float) -> bool:
+        """Whether the way between targets ``a`` and ``b`` was crossed (within a step at either end, and the
+        ``lead`` a target may have on the joint, pressing a stop the way ended at)."""
+        if len(self.positions) < 2:
+            return False
+        low, high = sorted((self.positions[0], self.positions[-1]))
+        slack = 2 * self.STEP_RAD + lead
+        return all(low - slack <= x <= high + slack for x in (a, b))
+
+    def correction(self, q: float) -> float:
+        xs, ys = (self.positions, self.values) if self.side > 0 else (self.positions[::-1], self.values[::-1])
+        return float(np.interp(q, xs, ys))
+
+
 class JointRun:
     """The moving joint's settings and its per-tick command (loop thread). ``speed``: the contact speed;
     ``inertia``: the model's about its axis (kg m^2), which sets its acceleration and its feed-forward."""
 
     def __init__(self, index: int, name: str, *, cap: float, gains: tuple[float, float],
                  leash_gains: tuple[float, float], speed: float, rate: float, effort_limit: float,
-                 inertia: float = 0.0, known: bool = False) -> None:
+                 inertia: float = 0.0, known: bool = False, found: bool = False) -> None:
         self.index = index
         self.name = name
         self.cap = cap
@@ -386,13 +437,14 @@ class JointRun:
         kp_leash, kd_leash = leash_gains
         self.speed = speed
         self.search_speed = SEARCH_SHARE * speed  # the target's speed where a stop may be
-        self.travel_speed = max(TRAVEL[known][0], speed)
+        travel = TRAVEL[True] if known else FOUND if found else TRAVEL[False]
+        self.travel_speed = max(travel[0], speed)
         self.rate = rate
         self.effort_limit = effort_limit
         self.kp_leash = kp_leash
         self.leash = (CAP_SHARE * cap - kd_leash * speed) / kp_leash
         self.inertia = inertia
-        self.accel_limit = accel_for(cap, inertia, TRAVEL[known][1])
+        self.accel_limit = accel_for(cap, inertia, travel[1])
         self.trace = Trace()
         self.segment: Segment | None = None
         self.anchor = 0.0  # holding effort measured before moving

@@ -5,7 +5,11 @@ gate; what it found is ``calibration.report``.
 
 The arms are independent, so one joint of each arm moves at a time (a pair, the same joint of both arms, from the
 hand to the shoulder), each with its own contact detection, hold and abort, while every other joint holds where it
-is; on the robot one Enter moves a pair. For each joint that moves (``calibration.joint``, ``calibration.approach``):
+is; on the robot one Enter moves a pair. A joint whose frame no robot's prior gives (a new robot) first goes alone
+to its nearer stop and back (``joint.first_stop``: nothing can place an arm whose offsets are unknown, so the arms
+never move together then), which tells its offset; its second stop follows with the pairs, once every joint of its
+arm has its offset, checked under every direction still possible (``_check_found``). For each joint that moves
+(``calibration.joint``, ``calibration.approach``):
 
 - impedance: approach gains that follow from its contact-effort cap; an eRob on a ring gets them in its loop-gain
   registers with a wide enough following-error window and its own torque limit lowered (``calibration.drive``,
@@ -46,6 +50,7 @@ the sequence (drive settings over SDO, the operator) runs in ``run`` and waits f
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -57,7 +62,7 @@ from humanoid_prime.calibration import plan
 from humanoid_prime.calibration.approach import MAX_SPEED_RAD_S, JointRun, Trace
 from humanoid_prime.calibration.gravity import GravityModel
 from humanoid_prime.calibration.hold import CalibrationController
-from humanoid_prime.calibration.joint import Sweep, calibrate
+from humanoid_prime.calibration.joint import FirstStop, Sweep, calibrate, first_stop
 from humanoid_prime.calibration.journal import OverrideJournal
 from humanoid_prime.calibration.operator import Operator, Unattended
 from humanoid_prime.calibration.report import AutoResult, JointOutcome
@@ -67,6 +72,7 @@ from humanoid_prime.config.calibration import Calibration, JointCalibration
 from humanoid_prime.config.robot import Robot
 from humanoid_prime.control.body import BodyCheck
 from humanoid_prime.control.flags import Level
+from humanoid_prime.control.interfaces import Frame
 from humanoid_prime.control.manager import ControllerManager
 from humanoid_prime.control.topics import SAFETY_STATUS, SafetyStatus
 from humanoid_prime.drivers.ethercat.sdo_client import SdoClient
@@ -78,6 +84,14 @@ SWEEP_STEP_RAD = 0.02  # a joint's range is checked against the body at angles t
 PAIR_STEP_RAD = 0.04  # and two joints' ranges against each other on a grid this fine
 
 Floats = npt.NDArray[np.float64]
+
+
+def _apart(a: tuple[float, float] | None, b: tuple[float, float] | None, margin: float) -> bool:
+    """Whether two arms' reaches across the robot (lowest, highest y) leave a plane between them with ``margin``
+    to spare (None: a reach not known)."""
+    if a is None or b is None:
+        return False
+    return a[0] > b[1] + margin or b[0] > a[1] + margin
 
 
 def contact_cap(robot: Robot, joint: str) -> float:
@@ -172,6 +186,8 @@ class AutoCalibration:
             j: JointOutcome(j, "not_reached", prior=prior.joints[j], cap_nm=self.caps[j]) for j in self.joints}
         self.traces: dict[str, Trace] = {}
         self.sweeps: dict[str, Sweep] = {}
+        self.firsts: dict[str, FirstStop] = {}  # a new robot's joints: what their first stop told
+        self.clear: dict[str, float] = {}  # how far toward its other stop the body check lets a joint travel fast
         self.timeline: list[tuple[str, float, float]] = []  # (what, from, to): robot time
         self._began = (0.0, 0.0)  # (robot, wall) when the run began
         self._claimed = False  # the controller has had the commands
@@ -236,6 +252,15 @@ class AutoCalibration:
         cal = self.prior.joints[joint]
         return plan.holding(plan.prior(cal.direction, cal.homing_offset), spec, start), wide
 
+    def assume(self, i: int, found: Sequence[plan.Hypothesis]) -> None:
+        """Joint ``i``'s first stop gave the offsets ``found`` (one per direction still possible): the loop's model
+        takes the prior's direction where it is still possible (not the gate: the direction is not settled)."""
+        if not found:
+            return
+        h = next((h for h in found if h.relative == 1), found[0])
+        p = int(self.prior_direction[i])
+        self.know(i, JointCalibration(h.relative * p, p * h.low), settled=False)
+
     def know(self, i: int, cal: JointCalibration, *, settled: bool) -> None:
         """Joint ``i``'s calibration, for the loop's model and, once ``settled`` (its direction told), the gate."""
         self.direction[i] = cal.direction
@@ -252,15 +277,20 @@ class AutoCalibration:
         try:
             self._start()
             self.operator.begin(self.joints)
+            self._first_stops()
             for pair in pairs(self.robot, self.joints):
+                pair = tuple(j for j in pair if self.outcomes[j].status == "not_reached")
                 if self.aborted is not None:
                     break
+                if not pair:
+                    continue
                 if not self.operator.confirm(pair):
                     for joint in pair:
                         self.outcomes[joint].status = "skipped"
                         self.outcomes[joint].message = "skipped by the operator"
                     continue
-                for group in self._check_pair(pair):
+                checked = self._check_found(pair) if any(j in self.firsts for j in pair) else self._check_pair(pair)
+                for group in checked:
                     if self._stopped() is not None:
                         break
                     began = state.stamp
@@ -280,6 +310,25 @@ class AutoCalibration:
             if self.controller.aborted is None:
                 self.controller.aborted = str(exc)
         return self.result()
+
+    def _first_stops(self) -> None:
+        """A new robot's joints (no robot's prior), one at a time (neither arm's bodies can be placed yet, so the
+        arms never move together), hand to shoulder: each to its first stop at the contact speed and back, which
+        tells its offset (``joint.first_stop``); the second stops follow, both arms at once where the body check
+        clears them."""
+        state = self.manager.resources.state
+        for joint in (j for j in self.joints if not self.robots_prior[j]):
+            if self._stopped() is not None:
+                break
+            if not self.operator.confirm((joint,)):
+                self.outcomes[joint].status = "skipped"
+                self.outcomes[joint].message = "skipped by the operator"
+                continue
+            if self._drivable(joint) is False:
+                continue
+            began = state.stamp
+            self._together([first_stop(self, joint)])
+            self.timeline.append((f"{joint}: first stop", began, state.stamp))
 
     def _start(self) -> None:
         errors = self._errors()
@@ -337,19 +386,12 @@ class AutoCalibration:
         driven: list[str] = []
         checked = True
         for joint in pair:
-            found = self.body.sweep(measured, robot.index(joint), self._angles(joint, SWEEP_STEP_RAD), frame)
-            if found is None:
-                self.report(f"{joint}: its range was not checked against the body (the joints that carry it are not "
-                            "calibrated yet)")
+            verdict = self._drivable(joint)
+            if verdict is None:
                 driven.append(joint)
                 checked = False
-                continue
-            contact, angle = found
-            if contact is not None:
-                self._not_driven(joint, f"at {angle:+.2f} rad its range would bring {contact.words(self.body.margin)}"
-                                        " with the other joints where they are")
-                continue
-            driven.append(joint)
+            elif verdict:
+                driven.append(joint)
         if len(driven) < 2:
             return [driven] if driven else []
         a, b = driven
@@ -363,6 +405,152 @@ class AutoCalibration:
             self.report(f"{a} and {b}: one after the other ({why})")
             return [[a], [b]]
         return [[a, b]]
+
+    def _check_found(self, pair: tuple[str, ...]) -> list[list[str]]:
+        """The joints of ``pair`` (at least one with its first stop found) in the groups that move together, and how
+        far toward its other stop each may travel fast (``clear``: a host reading; absent, it moves at the contact
+        speed all the way, as where no frame is known): as far as its arm stays beyond the margin of the body under
+        every frame its arm may still have (``_frames``: each joint's offset found, either direction where it is not
+        told) and its reach across the robot keeps a plane between it and the other arm. Both at once where their
+        whole ways keep apart so, else one after the other, each against the other arm where it is."""
+        ways = {joint: self._way(joint) for joint in pair}
+        reaches: dict[str, tuple[float, float]] = {}
+        for joint, way in ways.items():
+            if way is not None:
+                reaches[joint] = self._reach(self.robot.index(joint), way[1], way[2])
+        together = len(pair) == 2 and len(reaches) == 2 and _apart(reaches[pair[0]], reaches[pair[1]],
+                                                                   self.body.margin)
+        for joint in pair:
+            other = next((j for j in pair if j != joint), None)
+            beside = reaches[other] if together and other is not None else self._other_arm(joint)
+            limit, certain = self._clear_until(joint, ways[joint], beside)
+            self.clear.pop(joint, None)
+            if certain is not None:
+                self._not_driven(joint, certain)
+            elif limit is not None:
+                self.clear[joint] = limit
+            else:
+                self.report(f"{joint}: at the contact speed all the way (the body check cannot place its arm under "
+                            "every frame still possible)")
+        if len(pair) == 2 and not together:
+            self.report(f"{pair[0]} and {pair[1]}: one after the other (their arms' reaches under the frames still "
+                        "possible could meet)")
+        driven = [j for j in pair if self.outcomes[j].status == "not_reached"]
+        return [driven] if together and len(driven) == 2 else [[j] for j in driven]
+
+    def _way(self, joint: str) -> tuple[Floats, list[Frame], list[Floats]] | None:
+        """Where ``joint`` goes for its other stop (host readings from where it is to the far end of where the stop
+        may be, ``SWEEP_STEP_RAD`` apart), the frames its arm may have, and that way in each frame's angles. None:
+        no first stop, or an arm not placed."""
+        first = self.firsts.get(joint)
+        frames = self._frames(joint)
+        if first is None or frames is None or first.approach.stop is None:
+            return None
+        i = self.robot.index(joint)
+        spec = self.robot.joints[i]
+        here = float(self.manager.resources.state.position[i])
+        far = first.approach.stop - first.side * (spec.upper - spec.lower) * (1 + plan.SPAN_TOLERANCE) \
+            - first.side * plan.STOP_MARGIN_RAD
+        path = np.linspace(here, far, max(2, math.ceil(abs(far - here) / SWEEP_STEP_RAD) + 1))
+        return path, frames, [frame.scale[i] * path + frame.shift[i] for frame in frames]
+
+    def _clear_until(self, joint: str, way: tuple[Floats, list[Frame], list[Floats]] | None,
+                     beside: tuple[float, float] | None) -> tuple[float | None, str | None]:
+        """How far along ``way`` (a host reading) ``joint``'s arm keeps beyond the margin of the body in every frame,
+        and its reach apart from ``beside`` (the other arm's): None, not even where it is; and why it must not be
+        driven, where its way brings its arm within the margin of the body in every frame (None: not so)."""
+        if way is None or beside is None:
+            return None, None
+        path, frames, angles = way
+        i = self.robot.index(joint)
+        measured = self.manager.resources.state.position
+        reached = len(path)
+        certain: list[str] = []
+        for frame, along in zip(frames, angles, strict=True):
+            found = self.body.sweep(measured, i, along, frame)
+            if found is None:
+                return None, None
+            contact, angle = found
+            if contact is not None:
+                k = int(np.argmin(np.abs(along - angle)))
+                reached = min(reached, k)
+                certain.append(f"at {path[k]:+.2f} rad its way would bring {contact.words(self.body.margin)} with the "
+                               "other joints where they are")
+            for k in range(min(reached, len(path))):
+                if not _apart(self._reach(i, [frame], [along[k:k + 1]]), beside, self.body.margin):
+                    reached = k
+                    break
+        if len(certain) == len(frames):  # whichever way it turns
+            return None, certain[0]
+        return (None if reached == 0 else float(path[reached - 1])), None
+
+    def _arm(self, joint: str) -> list[int]:
+        prefix = joint.split("_", 1)[0] + "_"
+        return [i for i, name in enumerate(self.robot.names) if name.startswith(prefix)]
+
+    def _frames(self, joint: str) -> list[Frame] | None:
+        """Every frame ``joint``'s arm may still have: each of its joints as the gate knows it (settled, or a
+        robot's prior), or at the offset its first stop gave in each direction still possible (the other arm left
+        out: its bodies are not checked). None: a joint of the arm is not known at all."""
+        base = self.controller.frame_now()
+        base.known[:] = 0
+        options: list[list[tuple[int, float, float]]] = []
+        for i in self._arm(joint):
+            name = self.robot.names[i]
+            first = self.firsts.get(name)
+            if self.controller.settled[i] or (self.robots_prior[name] and first is None):
+                direction, offset = self.direction[i], self.offset[i]
+                options.append([(i, float(direction * self.prior_direction[i]), float(-direction * offset))])
+            elif first is not None and first.found:
+                options.append([(i, float(h.relative), float(-h.relative * h.low)) for h in first.found])
+            else:
+                return None
+        frames = []
+        for choice in itertools.product(*options):
+            frame = Frame(base.scale.copy(), base.shift.copy(), base.known.copy(), base.limited.copy())
+            for i, scale, shift in choice:
+                frame.scale[i], frame.shift[i], frame.known[i] = scale, shift, 1
+            frames.append(frame)
+        return frames
+
+    def _reach(self, i: int, frames: Sequence[Frame], angles: Sequence[Floats] | None) -> tuple[float, float]:
+        """How far toward the robot's left and right (lowest and highest y, m) joint ``i``'s arm reaches in each of
+        ``frames``, the joint at each of that frame's ``angles`` (None: where it is)."""
+        measured = self.manager.resources.state.position
+        arm = self._arm(self.robot.names[i])
+        low, high = math.inf, -math.inf
+        for k, frame in enumerate(frames):
+            pose = frame.scale * measured + frame.shift
+            for angle in (angles[k] if angles is not None else (float(pose[i]),)):
+                pose[i] = angle
+                lo, hi = self.model.lateral(pose, arm)
+                low, high = min(low, lo), max(high, hi)
+        return low, high
+
+    def _other_arm(self, joint: str) -> tuple[float, float] | None:
+        """The other arm's reach where it is, under every frame it may still have."""
+        other = next((j for j in self.robot.names if not j.startswith(joint.split("_", 1)[0] + "_")), None)
+        if other is None:
+            return None
+        frames = self._frames(other)
+        return None if frames is None else self._reach(self.robot.index(other), frames, None)
+
+    def _drivable(self, joint: str) -> bool | None:
+        """Whether ``joint``'s whole range keeps its arm beyond the margin of the other arm and the body with the
+        other joints where they are (False: it is not driven, and fails saying why); None: its place cannot be
+        known (the joints that carry it are not calibrated yet), which the report says."""
+        found = self.body.sweep(self.manager.resources.state.position, self.robot.index(joint),
+                                self._angles(joint, SWEEP_STEP_RAD), self.controller.frame_now())
+        if found is None:
+            self.report(f"{joint}: its range was not checked against the body (the joints that carry it are not "
+                        "calibrated yet)")
+            return None
+        contact, angle = found
+        if contact is not None:
+            self._not_driven(joint, f"at {angle:+.2f} rad its range would bring {contact.words(self.body.margin)}"
+                                    " with the other joints where they are")
+            return False
+        return True
 
     def _angles(self, joint: str, step: float) -> Floats:
         """``joint``'s range (model frame) at angles ``step`` apart."""

@@ -110,6 +110,10 @@ class ContactDetector:
             return True
         return False
 
+    def quiet(self, tick: Tick) -> bool:
+        """Whether the joint is catching up with a target that slowed down (nothing counts)."""
+        return tick.t < self.quiet_until
+
     def rise(self, tick: Tick) -> float:
         return self.side * (tick.effort - tick.ff) - self.effort_base
 

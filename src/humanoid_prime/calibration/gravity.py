@@ -9,6 +9,9 @@ rotation turns counter-clockwise seen from its tip.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import mujoco
 import numpy as np
 import numpy.typing as npt
@@ -30,6 +33,7 @@ class GravityModel:
         self.qpos = self.model.jnt_qposadr[self.joint_ids].astype(np.intp)
         self.dof = self.model.jnt_dofadr[self.joint_ids].astype(np.intp)
         self._torques = np.zeros(robot.n)
+        self._moved: dict[tuple[int, ...], list[int]] = {}
 
     def torques(self, q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """Holding torque of every joint at ``q`` (canonical order); the returned array is reused."""
@@ -46,6 +50,45 @@ class GravityModel:
         data.qpos[self.qpos] = q
         mujoco.mj_kinematics(self.model, data)
         return np.array(data.xaxis[self.joint_ids[self.robot.index(joint)]], dtype=np.float64)
+
+    def lateral(self, q: npt.NDArray[np.float64], joints: Sequence[int]) -> tuple[float, float]:
+        """The lowest and highest y (to the robot's left, m) that the collision geoms moved by ``joints`` (canonical
+        indices) reach at ``q``: a capsule's or cylinder's segment and radius, a box's corners, else its bounding
+        sphere."""
+        model, data = self.model, self.data
+        data.qpos[self.qpos] = q
+        mujoco.mj_kinematics(model, data)
+        low, high = math.inf, -math.inf
+        for g in self._geoms(joints):
+            y, axes, size = float(data.geom_xpos[g][1]), data.geom_xmat[g].reshape(3, 3)[1], model.geom_size[g]
+            kind = model.geom_type[g]
+            if kind in (mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER):
+                half = abs(float(axes[2])) * float(size[1]) + float(size[0])
+            elif kind == mujoco.mjtGeom.mjGEOM_BOX:
+                half = float(np.abs(axes) @ size)
+            else:
+                half = float(model.geom_rbound[g])
+            low, high = min(low, y - half), max(high, y + half)
+        return low, high
+
+    def _geoms(self, joints: Sequence[int]) -> list[int]:
+        """The colliding geoms on the bodies that ``joints`` move."""
+        key = tuple(joints)
+        found = self._moved.get(key)
+        if found is None:
+            model = self.model
+            bodies = {int(model.jnt_bodyid[self.joint_ids[j]]) for j in joints}
+            moved = set()
+            for b in range(model.nbody):
+                chain = b
+                while chain > 0 and chain not in bodies:
+                    chain = int(model.body_parentid[chain])
+                if chain in bodies:
+                    moved.add(b)
+            found = [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in moved
+                     and (model.geom_contype[g] or model.geom_conaffinity[g])]
+            self._moved[key] = found
+        return found
 
     def inertia(self, q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """Each joint's inertia about its own axis at ``q`` (kg m^2, the mass matrix's diagonal, armature

@@ -212,7 +212,8 @@ class CalibrationController(Controller):
         target, velocity = wanted
         low, high = run.bounds
         command.position[i] = min(max(target, low), high)
-        command.velocity[i] = min(max(velocity, -run.travel_speed), run.travel_speed)
+        fastest = max(run.travel_speed, getattr(segment, "top_speed", 0.0))
+        command.velocity[i] = min(max(velocity, -fastest), fastest)
         command.effort[i] = run.feed_forward(gravity)  # with what this tick's step taught it
         command.stiffness[i] = run.kp
         command.damping[i] = run.kd

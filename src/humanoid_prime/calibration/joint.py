@@ -7,13 +7,19 @@ on its approach drive settings (``calibration.drive``, recorded in the run's jou
 afterwards holds the joint where it ended, on the impedance it had; a joint the gate refused goes back to where it
 started first. ``find_stops`` goes to the first stop the plan chooses, backs off, goes to the other (at the
 travel speed where neither can be) and back to where it started.
+
+A joint whose frame is not known (a new robot) does that in two parts (``calibration.auto`` runs the first part of
+every such joint before the second of any): ``first_stop`` goes to its first stop at the contact speed and back
+across what it crossed (``approach.CROSSED``), which tells its offset (``FirstStop``, up to its direction where the
+range cannot tell it); ``calibrate`` then goes to the other stop from there, at the travel speed where no stop can
+be and the body check under every direction still possible clears it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -25,7 +31,7 @@ from humanoid_prime.calibration.approach import Approach, Hold, JointRun, Move, 
 from humanoid_prime.calibration.direction import direction_from_limits
 from humanoid_prime.calibration.drive import approach_drive
 from humanoid_prime.calibration.report import fit_stiffness
-from humanoid_prime.calibration.sequence import Aborted, JointFailed, Steps, Until
+from humanoid_prime.calibration.sequence import Aborted, JointFailed, Steps, Until, Wait
 from humanoid_prime.config.calibration import JointCalibration
 from humanoid_prime.drivers.erob.gains import gains_to_registers, registers_to_gains
 from humanoid_prime.errors import PrimeError
@@ -38,6 +44,20 @@ RESTING_RAD = 0.02  # a stop found this close to where the joint started: it res
 TRAVEL_MARGIN_RAD = 0.1  # beyond the joint's range (plus its tolerance), the most the target travels from its start
 
 Floats = npt.NDArray[np.float64]
+
+
+@dataclass
+class FirstStop:
+    """What a joint's first stop told: the approach that met it (``stop``, its peak and speed), the side, where it
+    started and went back to, and the plan's hypotheses narrowed to the offsets that stop gives (one per direction
+    still possible)."""
+
+    approach: Approach
+    side: int
+    start: float
+    found: list[plan.Hypothesis]
+    slow: list[plan.Hypothesis]
+    fallback: list[plan.Hypothesis]
 
 
 @dataclass
@@ -54,7 +74,8 @@ class Sweep:
 
 
 def new_run(auto: AutoCalibration, joint: str) -> JointRun:
-    """``joint``'s run: its cap, its approach gains (an eRob on a ring: what its registers give), its inertia."""
+    """``joint``'s run: its cap, its approach gains (an eRob on a ring: what its registers give), its inertia, and
+    how fast it travels: a robot's prior gives its frame, its first stop found it, or neither."""
     robot = auto.robot
     i = robot.index(joint)
     spec = robot.joints[i]
@@ -75,7 +96,8 @@ def new_run(auto: AutoCalibration, joint: str) -> JointRun:
     run = JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=auto.speed,
                    rate=auto.manager.update_rate, effort_limit=spec.effort_limit,
                    inertia=auto.model.inertia(auto.description_angles(state.position))[i],
-                   known=auto.robots_prior[joint] and all(j in auto.rings for j in holding))
+                   known=auto.robots_prior[joint] and all(j in auto.rings for j in holding),
+                   found=joint in auto.firsts and joint in auto.clear and all(j in auto.rings for j in holding))
     if run.leash <= 0:
         raise JointFailed(f"the speed {auto.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
     run.trace = auto.traces.setdefault(joint, run.trace)  # the question's motion goes on the same trace
@@ -143,7 +165,8 @@ def calibrate(auto: AutoCalibration, joint: str) -> Steps:
 
     def work(run: JointRun) -> Steps:
         runs.append(run)
-        yield from find_stops(auto, run)
+        first = auto.firsts.get(joint)
+        yield from (find_stops(auto, run) if first is None else other_stop(auto, run, first))
 
     try:
         yield from moving(auto, joint, work)
@@ -158,9 +181,10 @@ def calibrate(auto: AutoCalibration, joint: str) -> Steps:
         outcome.status, outcome.message = "aborted", str(exc)
         auto.abort(str(exc))
     finally:
-        outcome.seconds = state.stamp - began
-        if runs:
-            outcome.times = dict(runs[0].seconds)
+        outcome.seconds += state.stamp - began
+        for run in runs:
+            for kind, seconds in run.seconds.items():
+                outcome.times[kind] = outcome.times.get(kind, 0.0) + seconds
         if outcome.status == "direction_unknown":  # measured; its direction is settled at the end
             low, high = outcome.stops or (math.nan, math.nan)
             auto.report(f"{joint}: stops {high - low:.3f} rad apart in {outcome.seconds:.1f} s; its direction is "
@@ -169,8 +193,51 @@ def calibrate(auto: AutoCalibration, joint: str) -> Steps:
             auto.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
 
-def find_stops(auto: AutoCalibration, run: JointRun) -> Steps:
-    """The first stop the plan chooses, the other, and back to where it started; then ``conclude``."""
+def first_stop(auto: AutoCalibration, joint: str) -> Steps:
+    """A new robot's joint to its first stop at the contact speed and back across what it crossed: its
+    ``FirstStop`` in ``auto.firsts``, and the offset it gives for the loop's model; a failure fails the joint, an
+    abort or a drive setting that could not be made or restored stops the run (as ``calibrate``)."""
+    outcome = auto.outcomes[joint]
+    state = auto.manager.resources.state
+    began = state.stamp
+    runs: list[JointRun] = []
+
+    def work(run: JointRun) -> Steps:
+        runs.append(run)
+        i = run.index
+        start = float(state.position[i])
+        a, first, slow, fallback = yield from approach_first(auto, run)
+        auto.report(f"{joint}: stop at {a.stop:+.4f} rad; back across what it crossed")
+        assert a.stop is not None
+        # Back to where it started, or off the stop it rested on there.
+        goal = start if first * (a.stop - start) > BACKOFF_RAD else a.stop - first * BACKOFF_RAD
+        yield Move(run, goal, a.unloaded(float(state.position[i])), leaving=True, crossed=a.taught)
+        spec = auto.robot.joints[i]
+        found = plan.found(slow + fallback, spec, first, a.stop)
+        auto.firsts[joint] = FirstStop(a, first, goal, found, slow, fallback)
+        auto.assume(i, found)
+
+    try:
+        yield from moving(auto, joint, work)
+    except JointFailed as exc:
+        outcome.status, outcome.message = "failed", str(exc)
+    except Aborted as exc:
+        outcome.status, outcome.message = "aborted", str(exc)
+    except PrimeError as exc:
+        outcome.status, outcome.message = "aborted", str(exc)
+        auto.abort(str(exc))
+    finally:
+        outcome.seconds = state.stamp - began
+        for run in runs:
+            outcome.times = dict(run.seconds)
+        if outcome.status != "not_reached":
+            auto.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
+
+
+def approach_first(auto: AutoCalibration, run: JointRun
+                   ) -> Generator[Wait, None, tuple[Approach, int, list[plan.Hypothesis], list[plan.Hypothesis]]]:
+    """To the stop the plan chooses first, pressing it (again from off it, where the joint rested on it):
+    the approach, its side and the plan's hypotheses (searched first, then)."""
     joint, i = run.name, run.index
     spec = auto.robot.joints[i]
     position = auto.manager.resources.state.position
@@ -202,13 +269,52 @@ def find_stops(auto: AutoCalibration, run: JointRun) -> Steps:
                    "is wrong for this joint (calibrate a rebuilt joint from the bundled calibration)")
         auto.outcomes[joint].warnings.append(warning)
         auto.report(f"{joint}: {warning}")
+    return a, first, slow, fallback
+
+
+def find_stops(auto: AutoCalibration, run: JointRun) -> Steps:
+    """The first stop the plan chooses, the other, and back to where it started; then ``conclude``."""
+    joint, i = run.name, run.index
+    spec = auto.robot.joints[i]
+    position = auto.manager.resources.state.position
+    start = float(position[i])
+    a, first, slow, fallback = yield from approach_first(auto, run)
+    assert a.stop is not None
     auto.report(f"{joint}: stop at {a.stop:+.4f} rad; now the other one")
-    backed = Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(float(position[i])), leaving=True)
+    backed = Move(run, a.stop - first * BACKOFF_RAD, a.unloaded(float(position[i])), leaving=True,
+                  crossed=a.taught)
     yield backed
     b = Approach(run, plan.second(spec, -first, a.stop, backed.target, slow if fallback else ()), backed.target,
                  auto.measure)
+    yield from finish(auto, run, start, a, first, b)
+
+
+def other_stop(auto: AutoCalibration, run: JointRun, first: FirstStop) -> Steps:
+    """A new robot's joint, its first stop found: to the other from where it is, and back; then ``conclude``."""
+    i = run.index
+    spec = auto.robot.joints[i]
+    position = auto.manager.resources.state.position
+    start = float(position[i])
+    a = first.approach
+    assert a.stop is not None
+    auto.report(f"{run.name}: to its {'upper' if first.side < 0 else 'lower'} stop, its first at {a.stop:+.4f} rad")
+    search = plan.second(spec, -first.side, a.stop, start, first.slow if first.fallback else ())
+    clear = auto.clear.get(run.name)
+    if clear is not None and search.windows:  # beyond where the body check clears it: at the contact speed too
+        s = search.side
+        end = search.windows[-1][1]
+        if s * (end - clear) > 0:
+            search = plan.Search(s, start, plan.joined(search.windows, (clear, end), s), search.plausible)
+    b = Approach(run, search, start, auto.measure)
+    yield from finish(auto, run, first.start, a, first.side, b)
+
+
+def finish(auto: AutoCalibration, run: JointRun, start: float, a: Approach, first: int, b: Approach) -> Steps:
+    """The second stop's approach ``b``, back to where the joint started, and ``conclude``."""
+    joint, i = run.name, run.index
+    position = auto.manager.resources.state.position
     yield b
-    assert b.stop is not None
+    assert a.stop is not None and b.stop is not None
     # Back to where it started, or off the stop it rested on there.
     low, high = sorted((a.stop, b.stop))
     auto.report(f"{joint}: stop at {b.stop:+.4f} rad; back to where it started")
@@ -243,7 +349,8 @@ def conclude(auto: AutoCalibration, run: JointRun, a: Approach, b: Approach) -> 
     outcome.status = "direction_unknown"
     outcome.calibration = flipped if by_limits == -1 else same
     prior = auto.prior.joints[joint]
-    windows = plan.prior(prior.direction, prior.homing_offset) if auto.robots_prior[joint] else []
+    # (A robot's calibration: a simulation's frame is known, but its template is no one's calibration of a joint.)
+    windows = plan.prior(prior.direction, prior.homing_offset) if prior.homing_offset != 0.0 else []
     where_prior = bool(windows) and all(plan.found(windows, spec, side, stop) for side, stop in ((-1, low), (1, high)))
     auto.sweeps[joint] = Sweep(same, flipped, by_limits, auto.manager.resources.state.position.copy(),
                                np.array(b.free).reshape(-1, 2), where_prior)

@@ -141,6 +141,14 @@ def _oriented(intervals: Sequence[tuple[float, float]], side: int) -> tuple[tupl
     return tuple((low, high) if side > 0 else (high, low) for low, high in intervals)
 
 
+def joined(windows: Sequence[tuple[float, float]], extra: tuple[float, float], side: int
+           ) -> tuple[tuple[float, float], ...]:
+    """``windows`` (along a motion toward ``side``: near end first) with ``extra`` (near end first) among them,
+    merged where they meet."""
+    plain = [(min(a, b), max(a, b)) for a, b in (*windows, extra)]
+    return _oriented(_merged(plain) if side > 0 else list(reversed(_merged(plain))), side)
+
+
 def search(spec: JointSpec, side: int, start: float, slow: Sequence[Hypothesis],
            fallback: Sequence[Hypothesis] = ()) -> Search:
     """The search for the stop on ``side`` from ``start``: the windows of ``slow`` first, then those of

@@ -1,6 +1,6 @@
 """The package's rooms import one way: cli -> runtime -> record -> dds -> calibration -> drivers -> control -> config ->
-foundation (errors, files, modes), with the simulation, the virtual Prime, the benchmarks and the view beside the
-CLI.
+foundation (errors, files, modes, interrupts), with the simulation, the virtual Prime, the benchmarks and the view
+beside the CLI.
 Production code never imports what pretends to be hardware (virtual/)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import humanoid_prime
 
 PACKAGE = Path(humanoid_prime.__file__).parent
-FOUNDATION = {"errors", "files", "modes", "__init__"}
+FOUNDATION = {"errors", "files", "modes", "interrupts", "__init__"}
 LAYERS = ("foundation", "config", "control", "drivers", "calibration", "dds", "record", "runtime")
 APPS = {  # rooms above the layers, and which of their peers each may import
     "sim": set(),

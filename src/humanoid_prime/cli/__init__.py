@@ -8,16 +8,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import signal
 import sys
-import threading
-from collections.abc import Callable
-from types import FrameType
 from typing import NoReturn
 
 from humanoid_prime import __version__
 from humanoid_prime.cli._commands import COMMANDS
 from humanoid_prime.errors import PrimeError
+from humanoid_prime.interrupts import Interrupts
 
 
 class _Parser(argparse.ArgumentParser):
@@ -47,11 +44,13 @@ def _command(argv: list[str]) -> str | None:
     return word if word in COMMANDS else None
 
 
-def main(argv: list[str] | None = None) -> int:
-    interrupted = threading.Event()  # a Ctrl-C came, even if what it broke off says otherwise (an import)
-    previous = _watch_interrupts(interrupted)
-    name = "prime"
+def main(argv: list[str] | None = None, *, interrupts: Interrupts | None = None) -> int:
+    """The command line, run: its exit status. ``interrupts``: the entry's Ctrl-C watch, started before the command
+    line loaded (None: main watches while it runs)."""
+    name, own = "prime", interrupts is None
     try:
+        if interrupts is None:
+            interrupts = Interrupts()
         argv = sys.argv[1:] if argv is None else argv
         command = _command(argv)
         name = f"prime {command}" if command else name  # an interrupt while it loads names it too
@@ -85,14 +84,14 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:  # the system refused (a device gone, a permission): say what, where it was known
-        if interrupted.is_set():
+        if interrupts is not None and interrupts.seen:
             print(f"{name}: interrupted", file=sys.stderr)
             return 130
         where = f" ({exc.filename})" if exc.filename else ""
         print(f"{name}: {exc.strerror or exc}{where}", file=sys.stderr)
         return 1
     except Exception as exc:  # a bug of ours still ends in one line; PRIME_DEBUG=1 shows the traceback
-        if interrupted.is_set():  # e.g. a library's import broken off by Ctrl-C ("initialization failed")
+        if interrupts is not None and interrupts.seen:  # e.g. an import broken off by Ctrl-C ("initialization failed")
             print(f"{name}: interrupted", file=sys.stderr)
             return 130
         if os.environ.get("PRIME_DEBUG"):
@@ -101,30 +100,13 @@ def main(argv: list[str] | None = None) -> int:
               "please report it)", file=sys.stderr)
         return 70
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        if own and interrupts is not None:
+            interrupts.close()
 
 
 def _one_line(exc: BaseException) -> str:
     """An error's text on one line: a library's message (xacro, MuJoCo) may span several."""
     return " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
-
-
-Handler = Callable[[int, FrameType | None], object] | int | signal.Handlers | None  # as signal.signal takes it
-
-
-def _watch_interrupts(interrupted: threading.Event) -> Handler:
-    """Ctrl-C raises KeyboardInterrupt as usual, and is remembered; returns the handler it replaced (None off the
-    main thread, where signals cannot be handled, and where SIGINT is not Python's default, e.g. ignored)."""
-    if threading.current_thread() is not threading.main_thread() \
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        return None
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        interrupted.set()
-        raise KeyboardInterrupt
-
-    return signal.signal(signal.SIGINT, handler)
 
 
 if __name__ == "__main__":

@@ -230,8 +230,11 @@ class Session:
         passive.mark_limp(self.robot.index(joint), limp)
 
     def note(self, status: SafetyStatus) -> None:
-        """Keep the history of every flag: opened when it appears, closed when it clears."""
-        now = status.stamp - self.plan.began
+        """Keep the history of every flag: opened when it appears, closed when it clears, at the time the loop
+        publishes the change. Not at the status's stamp, the start of its tick: the tick reads the ring and applies
+        the requests after it, so a reset sent meanwhile by another thread would look later than the flag it
+        cleared."""
+        now = time.monotonic() - self.plan.began
         for key, text in status.flags.items():
             if key not in self._open:
                 record = FaultRecord(key, text, status.levels.get(key, Level.ERROR), now)

@@ -8,15 +8,19 @@ once per tick and sets the target and velocity:
 - ``Hold``: stay (where it is, taking the effort it applies as the feed-forward, or at a target) until the joint
   is still (``contact.Still``), measured, not a fixed wait;
 - ``Move``: the target to a goal at the travel speed, where no stop can be; a contact on the way fails it
-  (leaving a stop, contacts count once the joint has lifted off);
-- ``Approach``: toward a stop along its ``plan.Search``: at the travel speed where no stop can be, slowed to the
-  contact speed (at most ``MAX_SPEED_RAD_S``) ``SLOW_LEAD_RAD`` before each window where the stop may lie; at
-  contact, press it with the leash until it is still, its position averaged there; with ``measure``, then ease the
-  press and push with a velocity command while the effort is logged (realised stiffness and damping).
+  (leaving a stop, contacts count once the joint has lifted off). Back across what an approach has just crossed
+  at the contact speed, faster (``CROSSED``), with the feed-forward it needed at each point there (``Taught``);
+- ``Approach``: toward a stop along its ``plan.Search``: at the travel speed where no stop can be, slowed
+  ``SLOW_LEAD_RAD`` before each window where the stop may lie to ``SEARCH_SHARE`` of the contact speed (at most
+  ``MAX_SPEED_RAD_S``, a ceiling); at contact, press it with the leash until it is still, its position averaged
+  there; with ``measure``, then ease the press and push with a velocity command while the effort is logged
+  (realised stiffness and damping).
 
-The target's speed rises at most at the joint's acceleration (``accel_for``: what a share of its cap gives its
-inertia, no more than ``TRAVEL``'s) and falls so that it is at the contact speed before a window. Each tick's
-time is counted by what the joint did (``KINDS``): for the report and the plot.
+The travel speed is the regime's: a robot's prior gives the joint's frame (``TRAVEL[True]``), its first stop has
+found it (``FOUND``), or neither (the contact speed). The target's speed rises at most at the joint's acceleration
+(``accel_for``: what a share of its cap gives its inertia, no more than the regime's) and falls so that it is at
+the search speed before a window. Each tick's time is counted by what the joint did (``KINDS``): for the report
+and the plot.
 """
 
 from __future__ import annotations
@@ -333,7 +337,7 @@ class Approach(Segment):
         along = search.along(self.target)
         limit = self.limit(along)
         most = GOVERN_SHARE * run.speed
-        if limit <= run.search_speed and s * tick.qd > most:  # the joint runs ahead of its target: hold the target back
+        if limit <= run.search_speed and s * tick.qd > most:  # the joint runs ahead of its target: hold it back
             limit *= most / (s * tick.qd)
         was = self.ramp.speed
         speed = self.ramp.step(tick.dt, limit)

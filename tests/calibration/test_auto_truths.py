@@ -35,7 +35,7 @@ OFFSET_RANGE_RAD = 0.5
 PRIOR_ERROR_RAD = 0.02
 TOLERANCE_RAD = 1e-3
 STIFFNESS_TOLERANCE = 0.05  # realised stiffness within 5 % of what the emulated drive models
-NEW_ROBOT_S = 210.0  # robot time a run from the bundled calibration takes at most (first stops one joint at a time)
+NEW_ROBOT_S = 220.0  # robot time a run from the bundled calibration takes at most (first stops one joint at a time)
 PRIOR_S = 60.0  # robot time a recalibration takes at most (one joint of each arm at a time)
 FREE_RAD = 0.05  # a joint's contacts count from here on: before, a wrist may rest on a stop under its own weight
 

@@ -41,8 +41,9 @@ MAX_SPEED_RAD_S = 0.2  # the contact speed: its default and its ceiling (DESIGN 
 TRAVEL = {True: (2.5, 6.0), False: (MAX_SPEED_RAD_S, 1.0)}
 # A new robot's joint, once its first stop has told its offset (its arm's bodies checked under every direction its
 # joints may still have, ``calibration.auto``): the model's gravity holds but for those directions, so it travels
-# slower than where a robot's prior gives its frame.
-FOUND = (1.5, 4.0)
+# slower than where a robot's prior gives its frame, and brakes gently (at 1.5 rad/s and 4 rad/s^2 a shoulder ran
+# 0.09 rad ahead of its target on the virtual Prime in real time, its arm's weight pulling it on).
+FOUND = (1.0, 2.0)
 # Back across what a joint has just crossed at the contact speed (everything else held where it was: the same
 # ground, clear), with the feed-forward it needed there at each point (``Taught``) instead of the model's.
 CROSSED = (1.5, 3.0)

@@ -155,24 +155,21 @@ def moving(auto: AutoCalibration, joint: str, work: Callable[[JointRun], Steps])
         controller.runs = tuple(r for r in controller.runs if r is not run)
 
 
-def calibrate(auto: AutoCalibration, joint: str) -> Steps:
-    """``joint``'s stops, what they say, and its outcome, whatever happens (a failure fails the joint, an abort
-    or a drive setting that could not be made or restored stops the run)."""
+def attempt(auto: AutoCalibration, joint: str, work: Callable[[JointRun], Steps]) -> Generator[Wait, None, bool]:
+    """``work`` on ``joint`` (``moving``), its time added to the joint's: True once it ended; else a failure fails
+    the joint, and an abort or a drive setting that could not be made or restored stops the run."""
     outcome = auto.outcomes[joint]
     state = auto.manager.resources.state
     began = state.stamp
     runs: list[JointRun] = []
 
-    def work(run: JointRun) -> Steps:
+    def counted(run: JointRun) -> Steps:
         runs.append(run)
-        first = auto.firsts.get(joint)
-        yield from (find_stops(auto, run) if first is None else other_stop(auto, run, first))
+        yield from work(run)
 
     try:
-        yield from moving(auto, joint, work)
-        if outcome.calibration is not None:  # the joint has stopped: the loop's model may take it now
-            auto.know(auto.robot.index(joint), outcome.calibration,
-                      settled=auto.sweeps[joint].by_limits is not None)
+        yield from moving(auto, joint, counted)
+        return True
     except JointFailed as exc:
         outcome.status, outcome.message = "failed", str(exc)
     except Aborted as exc:
@@ -185,25 +182,37 @@ def calibrate(auto: AutoCalibration, joint: str) -> Steps:
         for run in runs:
             for kind, seconds in run.seconds.items():
                 outcome.times[kind] = outcome.times.get(kind, 0.0) + seconds
-        if outcome.status == "direction_unknown":  # measured; its direction is settled at the end
-            low, high = outcome.stops or (math.nan, math.nan)
-            auto.report(f"{joint}: stops {high - low:.3f} rad apart in {outcome.seconds:.1f} s; its direction is "
-                        "settled at the end")
-        else:
-            auto.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
+    return False
+
+
+def calibrate(auto: AutoCalibration, joint: str) -> Steps:
+    """``joint``'s stops (the other one, where its first is found), what they say, and its outcome, whatever
+    happens (``attempt``)."""
+    outcome = auto.outcomes[joint]
+
+    def work(run: JointRun) -> Steps:
+        first = auto.firsts.get(joint)
+        yield from (find_stops(auto, run) if first is None else other_stop(auto, run, first))
+
+    if (yield from attempt(auto, joint, work)) and outcome.calibration is not None:
+        # The joint has stopped: the loop's model may take it now.
+        auto.know(auto.robot.index(joint), outcome.calibration, settled=auto.sweeps[joint].by_limits is not None)
+    if outcome.status == "direction_unknown":  # measured; its direction is settled at the end
+        low, high = outcome.stops or (math.nan, math.nan)
+        auto.report(f"{joint}: stops {high - low:.3f} rad apart in {outcome.seconds:.1f} s; its direction is "
+                    "settled at the end")
+    else:
+        auto.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
 
 def first_stop(auto: AutoCalibration, joint: str) -> Steps:
     """A new robot's joint to its first stop at the contact speed and back across what it crossed: its
-    ``FirstStop`` in ``auto.firsts``, and the offset it gives for the loop's model; a failure fails the joint, an
-    abort or a drive setting that could not be made or restored stops the run (as ``calibrate``)."""
+    ``FirstStop`` in ``auto.firsts``, and the offset it gives for the loop's model; its outcome as ``attempt``
+    gives it."""
     outcome = auto.outcomes[joint]
     state = auto.manager.resources.state
-    began = state.stamp
-    runs: list[JointRun] = []
 
     def work(run: JointRun) -> Steps:
-        runs.append(run)
         i = run.index
         start = float(state.position[i])
         a, first, slow, fallback = yield from approach_first(auto, run)
@@ -217,21 +226,9 @@ def first_stop(auto: AutoCalibration, joint: str) -> Steps:
         auto.firsts[joint] = FirstStop(a, first, goal, found, slow, fallback)
         auto.assume(i, found)
 
-    try:
-        yield from moving(auto, joint, work)
-    except JointFailed as exc:
-        outcome.status, outcome.message = "failed", str(exc)
-    except Aborted as exc:
-        outcome.status, outcome.message = "aborted", str(exc)
-    except PrimeError as exc:
-        outcome.status, outcome.message = "aborted", str(exc)
-        auto.abort(str(exc))
-    finally:
-        outcome.seconds = state.stamp - began
-        for run in runs:
-            outcome.times = dict(run.seconds)
-        if outcome.status != "not_reached":
-            auto.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
+    yield from attempt(auto, joint, work)
+    if outcome.status != "not_reached":
+        auto.report(f"{joint}: {outcome.status}" + (f" ({outcome.message})" if outcome.message else ""))
 
 
 def approach_first(auto: AutoCalibration, run: JointRun

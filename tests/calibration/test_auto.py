@@ -136,6 +136,23 @@ def test_two_signs_of_three_are_no_contact(missing):
     assert not any(detector.update(_tick(0.0, qd, effort), lag, free=False) for _ in range(20))
 
 
+def test_a_stop_met_at_the_travel_speed_is_seen_with_that_speed_and_a_stall_it_moved_on_from_is_forgotten():
+    run = _run()
+    detector = approach.ContactDetector(run, 1)
+    detector.start(_tick(0.0, 1.0, 0.0), 0.0)
+    detector.update(_tick(0.0, 1.0, 0.0, t=0.0), 0.0, free=True, speed=1.0, accel=-1.0)  # the target slows down
+    detector.update(_tick(0.0, 0.0, 0.0, t=0.02), 0.0, free=True)  # and the joint stopped at 1 rad/s
+    assert detector.stalled_at == pytest.approx(1.0)
+    for k in range(10):  # it moved on: no stop held it
+        detector.update(_tick(0.0, 0.17, 0.0, t=0.5 + 0.02 * k), 0.0, free=True, speed=0.17)
+    push = 0.5 * run.cap
+    k = 0
+    while not detector.update(_tick(0.0, 0.0, push, t=0.7 + 0.02 * k), run.leash, free=False):
+        k += 1
+        assert k < 10
+    assert detector.impact == pytest.approx(0.17)  # the stop met later, at the speed it came in at
+
+
 def test_the_leash_holds_the_target_to_the_baseline_lag_plus_the_leash():
     run = _run()
     detector = approach.ContactDetector(run, -1)

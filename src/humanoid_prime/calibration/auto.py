@@ -414,16 +414,20 @@ class AutoCalibration:
         told) and its reach across the robot keeps a plane between it and the other arm. Both at once where their
         whole ways keep apart so, else one after the other, each against the other arm where it is."""
         ways = {joint: self._way(joint) for joint in pair}
+        along: dict[str, list[Floats]] = {}  # each frame's reach (lowest, highest y) at each point of the way
         reaches: dict[str, tuple[float, float]] = {}
         for joint, way in ways.items():
             if way is not None:
-                reaches[joint] = self._reach(self.robot.index(joint), way[1], way[2])
+                along[joint] = [self._reaches(self.robot.index(joint), frame, angles)
+                                for frame, angles in zip(way[1], way[2], strict=True)]
+                reaches[joint] = (min(float(r[:, 0].min()) for r in along[joint]),
+                                  max(float(r[:, 1].max()) for r in along[joint]))
         together = len(pair) == 2 and len(reaches) == 2 and _apart(reaches[pair[0]], reaches[pair[1]],
                                                                    self.body.margin)
         for joint in pair:
             other = next((j for j in pair if j != joint), None)
             beside = reaches[other] if together and other is not None else self._other_arm(joint)
-            limit, certain = self._clear_until(joint, ways[joint], beside)
+            limit, certain = self._clear_until(joint, ways[joint], along.get(joint), beside)
             self.clear.pop(joint, None)
             if certain is not None:
                 self._not_driven(joint, certain)
@@ -455,18 +459,20 @@ class AutoCalibration:
         return path, frames, [frame.scale[i] * path + frame.shift[i] for frame in frames]
 
     def _clear_until(self, joint: str, way: tuple[Floats, list[Frame], list[Floats]] | None,
-                     beside: tuple[float, float] | None) -> tuple[float | None, str | None]:
+                     reach: list[Floats] | None, beside: tuple[float, float] | None
+                     ) -> tuple[float | None, str | None]:
         """How far along ``way`` (a host reading) ``joint``'s arm keeps beyond the margin of the body in every frame,
-        and its reach apart from ``beside`` (the other arm's): None, not even where it is; and why it must not be
-        driven, where its way brings its arm within the margin of the body in every frame (None: not so)."""
-        if way is None or beside is None:
+        and its ``reach`` there (each frame's, ``_reaches``) apart from ``beside`` (the other arm's): None, not even
+        where it is; and why it must not be driven, where its way brings its arm within the margin of the body in
+        every frame (None: not so)."""
+        if way is None or reach is None or beside is None:
             return None, None
         path, frames, angles = way
         i = self.robot.index(joint)
         measured = self.manager.resources.state.position
         reached = len(path)
         certain: list[str] = []
-        for frame, along in zip(frames, angles, strict=True):
+        for frame, along, reaches in zip(frames, angles, reach, strict=True):
             found = self.body.sweep(measured, i, along, frame)
             if found is None:
                 return None, None
@@ -477,7 +483,7 @@ class AutoCalibration:
                 certain.append(f"at {path[k]:+.2f} rad its way would bring {contact.words(self.body.margin)} with the "
                                "other joints where they are")
             for k in range(min(reached, len(path))):
-                if not _apart(self._reach(i, [frame], [along[k:k + 1]]), beside, self.body.margin):
+                if not _apart((float(reaches[k, 0]), float(reaches[k, 1])), beside, self.body.margin):
                     reached = k
                     break
         if len(certain) == len(frames):  # whichever way it turns
@@ -526,6 +532,17 @@ class AutoCalibration:
                 lo, hi = self.model.lateral(pose, arm)
                 low, high = min(low, lo), max(high, hi)
         return low, high
+
+    def _reaches(self, i: int, frame: Frame, angles: Floats) -> Floats:
+        """Joint ``i``'s arm's reach across the robot (lowest, highest y, m) in ``frame``, the joint at each of
+        ``angles``: one row per angle."""
+        pose = frame.scale * self.manager.resources.state.position + frame.shift
+        arm = self._arm(self.robot.names[i])
+        out = np.empty((len(angles), 2))
+        for k, angle in enumerate(angles):
+            pose[i] = angle
+            out[k] = self.model.lateral(pose, arm)
+        return out
 
     def _other_arm(self, joint: str) -> tuple[float, float] | None:
         """The other arm's reach where it is, under every frame it may still have."""

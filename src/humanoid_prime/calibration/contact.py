@@ -66,6 +66,7 @@ class ContactDetector:
         s = self.side
         self.lag_base = s * (target - tick.q)
         self.effort_base = s * (tick.effort - tick.ff)
+        self.stalled_at = 0.0
 
     def leash(self, tick: Tick, wanted: float) -> float:
         """``wanted``, held back so the target leads the joint by at most its baseline lag plus the leash."""
@@ -95,6 +96,8 @@ class ContactDetector:
                 self.stalled_at = max(self.speeds)
             self.count = 0
             return False
+        if s * tick.qd > STALL_SHARE * run.speed:  # moving on: whatever stopped it before did not hold it
+            self.stalled_at = 0.0
         excess = lag - self.lag_base
         rise = effort - self.effort_base
         keeping_up = speed > 1.5 * run.speed and s * tick.qd >= KEEP_UP_SHARE * speed

@@ -9,7 +9,6 @@ rotation turns counter-clockwise seen from its tip.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import mujoco
@@ -33,7 +32,7 @@ class GravityModel:
         self.qpos = self.model.jnt_qposadr[self.joint_ids].astype(np.intp)
         self.dof = self.model.jnt_dofadr[self.joint_ids].astype(np.intp)
         self._torques = np.zeros(robot.n)
-        self._moved: dict[tuple[int, ...], list[int]] = {}
+        self._moved: dict[tuple[int, ...], tuple[npt.NDArray[np.intp], ...]] = {}
 
     def torques(self, q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """Holding torque of every joint at ``q`` (canonical order); the returned array is reused."""
@@ -55,24 +54,18 @@ class GravityModel:
         """The lowest and highest y (to the robot's left, m) that the collision geoms moved by ``joints`` (canonical
         indices) reach at ``q``: a capsule's or cylinder's segment and radius, a box's corners, else its bounding
         sphere."""
-        model, data = self.model, self.data
+        data = self.data
         data.qpos[self.qpos] = q
-        mujoco.mj_kinematics(model, data)
-        low, high = math.inf, -math.inf
-        for g in self._geoms(joints):
-            y, axes, size = float(data.geom_xpos[g][1]), data.geom_xmat[g].reshape(3, 3)[1], model.geom_size[g]
-            kind = model.geom_type[g]
-            if kind in (mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER):
-                half = abs(float(axes[2])) * float(size[1]) + float(size[0])
-            elif kind == mujoco.mjtGeom.mjGEOM_BOX:
-                half = float(np.abs(axes) @ size)
-            else:
-                half = float(model.geom_rbound[g])
-            low, high = min(low, y - half), max(high, y + half)
-        return low, high
+        mujoco.mj_kinematics(self.model, data)
+        geoms, segment, box, radius, half_length, size, rbound = self._geoms(joints)
+        axes = np.abs(data.geom_xmat[geoms].reshape(-1, 3, 3)[:, 1, :])  # each geom axis's share along y
+        half = np.where(segment, axes[:, 2] * half_length + radius,
+                        np.where(box, np.einsum("ij,ij->i", axes, size), rbound))
+        y = data.geom_xpos[geoms, 1]
+        return float(np.min(y - half)), float(np.max(y + half))
 
-    def _geoms(self, joints: Sequence[int]) -> list[int]:
-        """The colliding geoms on the bodies that ``joints`` move."""
+    def _geoms(self, joints: Sequence[int]) -> tuple[npt.NDArray[np.intp], ...]:
+        """The colliding geoms on the bodies that ``joints`` move, and what ``lateral`` needs of their shapes."""
         key = tuple(joints)
         found = self._moved.get(key)
         if found is None:
@@ -85,8 +78,12 @@ class GravityModel:
                     chain = int(model.body_parentid[chain])
                 if chain in bodies:
                     moved.add(b)
-            found = [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in moved
-                     and (model.geom_contype[g] or model.geom_conaffinity[g])]
+            geoms = np.array([g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in moved
+                              and (model.geom_contype[g] or model.geom_conaffinity[g])], dtype=np.intp)
+            kind = model.geom_type[geoms]
+            segment = (kind == mujoco.mjtGeom.mjGEOM_CAPSULE) | (kind == mujoco.mjtGeom.mjGEOM_CYLINDER)
+            found = (geoms, segment, kind == mujoco.mjtGeom.mjGEOM_BOX, model.geom_size[geoms, 0].copy(),
+                     model.geom_size[geoms, 1].copy(), model.geom_size[geoms].copy(), model.geom_rbound[geoms].copy())
             self._moved[key] = found
         return found
 

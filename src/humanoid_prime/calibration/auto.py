@@ -94,6 +94,11 @@ def _apart(a: tuple[float, float] | None, b: tuple[float, float] | None, margin:
     return a[0] > b[1] + margin or b[0] > a[1] + margin
 
 
+def _spread(reaches: Sequence[Floats]) -> tuple[float, float]:
+    """The lowest and the highest y of rows of reaches (lowest, highest y)."""
+    return min(float(r[:, 0].min()) for r in reaches), max(float(r[:, 1].max()) for r in reaches)
+
+
 def contact_cap(robot: Robot, joint: str) -> float:
     """The joint's contact-effort cap (Nm): ``joints.contact_effort_cap`` of the hardware file, else
     ``CONTACT_FRACTION`` of its effort limit. ConfigError if the file asks for more than the effort limit."""
@@ -420,8 +425,7 @@ class AutoCalibration:
             if way is not None:
                 along[joint] = [self._reaches(self.robot.index(joint), frame, angles)
                                 for frame, angles in zip(way[1], way[2], strict=True)]
-                reaches[joint] = (min(float(r[:, 0].min()) for r in along[joint]),
-                                  max(float(r[:, 1].max()) for r in along[joint]))
+                reaches[joint] = _spread(along[joint])
         together = len(pair) == 2 and len(reaches) == 2 and _apart(reaches[pair[0]], reaches[pair[1]],
                                                                    self.body.margin)
         for joint in pair:
@@ -519,20 +523,6 @@ class AutoCalibration:
             frames.append(frame)
         return frames
 
-    def _reach(self, i: int, frames: Sequence[Frame], angles: Sequence[Floats] | None) -> tuple[float, float]:
-        """How far toward the robot's left and right (lowest and highest y, m) joint ``i``'s arm reaches in each of
-        ``frames``, the joint at each of that frame's ``angles`` (None: where it is)."""
-        measured = self.manager.resources.state.position
-        arm = self._arm(self.robot.names[i])
-        low, high = math.inf, -math.inf
-        for k, frame in enumerate(frames):
-            pose = frame.scale * measured + frame.shift
-            for angle in (angles[k] if angles is not None else (float(pose[i]),)):
-                pose[i] = angle
-                lo, hi = self.model.lateral(pose, arm)
-                low, high = min(low, lo), max(high, hi)
-        return low, high
-
     def _reaches(self, i: int, frame: Frame, angles: Floats) -> Floats:
         """Joint ``i``'s arm's reach across the robot (lowest, highest y, m) in ``frame``, the joint at each of
         ``angles``: one row per angle."""
@@ -545,12 +535,16 @@ class AutoCalibration:
         return out
 
     def _other_arm(self, joint: str) -> tuple[float, float] | None:
-        """The other arm's reach where it is, under every frame it may still have."""
+        """The other arm's reach where it is, under every frame it may still have (None: not placed)."""
         other = next((j for j in self.robot.names if not j.startswith(joint.split("_", 1)[0] + "_")), None)
         if other is None:
             return None
         frames = self._frames(other)
-        return None if frames is None else self._reach(self.robot.index(other), frames, None)
+        if frames is None:
+            return None
+        i, measured = self.robot.index(other), self.manager.resources.state.position
+        return _spread([self._reaches(i, frame, frame.scale[i:i + 1] * measured[i] + frame.shift[i:i + 1])
+                        for frame in frames])
 
     def _drivable(self, joint: str) -> bool | None:
         """Whether ``joint``'s whole range keeps its arm beyond the margin of the other arm and the body with the

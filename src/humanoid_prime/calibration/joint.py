@@ -93,11 +93,12 @@ def new_run(auto: AutoCalibration, joint: str) -> JointRun:
     # arm held per tick, on the standby gains, gives way to what a fast motion of one of its joints asks).
     arm = joint.split("_", 1)[0] + "_"
     holding = [j for j in robot.names if j.startswith(arm) and j in robot.hardware.erob_joints and j != joint]
+    stiff = all(j in auto.rings for j in holding)
     run = JointRun(i, joint, cap=cap, gains=gains, leash_gains=leash_gains, speed=auto.speed,
                    rate=auto.manager.update_rate, effort_limit=spec.effort_limit,
                    inertia=auto.model.inertia(auto.description_angles(state.position))[i],
-                   known=auto.robots_prior[joint] and all(j in auto.rings for j in holding),
-                   found=joint in auto.firsts and joint in auto.clear and all(j in auto.rings for j in holding))
+                   known=auto.robots_prior[joint] and stiff,
+                   found=joint in auto.firsts and joint in auto.clear and stiff)
     if run.leash <= 0:
         raise JointFailed(f"the speed {auto.speed:g} rad/s leaves no leash under the cap of {cap:g} Nm")
     run.trace = auto.traces.setdefault(joint, run.trace)  # the question's motion goes on the same trace
